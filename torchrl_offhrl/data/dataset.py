@@ -1,0 +1,353 @@
+"""Offline datasets in TorchRL's offline TensorDict layout.
+
+An :class:`OfflineDataset` is a flat ``TensorDict`` of ``N`` transitions with
+the keys TorchRL's offline replay buffers use::
+
+    observation, action, episode,
+    ("next", "observation" | "reward" | "done" | "terminated" | "truncated")
+
+plus a ``metadata`` dict (env id, versions, seed, return statistics, ...).
+Episodes are contiguous and numbered by ``episode``; an episode ends at a
+transition whose ``("next", "done")`` is set.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Sequence
+
+import torch
+from tensordict import TensorDict
+
+__all__ = ["DatasetError", "OfflineDataset", "NormalizationStats"]
+
+
+class DatasetError(ValueError):
+    """Raised for a dataset that cannot be used as it is.
+
+    The message names the file, the key and the shape involved, and what to do.
+    """
+
+
+@dataclasses.dataclass
+class NormalizationStats:
+    """Per-dimension statistics of a dataset, used by every learned model.
+
+    ``delta`` is the next-state residual ``s' - s``. Standard deviations are
+    floored at ``eps`` so that constant dimensions do not blow up.
+    """
+
+    obs_mean: torch.Tensor
+    obs_std: torch.Tensor
+    delta_mean: torch.Tensor
+    delta_std: torch.Tensor
+    reward_mean: torch.Tensor
+    reward_std: torch.Tensor
+    obs_min: torch.Tensor
+    obs_max: torch.Tensor
+    action_low: torch.Tensor
+    action_high: torch.Tensor
+
+    def to(self, device) -> "NormalizationStats":
+        return NormalizationStats(
+            **{f.name: getattr(self, f.name).to(device) for f in dataclasses.fields(self)}
+        )
+
+
+class OfflineDataset:
+    """A fixed set of transitions with episode boundaries and metadata.
+
+    Args:
+        data (TensorDict): ``N`` transitions in TorchRL's offline layout (see
+            the module docstring). ``episode`` is created from the done flags
+            when absent.
+        metadata (dict, optional): free-form information kept with the data
+            (``env_id``, ``seed``, ``returns``, ``source``...).
+        action_bounds (tuple of tensors, optional): the action box. Defaults
+            to ``metadata["action_low"/"action_high"]`` when present, else the
+            per-dimension min/max of the actions in the data.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_offhrl.data import OfflineDataset
+        >>> n = 6
+        >>> td = TensorDict({
+        ...     "observation": torch.arange(n, dtype=torch.float32)[:, None],
+        ...     "action": torch.zeros(n, 1),
+        ...     "next": {
+        ...         "observation": torch.arange(1, n + 1, dtype=torch.float32)[:, None],
+        ...         "reward": torch.ones(n, 1),
+        ...         "terminated": torch.tensor([0, 0, 1, 0, 0, 0], dtype=torch.bool)[:, None],
+        ...         "truncated": torch.tensor([0, 0, 0, 0, 0, 1], dtype=torch.bool)[:, None],
+        ...     },
+        ... }, batch_size=[n])
+        >>> ds = OfflineDataset(td, metadata={"env_id": "Toy-v0"})
+        >>> len(ds), ds.num_episodes, ds.observation_dim, ds.action_dim
+        (6, 2, 1, 1)
+        >>> ds.episode_returns().tolist()
+        [3.0, 3.0]
+        >>> ds.initial_observations().squeeze(-1).tolist()
+        [0.0, 3.0]
+    """
+
+    def __init__(
+        self,
+        data: TensorDict,
+        metadata: dict | None = None,
+        action_bounds: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ):
+        self.metadata: dict[str, Any] = dict(metadata or {})
+        source = self.metadata.get("source", "<in-memory>")
+        required = [
+            "observation",
+            "action",
+            ("next", "observation"),
+            ("next", "reward"),
+            ("next", "terminated"),
+            ("next", "truncated"),
+        ]
+        for key in required:
+            if key not in data.keys(include_nested=True):
+                raise DatasetError(
+                    f"{source}: the dataset has no entry {key!r}. An OfflineDataset needs "
+                    f"{required}; build it with torchrl_offhrl.data.load_dataset or add the key."
+                )
+        if data.batch_dims != 1:
+            raise DatasetError(
+                f"{source}: expected a flat TensorDict of transitions (batch_size=[N]), "
+                f"got batch_size={list(data.batch_size)}; call data.reshape(-1) first."
+            )
+        for key in (("next", "terminated"), ("next", "truncated")):
+            v = data.get(key)
+            if v.dim() == 1:
+                data.set(key, v.unsqueeze(-1))
+            data.set(key, data.get(key).bool())
+        if data.get(("next", "reward")).dim() == 1:
+            data.set(("next", "reward"), data.get(("next", "reward")).unsqueeze(-1))
+        data.set(
+            ("next", "done"),
+            data.get(("next", "terminated")) | data.get(("next", "truncated")),
+        )
+        if "episode" not in data.keys():
+            done = data.get(("next", "done")).squeeze(-1)
+            starts = torch.zeros_like(done)
+            starts[1:] = done[:-1]
+            data.set("episode", torch.cumsum(starts.long(), 0))
+        self.data = data
+        if action_bounds is None and "action_low" in self.metadata:
+            action_bounds = (
+                torch.as_tensor(self.metadata["action_low"], dtype=torch.float32),
+                torch.as_tensor(self.metadata["action_high"], dtype=torch.float32),
+            )
+        if action_bounds is None:
+            act = data.get("action")
+            action_bounds = (act.min(0).values, act.max(0).values)
+        self.action_low = torch.as_tensor(action_bounds[0], dtype=torch.float32).reshape(-1)
+        self.action_high = torch.as_tensor(action_bounds[1], dtype=torch.float32).reshape(-1)
+        self._stats: NormalizationStats | None = None
+
+    # ------------------------------------------------------------------ basics
+    def __len__(self) -> int:
+        return self.data.shape[0]
+
+    def __getitem__(self, index):
+        return self.data[index]
+
+    def __repr__(self) -> str:
+        env = self.metadata.get("env_id", "?")
+        return (
+            f"OfflineDataset(env_id={env!r}, transitions={len(self)}, "
+            f"episodes={self.num_episodes}, obs_dim={self.observation_dim}, "
+            f"action_dim={self.action_dim})"
+        )
+
+    @property
+    def observation_dim(self) -> int:
+        return self.data.get("observation").shape[-1]
+
+    @property
+    def action_dim(self) -> int:
+        return self.data.get("action").shape[-1]
+
+    @property
+    def env_id(self) -> str | None:
+        return self.metadata.get("env_id")
+
+    @property
+    def num_episodes(self) -> int:
+        return int(torch.unique_consecutive(self.data.get("episode")).numel())
+
+    def episode_starts(self) -> torch.Tensor:
+        """Boolean mask of the transitions that begin an episode."""
+        ep = self.data.get("episode")
+        starts = torch.ones_like(ep, dtype=torch.bool)
+        starts[1:] = ep[1:] != ep[:-1]
+        return starts
+
+    def initial_observations(self) -> torch.Tensor:
+        """The first observation of every episode, ``[num_episodes, obs_dim]``."""
+        return self.data.get("observation")[self.episode_starts()]
+
+    def episode_returns(self) -> torch.Tensor:
+        """Undiscounted return of every episode in the data, in order."""
+        ep = self.data.get("episode")
+        _, inverse = torch.unique_consecutive(ep, return_inverse=True)
+        rewards = self.data.get(("next", "reward")).squeeze(-1).double()
+        out = torch.zeros(int(inverse.max()) + 1, dtype=torch.float64)
+        out.index_add_(0, inverse, rewards)
+        return out
+
+    def to(self, device) -> "OfflineDataset":
+        out = OfflineDataset(
+            self.data.to(device), self.metadata, (self.action_low.to(device), self.action_high.to(device))
+        )
+        return out
+
+    # ------------------------------------------------------------- statistics
+    def stats(self, eps: float = 1e-6) -> NormalizationStats:
+        """Normalisation statistics (cached); see :class:`NormalizationStats`."""
+        if self._stats is None:
+            obs = self.data.get("observation").double()
+            nobs = self.data.get(("next", "observation")).double()
+            rew = self.data.get(("next", "reward")).double()
+            delta = nobs - obs
+            self._stats = NormalizationStats(
+                obs_mean=obs.mean(0).float(),
+                obs_std=obs.std(0).clamp_min(eps).float(),
+                delta_mean=delta.mean(0).float(),
+                delta_std=delta.std(0).clamp_min(eps).float(),
+                reward_mean=rew.mean(0).float(),
+                reward_std=rew.std(0).clamp_min(eps).float(),
+                obs_min=torch.minimum(obs.min(0).values, nobs.min(0).values).float(),
+                obs_max=torch.maximum(obs.max(0).values, nobs.max(0).values).float(),
+                action_low=self.action_low.clone(),
+                action_high=self.action_high.clone(),
+            )
+        return self._stats
+
+    # ------------------------------------------------------------------ split
+    def split(self, val_ratio: float = 0.1, seed: int = 0) -> tuple["OfflineDataset", "OfflineDataset"]:
+        """Split by whole episodes into ``(train, validation)``.
+
+        ``val_ratio`` is the fraction of *episodes* held out (at least one
+        episode each side when the data has two or more). The split is
+        deterministic for a given ``seed``.
+
+        Examples:
+            >>> from torchrl_offhrl.data import make_toy_dataset
+            >>> ds = make_toy_dataset(num_episodes=10, episode_length=5)
+            >>> train, val = ds.split(0.2, seed=0)
+            >>> len(train), len(val)
+            (40, 10)
+            >>> set(train.data["episode"].tolist()).isdisjoint(val.data["episode"].tolist())
+            True
+        """
+        if not 0.0 < val_ratio < 1.0:
+            raise ValueError(f"val_ratio must be in (0, 1), got {val_ratio}.")
+        ep = self.data.get("episode")
+        ids = torch.unique_consecutive(ep)
+        n = ids.numel()
+        if n < 2:
+            raise DatasetError(
+                f"{self.metadata.get('source', '<in-memory>')}: cannot split a dataset with "
+                f"{n} episode(s) by episode; provide more episodes or skip validation."
+            )
+        g = torch.Generator().manual_seed(seed)
+        perm = ids[torch.randperm(n, generator=g)]
+        n_val = min(max(1, int(round(val_ratio * n))), n - 1)
+        val_ids = perm[:n_val]
+        is_val = torch.isin(ep, val_ids)
+        meta_t = dict(self.metadata, split="train")
+        meta_v = dict(self.metadata, split="validation")
+        bounds = (self.action_low, self.action_high)
+        return (
+            OfflineDataset(self.data[~is_val], meta_t, bounds),
+            OfflineDataset(self.data[is_val], meta_v, bounds),
+        )
+
+    @staticmethod
+    def concatenate(datasets: Sequence["OfflineDataset"], metadata: dict | None = None) -> "OfflineDataset":
+        """Concatenate datasets (e.g. medium + expert), renumbering episodes."""
+        parts = []
+        offset = 0
+        for ds in datasets:
+            td = ds.data.clone()
+            _, inv = torch.unique_consecutive(td.get("episode"), return_inverse=True)
+            td.set("episode", inv + offset)
+            offset += int(inv.max()) + 1
+            parts.append(td)
+        low = torch.stack([d.action_low for d in datasets]).min(0).values
+        high = torch.stack([d.action_high for d in datasets]).max(0).values
+        meta = dict(metadata or datasets[0].metadata)
+        return OfflineDataset(torch.cat(parts, 0), meta, (low, high))
+
+
+def make_toy_dataset(
+    num_episodes: int = 20,
+    episode_length: int = 50,
+    obs_dim: int = 3,
+    action_dim: int = 2,
+    seed: int = 0,
+) -> OfflineDataset:
+    """A small synthetic dataset with known linear dynamics, for tests and docs.
+
+    ``s' = s + 0.1 * A a`` with a fixed matrix ``A``, reward ``-|s'|^2``,
+    actions drawn uniformly from ``[-1, 1]`` times 0.5 (so ``[-0.5, 0.5]`` is
+    in-distribution and the corners of ``[-1, 1]`` are not), episodes that
+    time out after ``episode_length`` steps.
+    """
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(obs_dim, action_dim, generator=g)
+    n = num_episodes * episode_length
+    obs = torch.empty(n, obs_dim)
+    nobs = torch.empty(n, obs_dim)
+    act = (torch.rand(n, action_dim, generator=g) * 2 - 1) * 0.5
+    i = 0
+    for _ in range(num_episodes):
+        s = torch.randn(obs_dim, generator=g) * 0.1
+        for _ in range(episode_length):
+            obs[i] = s
+            s = s + 0.1 * (A @ act[i])
+            nobs[i] = s
+            i += 1
+    truncated = torch.zeros(n, 1, dtype=torch.bool)
+    truncated[episode_length - 1 :: episode_length] = True
+    td = TensorDict(
+        {
+            "observation": obs,
+            "action": act,
+            "next": {
+                "observation": nobs,
+                "reward": -(nobs**2).sum(-1, keepdim=True),
+                "terminated": torch.zeros(n, 1, dtype=torch.bool),
+                "truncated": truncated,
+            },
+        },
+        batch_size=[n],
+    )
+    meta = {
+        "env_id": "Toy-v0",
+        "source": "make_toy_dataset",
+        "seed": seed,
+        "action_low": [-1.0] * action_dim,
+        "action_high": [1.0] * action_dim,
+    }
+    return OfflineDataset(td, meta)
+
+
+def check_finite(td: TensorDict, source: str) -> None:
+    """Raise :class:`DatasetError` naming the first key holding NaN or inf."""
+    for key, value in td.items(include_nested=True, leaves_only=True):
+        if value.is_floating_point() and not torch.isfinite(value).all():
+            bad = (~torch.isfinite(value)).nonzero()
+            first = bad[0].tolist()
+            raise DatasetError(
+                f"{source}: key {key!r} (shape {tuple(value.shape)}) holds "
+                f"{int((~torch.isfinite(value)).sum())} NaN/inf value(s), the first at index "
+                f"{first}. Remove or repair those transitions before loading."
+            )
+
+
+def _nan_safe(x: float) -> float | None:
+    return None if (x is None or not math.isfinite(x)) else float(x)

@@ -1,0 +1,17 @@
+"""Learned models: vectorised ensembles, the dynamics ensemble, the CVAE and their trainer."""
+from ._common import atomic_torch_save
+from .cvae import ConditionalVAE, CVAEDecoder
+from .dynamics import DISCREPANCIES, DynamicsEnsemble
+from .ensemble import EnsembleLinear, EnsembleMLP
+from .trainer import SupervisedTrainer
+
+__all__ = [
+    "CVAEDecoder",
+    "ConditionalVAE",
+    "DISCREPANCIES",
+    "DynamicsEnsemble",
+    "EnsembleLinear",
+    "EnsembleMLP",
+    "SupervisedTrainer",
+    "atomic_torch_save",
+]

@@ -1,0 +1,172 @@
+"""One supervised trainer for every learned model (ensembles and the CVAE)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Protocol, Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+__all__ = ["SupervisedTrainer", "TrainableModel"]
+
+
+class TrainableModel(Protocol):
+    """What :class:`SupervisedTrainer` needs from a model.
+
+    * ``num_members``: ``K``; every trainable parameter has a leading
+      dimension ``K`` when ``K > 1`` (batched-weight ensembles);
+    * ``train_keys``: the dataset keys the loss reads;
+    * ``loss(batch)``: for a batch of shape ``[K, B]`` (member ``k`` gets
+      ``batch[k]``) or ``[B]`` (the same batch for every member), returns the
+      per-member mean loss, shape ``[K]``.
+    """
+
+    num_members: int
+    train_keys: Sequence
+
+    def loss(self, batch: TensorDictBase) -> torch.Tensor: ...
+
+    def parameters(self): ...
+
+
+@dataclasses.dataclass
+class SupervisedTrainer:
+    """Adam, bootstrap minibatches per member, validation, early stopping.
+
+    Each optimisation step draws an independent minibatch (with replacement:
+    a bootstrap) for every member and sums the members' losses; since members
+    share no parameter, each member's gradient is that of its own loss. After
+    every epoch the validation loss of each member is measured; a member's
+    best weights are kept, training stops once no member has improved for
+    ``patience`` epochs, and every member gets its best weights back.
+
+    Args:
+        lr: Adam learning rate (paper: 1e-4).
+        batch_size: minibatch per member (paper: 256).
+        max_epochs: upper bound on epochs.
+        steps_per_epoch: optimisation steps between validations; default one
+            pass over the training set (``len(train) // batch_size``).
+        max_steps: optional bound on the total number of steps.
+        patience: epochs without improvement before stopping.
+        min_delta: improvement smaller than this does not count.
+        val_max_samples: validation subset size (fixed, drawn once).
+        seed: seeds the minibatch sampling.
+        progress: show a tqdm bar with the losses.
+        desc: label of the progress bar.
+    """
+
+    lr: float = 1e-4
+    batch_size: int = 256
+    max_epochs: int = 200
+    steps_per_epoch: int | None = None
+    max_steps: int | None = None
+    patience: int = 5
+    min_delta: float = 0.0
+    val_max_samples: int = 50_000
+    weight_decay: float = 0.0
+    seed: int = 0
+    progress: bool = True
+    desc: str = "fit"
+
+    def fit(self, model: TrainableModel, train: TensorDictBase, val: TensorDictBase | None = None) -> list[dict]:
+        """Train ``model`` in place; returns the per-epoch history."""
+        from tqdm.auto import tqdm
+
+        device = next(model.parameters()).device
+        keys = list(model.train_keys)
+        train = train.select(*keys).to(device)
+        n = train.shape[0]
+        if n == 0:
+            raise ValueError("SupervisedTrainer.fit: the training set is empty.")
+        k = model.num_members
+        gen = torch.Generator(device=device).manual_seed(self.seed)
+        if val is not None and val.shape[0] > 0:
+            val = val.select(*keys).to(device)
+            if val.shape[0] > self.val_max_samples:
+                sel = torch.randperm(val.shape[0], generator=torch.Generator().manual_seed(self.seed))
+                val = val[sel[: self.val_max_samples].to(device)]
+        else:
+            val = None
+        params = [p for p in model.parameters() if p.requires_grad]
+        if k > 1:
+            for p in params:
+                if p.shape[0] != k:
+                    raise ValueError(
+                        f"every trainable parameter of a {k}-member model must have a leading "
+                        f"dimension {k}; found shape {tuple(p.shape)}."
+                    )
+        opt = torch.optim.Adam(params, lr=self.lr, weight_decay=self.weight_decay)
+        steps_per_epoch = self.steps_per_epoch or max(1, n // self.batch_size)
+        max_epochs = self.max_epochs
+        if self.max_steps is not None:
+            max_epochs = min(max_epochs, math.ceil(self.max_steps / steps_per_epoch))
+        best = torch.full((k,), float("inf"), device=device)
+        best_params = [p.detach().clone() for p in params]
+        bad_epochs = 0
+        history: list[dict] = []
+        total_steps = 0
+        bar = tqdm(range(max_epochs), desc=self.desc, disable=not self.progress, leave=False)
+        for epoch in bar:
+            model.train()
+            running = torch.zeros(k, device=device)
+            steps = steps_per_epoch
+            if self.max_steps is not None:
+                steps = min(steps, self.max_steps - total_steps)
+            for _ in range(steps):
+                idx = torch.randint(0, n, (k, self.batch_size), generator=gen, device=device)
+                per_member = model.loss(train[idx])
+                opt.zero_grad(set_to_none=True)
+                per_member.sum().backward()
+                opt.step()
+                running += per_member.detach()
+            total_steps += steps
+            train_loss = running / max(steps, 1)
+            record = {"epoch": epoch, "steps": total_steps, "train_loss": train_loss.cpu().tolist()}
+            if val is not None:
+                val_loss = self.evaluate(model, val)
+                record["val_loss"] = val_loss.cpu().tolist()
+                improved = val_loss < best - self.min_delta
+            else:
+                val_loss = train_loss
+                improved = train_loss < best - self.min_delta
+            if improved.any():
+                best = torch.where(improved, val_loss, best)
+                with torch.no_grad():
+                    for p, b in zip(params, best_params):
+                        if k > 1:
+                            b[improved] = p[improved]
+                        else:
+                            b.copy_(p)
+                bad_epochs = 0
+            else:
+                bad_epochs += 1
+            history.append(record)
+            bar.set_postfix(
+                train=f"{train_loss.mean().item():.4f}",
+                **({"val": f"{val_loss.mean().item():.4f}"} if val is not None else {}),
+            )
+            if bad_epochs >= self.patience:
+                break
+            if self.max_steps is not None and total_steps >= self.max_steps:
+                break
+        bar.close()
+        with torch.no_grad():
+            for p, b in zip(params, best_params):
+                p.copy_(b)
+        model.eval()
+        return history
+
+    @torch.no_grad()
+    def evaluate(self, model: TrainableModel, data: TensorDictBase, chunk: int = 8192) -> torch.Tensor:
+        """Mean loss of every member on ``data`` (the same samples for all), shape ``[K]``."""
+        was_training = model.training
+        model.eval()
+        total = None
+        n = data.shape[0]
+        for start in range(0, n, chunk):
+            part = data[start : start + chunk]
+            loss = model.loss(part) * part.shape[0]
+            total = loss if total is None else total + loss
+        model.train(was_training)
+        return total / n
