@@ -1,0 +1,147 @@
+"""Acting in the CVAE's latent action space."""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Bounded
+from torchrl.envs.transforms import Transform
+
+__all__ = ["LatentActionTransform"]
+
+
+class LatentActionTransform(Transform):
+    """Lets a policy act in a CVAE's latent space; the decoder makes real actions.
+
+    The policy writes ``latent_action`` (a box ``[-latent_bound,
+    latent_bound]^latent_dim``); before every step of the base env the
+    transform decodes it with the current observation (and goal) into
+    ``action``. The decoded action stays in the rollout, so data collected
+    through the transform holds both. Works on
+    :class:`~torchrl_offhrl.envs.PessimisticModelEnv` and on a real
+    environment (e.g. TorchRL's ``GymEnv``): the paper evaluates agents in the
+    real env through the same decoder.
+
+    Specs: ``action`` leaves the action spec for the state spec (it is an
+    input of the base env that the policy does not write) and
+    ``latent_action`` becomes the action.
+
+    Args:
+        decoder (CVAEDecoder): maps ``(observation, latent[, goal])`` to an
+            action in the action box; any module with that signature and a
+            ``latent_dim`` attribute works.
+        latent_bound (float): half-width of the latent box (default 2.0,
+            i.e. two standard deviations of the CVAE prior).
+        clip (bool): clamp latent actions into the box before decoding
+            (default ``True``); with ``False`` out-of-box latents are decoded
+            as they are.
+        latent_key / action_key / observation_key: tensordict keys.
+        goal_key: key of the goal for goal-conditioned decoders.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_offhrl.data import make_toy_dataset
+        >>> from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+        >>> from torchrl_offhrl.envs import PessimisticModelEnv, LatentActionTransform
+        >>> data = make_toy_dataset(num_episodes=10, episode_length=20)
+        >>> ens = DynamicsEnsemble.for_dataset(data, num_models=3, hidden_sizes=(32,)).fit(data, max_epochs=2, progress=False)
+        >>> cvae = ConditionalVAE.for_dataset(data, hidden_sizes=(32,)).fit(data, max_epochs=2, progress=False)
+        >>> env = TransformedEnv(
+        ...     PessimisticModelEnv(ens, data, batch_size=[8], seed=0),
+        ...     LatentActionTransform(cvae.decoder),
+        ... )
+        >>> check_env_specs(env)
+        >>> td = env.rollout(5, break_when_any_done=False)
+        >>> td["latent_action"].shape, td["action"].shape
+        (torch.Size([8, 5, 2]), torch.Size([8, 5, 2]))
+    """
+
+    def __init__(
+        self,
+        decoder: torch.nn.Module,
+        latent_bound: float = 2.0,
+        clip: bool = True,
+        latent_key: str = "latent_action",
+        action_key: str = "action",
+        observation_key: str = "observation",
+        goal_key: str | None = None,
+    ):
+        if latent_bound <= 0:
+            raise ValueError(f"latent_bound must be > 0, got {latent_bound}.")
+        super().__init__(in_keys_inv=[action_key], out_keys_inv=[latent_key])
+        self.decoder = decoder
+        for p in self.decoder.parameters():
+            p.requires_grad_(False)
+        self.decoder.eval()
+        self.latent_dim = int(decoder.latent_dim)
+        self.latent_bound = float(latent_bound)
+        self.clip = clip
+        self.latent_key = latent_key
+        self.action_key = action_key
+        self.observation_key = observation_key
+        self.goal_key = goal_key
+
+    def transform_input_spec(self, input_spec):
+        action_spec = input_spec["full_action_spec", self.action_key]
+        lead = action_spec.shape[:-1]
+        bound = self.latent_bound
+        latent_spec = Bounded(
+            -bound, bound, (*lead, self.latent_dim), dtype=torch.float32, device=action_spec.device
+        )
+        input_spec["full_state_spec", self.action_key] = action_spec.clone()
+        del input_spec["full_action_spec", self.action_key]
+        input_spec["full_action_spec", self.latent_key] = latent_spec
+        return input_spec
+
+    def inv(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # No clone: the decoded action is written into the rollout's tensordict.
+        return self._inv_call(tensordict)
+
+    @torch.no_grad()
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        latent = tensordict.get(self.latent_key, None)
+        if latent is None:
+            raise KeyError(
+                f"LatentActionTransform: the policy must write '{self.latent_key}' (found keys "
+                f"{list(tensordict.keys())}); drop the transform to act with real actions."
+            )
+        if self.clip:
+            latent = latent.clamp(-self.latent_bound, self.latent_bound)
+        obs = tensordict.get(self.observation_key)
+        goal = tensordict.get(self.goal_key) if self.goal_key is not None else None
+        action = self.decoder(obs, latent.to(obs.dtype), goal)
+        slot = tensordict.get(self.action_key, None)
+        if isinstance(slot, torch.Tensor) and slot.shape == action.shape and slot.dtype == action.dtype:
+            # Write into the slot the reset / previous step left in the root
+            # tensordict: inside a Compose, inverse transforms see a shallow
+            # clone, and only an in-place write reaches the rollout's data.
+            slot.copy_(action)
+            return tensordict
+        return tensordict.set(self.action_key, action)
+
+    def _action_slot(self, reference: TensorDictBase) -> torch.Tensor:
+        # the parent is the env *before* this transform: "action" is its action
+        spec = self.parent.full_action_spec.get(self.action_key, None) if self.parent is not None else None
+        if spec is not None:
+            return torch.zeros(spec.shape, dtype=spec.dtype, device=spec.device)
+        obs = reference.get(self.observation_key)
+        return torch.zeros(*obs.shape[:-1], self.decoder.action_dim, device=obs.device)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        # a fresh slot for the first decoded action of the episode
+        return tensordict_reset.set(self.action_key, self._action_slot(tensordict_reset))
+
+    def _post_step_mdp_hooks(self, tensordict: TensorDictBase, tensordict_: TensorDictBase):
+        # a fresh slot for the next step, so that no two steps share storage
+        tensordict_.set(self.action_key, self._action_slot(tensordict_))
+        return tensordict, tensordict_
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(latent_key={self.latent_key!r}, action_key={self.action_key!r}, "
+            f"latent_dim={self.latent_dim}, latent_bound={self.latent_bound})"
+        )

@@ -1,0 +1,275 @@
+"""The pessimistic MDP (P-MDP) as a batched TorchRL environment."""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from ..models.dynamics import DISCREPANCIES
+from .calibration import CalibrationReport, calibrate_threshold, dataset_discrepancy
+from .termination import termination_fn_for
+
+__all__ = ["PessimisticModelEnv"]
+
+log = logging.getLogger(__name__)
+_MEMBER_MODES = ("episode", "step", "mean")
+
+
+class PessimisticModelEnv(EnvBase):
+    """A learned, pessimistic model of an environment, stepped in batch.
+
+    At reset, each environment draws a start state from the dataset and one
+    ensemble member ``k`` that supplies its next states and rewards for the
+    whole episode (the paper; ``member_mode="step"`` redraws ``k`` each step,
+    ``"mean"`` averages the members). Every step also measures the members'
+    disagreement on ``(s, a)``; above ``threshold`` the episode ends with
+    ``terminated=True`` and reward ``-penalty``. A prediction that is NaN/inf
+    or lands more than ``bounds_margin`` data ranges outside the dataset's
+    state bounds is *unknown*: it terminates the same way and the state is
+    kept at its last known value, so no NaN ever leaves the env. The task's
+    own termination (e.g. Hopper's health check) applies on top, and
+    episodes are truncated after ``horizon`` steps.
+
+    Args:
+        ensemble (DynamicsEnsemble): a fitted ensemble (with a learned
+            reward or a ``reward_fn``).
+        data (OfflineDataset): supplies start states, state bounds, the
+            action box, the env id and (when ``threshold`` is None) the
+            calibration pairs.
+        threshold (float, optional): discrepancy above which a step is
+            penalised. ``None`` calibrates it on the dataset: ``quantile`` of
+            the pairs' discrepancies (0.99 by default), or ``fraction`` times
+            their maximum when ``fraction`` is given.
+        penalty (float): the reward on a pessimistic termination is
+            ``-penalty`` (paper: 20 to 50).
+        discrepancy (str): ``"variance"`` (the paper) or ``"max_pairwise"``
+            (MOReL).
+        quantile / fraction: calibration, see ``threshold``.
+        termination_fn: ``"auto"`` (by the dataset's env id), a callable
+            ``f(next_obs) -> bool[...]``, or ``None`` (never).
+        horizon (int): truncation after this many steps (default 1000).
+        member_mode (str): ``"episode"``, ``"step"`` or ``"mean"``.
+        reset_states (str): ``"initial"`` (episode starts in the data) or
+            ``"any"`` (any dataset state).
+        bounds_margin (float): how many data ranges outside
+            ``[obs_min, obs_max]`` a state may go before it counts as unknown.
+        batch_size: e.g. ``[1024]`` parallel model rollouts; ``[]`` for one.
+        device: where the ensemble and the rollouts live.
+        seed (int, optional): seeds start states and member draws.
+
+    The env writes, besides TorchRL's standard keys, ``discrepancy``
+    (``[*B, 1]``), ``penalized`` (pessimistic termination, ``[*B, 1]``),
+    ``model_member`` and ``model_step`` (``[*B, 1]``, int64).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_offhrl.data import make_toy_dataset
+        >>> from torchrl_offhrl.models import DynamicsEnsemble
+        >>> from torchrl_offhrl.envs import PessimisticModelEnv
+        >>> data = make_toy_dataset(num_episodes=10, episode_length=20)
+        >>> ens = DynamicsEnsemble.for_dataset(data, num_models=3, hidden_sizes=(32, 32))
+        >>> ens = ens.fit(data, max_epochs=3, progress=False)
+        >>> env = PessimisticModelEnv(ens, data, penalty=20.0, horizon=50, batch_size=[16], seed=0)
+        >>> check_env_specs(env)
+        >>> td = env.rollout(10, break_when_any_done=False)
+        >>> td.batch_size
+        torch.Size([16, 10])
+        >>> bool(torch.isfinite(td["next", "observation"]).all())
+        True
+    """
+
+    def __init__(
+        self,
+        ensemble,
+        data,
+        threshold: float | None = None,
+        penalty: float = 20.0,
+        discrepancy: str = "variance",
+        quantile: float | None = 0.99,
+        fraction: float | None = None,
+        termination_fn: str | Callable | None = "auto",
+        horizon: int = 1000,
+        member_mode: str = "episode",
+        reset_states: str = "initial",
+        bounds_margin: float = 1.0,
+        batch_size: Sequence[int] | torch.Size | None = None,
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+    ):
+        batch_size = torch.Size([] if batch_size is None else batch_size)
+        super().__init__(device=device, batch_size=batch_size)
+        if discrepancy not in DISCREPANCIES:
+            raise ValueError(f"discrepancy must be one of {DISCREPANCIES}, got {discrepancy!r}.")
+        if member_mode not in _MEMBER_MODES:
+            raise ValueError(f"member_mode must be one of {_MEMBER_MODES}, got {member_mode!r}.")
+        if reset_states not in ("initial", "any"):
+            raise ValueError(f"reset_states must be 'initial' or 'any', got {reset_states!r}.")
+        if data.observation_dim != ensemble.observation_dim or data.action_dim != ensemble.action_dim:
+            raise ValueError(
+                f"the dataset has obs/action dims ({data.observation_dim}, {data.action_dim}) but the "
+                f"ensemble was built for ({ensemble.observation_dim}, {ensemble.action_dim})."
+            )
+        if ensemble.reward_fn is None and ensemble.reward_net is None:
+            raise ValueError("the ensemble predicts no reward: build it with learn_reward=True or a reward_fn.")
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}.")
+        self.ensemble = ensemble.to(self.device).eval()
+        self.discrepancy_kind = discrepancy
+        self.penalty = float(penalty)
+        self.horizon = int(horizon)
+        self.member_mode = member_mode
+        self.num_members = ensemble.num_members
+
+        if threshold is None:
+            self.calibration: CalibrationReport = calibrate_threshold(
+                self.ensemble, data, discrepancy, quantile=quantile, fraction=fraction
+            )
+        else:
+            disc = dataset_discrepancy(self.ensemble, data, discrepancy)
+            self.calibration = CalibrationReport.from_values(disc, float(threshold), "explicit", None, discrepancy)
+        self.threshold = self.calibration.threshold
+
+        if termination_fn == "auto":
+            termination_fn = termination_fn_for(data.env_id)
+        self.termination_fn = termination_fn
+
+        stats = data.stats()
+        span = (stats.obs_max - stats.obs_min).clamp_min(1e-6)
+        self.register_buffer("obs_low", (stats.obs_min - bounds_margin * span).to(self.device))
+        self.register_buffer("obs_high", (stats.obs_max + bounds_margin * span).to(self.device))
+        starts = data.initial_observations() if reset_states == "initial" else data.data.get("observation")
+        self.register_buffer("start_states", starts.float().to(self.device))
+
+        self._rng = torch.Generator(device=self.device)
+        self._rng.manual_seed(int(torch.empty((), dtype=torch.int64).random_().item()) if seed is None else seed)
+        self._make_specs(data)
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self, data) -> None:
+        B = self.batch_size
+        D = data.observation_dim
+        obs_spec = Composite(
+            observation=Unbounded((*B, D), dtype=torch.float32, device=self.device),
+            discrepancy=Unbounded((*B, 1), dtype=torch.float32, device=self.device),
+            penalized=Categorical(2, (*B, 1), dtype=torch.bool, device=self.device),
+            model_member=Bounded(0, self.num_members - 1, (*B, 1), dtype=torch.int64, device=self.device),
+            model_step=Bounded(0, self.horizon, (*B, 1), dtype=torch.int64, device=self.device),
+            shape=B,
+            device=self.device,
+        )
+        self.observation_spec = obs_spec
+        self.state_spec = Composite(
+            model_member=obs_spec["model_member"].clone(),
+            model_step=obs_spec["model_step"].clone(),
+            shape=B,
+            device=self.device,
+        )
+        low = data.action_low.to(self.device).expand(*B, data.action_dim)
+        high = data.action_high.to(self.device).expand(*B, data.action_dim)
+        self.action_spec = Bounded(low, high, (*B, data.action_dim), dtype=torch.float32, device=self.device)
+        self.reward_spec = Unbounded((*B, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            {k: Categorical(2, (*B, 1), dtype=torch.bool, device=self.device) for k in ("done", "terminated", "truncated")},
+            shape=B,
+            device=self.device,
+        )
+
+    # ------------------------------------------------------------------ reset
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        B = self.batch_size
+        n = max(1, B.numel())
+        idx = torch.randint(0, self.start_states.shape[0], (n,), generator=self._rng, device=self.device)
+        member = torch.randint(0, self.num_members, (n, 1), generator=self._rng, device=self.device)
+        out = TensorDict(
+            {
+                "observation": self.start_states[idx].reshape(*B, -1),
+                "discrepancy": torch.zeros(*B, 1, device=self.device),
+                "penalized": torch.zeros(*B, 1, dtype=torch.bool, device=self.device),
+                "model_member": member.reshape(*B, 1),
+                "model_step": torch.zeros(*B, 1, dtype=torch.int64, device=self.device),
+                "done": torch.zeros(*B, 1, dtype=torch.bool, device=self.device),
+                "terminated": torch.zeros(*B, 1, dtype=torch.bool, device=self.device),
+                "truncated": torch.zeros(*B, 1, dtype=torch.bool, device=self.device),
+            },
+            batch_size=B,
+            device=self.device,
+        )
+        # Envs that are not reset keep their values: EnvBase.reset merges
+        # this output into the input with the "_reset" mask.
+        return out
+
+    # ------------------------------------------------------------------- step
+    @torch.no_grad()
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        B = self.batch_size
+        D = self.ensemble.observation_dim
+        obs = tensordict.get("observation").reshape(-1, D)
+        act = tensordict.get("action").reshape(obs.shape[0], -1)
+        member = tensordict.get("model_member", None)
+        step = tensordict.get("model_step", None)
+        if member is None or step is None:
+            raise KeyError(
+                "PessimisticModelEnv.step needs 'model_member' and 'model_step' in the input "
+                "tensordict; start from env.reset() (or env.fake_tensordict())."
+            )
+        member = member.reshape(-1)
+        n = obs.shape[0]
+        pred = self.ensemble.predict(obs, act)
+        disc = self.ensemble.discrepancy_of(pred["delta"], self.discrepancy_kind)
+        rewards = pred["reward"]
+        if self.member_mode == "mean":
+            next_obs = pred["next_observation"].mean(0)
+            reward = rewards.mean(0)
+        else:
+            if self.member_mode == "step":
+                member = torch.randint(0, self.num_members, (n,), generator=self._rng, device=self.device)
+            rows = torch.arange(n, device=self.device)
+            next_obs = pred["next_observation"][member, rows]
+            reward = rewards[member, rows]
+        unknown = (
+            ~torch.isfinite(next_obs).all(-1)
+            | ~torch.isfinite(reward)
+            | ~torch.isfinite(disc)
+            | ((next_obs < self.obs_low) | (next_obs > self.obs_high)).any(-1)
+        )
+        penalized = unknown | (disc > self.threshold)
+        next_obs = torch.where(unknown.unsqueeze(-1), obs, next_obs)
+        reward = torch.where(penalized, torch.full_like(reward, -self.penalty), reward)
+        terminated = penalized.clone()
+        if self.termination_fn is not None:
+            terminated |= self.termination_fn(next_obs).reshape(n)
+        step = step.reshape(-1) + 1
+        truncated = (step >= self.horizon) & ~terminated
+        disc = torch.where(torch.isfinite(disc), disc, torch.full_like(disc, float("inf")))
+        return TensorDict(
+            {
+                "observation": next_obs.reshape(*B, D),
+                "reward": reward.reshape(*B, 1),
+                "discrepancy": disc.reshape(*B, 1),
+                "penalized": penalized.reshape(*B, 1),
+                "model_member": tensordict.get("model_member"),
+                "model_step": step.reshape(*B, 1),
+                "terminated": terminated.reshape(*B, 1),
+                "truncated": truncated.reshape(*B, 1),
+                "done": (terminated | truncated).reshape(*B, 1),
+            },
+            batch_size=B,
+            device=self.device,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self._rng.manual_seed(int(seed))
+
+    # ------------------------------------------------------------- reporting
+    def calibration_report(self, plot_path: str | None = None) -> str:
+        """A text summary of the threshold; also saves the histogram when ``plot_path`` is given."""
+        text = self.calibration.summary() + f"\npenalty on violation: -{self.penalty:g}"
+        if plot_path is not None:
+            text += f"\nhistogram: {self.calibration.plot(plot_path)}"
+        return text

@@ -1,0 +1,38 @@
+"""Reference scores and D4RL score normalisation."""
+from __future__ import annotations
+
+__all__ = ["D4RL_REF", "normalized_score"]
+
+#: D4RL reference returns (the same for v0/v1/v2 and every dataset type).
+D4RL_REF: dict[str, tuple[float, float]] = {
+    "hopper": (-20.272305, 3234.3),
+    "halfcheetah": (-280.178953, 12135.0),
+}
+
+
+def _key(env_id: str) -> str:
+    return env_id.split("/")[-1].split("-v")[0].lower()
+
+
+def normalized_score(env_id: str, ret: float, ref: tuple[float, float] | None = None) -> float | None:
+    """``100 * (R - REF_MIN) / (REF_MAX - REF_MIN)``; ``None`` for an env without references.
+
+    ``ref`` overrides the D4RL constants, e.g. with a generated dataset's own
+    random and expert returns.
+
+    Examples:
+        >>> round(normalized_score("Hopper-v5", 3234.3), 6)
+        100.0
+        >>> round(normalized_score("hopper-medium-v2", -20.272305), 6)
+        0.0
+        >>> round(normalized_score("HalfCheetah-v5", 4770.0), 1)
+        40.6
+        >>> normalized_score("Toy-v0", 1.0) is None
+        True
+    """
+    if ref is None:
+        ref = D4RL_REF.get(_key(env_id))
+        if ref is None:
+            return None
+    lo, hi = ref
+    return 100.0 * (ret - lo) / (hi - lo)
