@@ -26,7 +26,7 @@ def normalized_score(env_id: str, ret: float, ref: tuple[float, float] | None = 
         >>> round(normalized_score("hopper-medium-v2", -20.272305), 6)
         0.0
         >>> round(normalized_score("HalfCheetah-v5", 4770.0), 1)
-        40.6
+        40.7
         >>> normalized_score("Toy-v0", 1.0) is None
         True
     """

@@ -30,7 +30,11 @@ def make_gym_env(env_id: str, num_envs: int = 1, device: str | torch.device = "c
         vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
         **kwargs,
     )
-    return TransformedEnv(GymWrapper(venv, device=device), DoubleToFloat())
+    env = GymWrapper(venv, device=device)  # vector envs come back already transformed
+    if isinstance(env, TransformedEnv):
+        env.append_transform(DoubleToFloat())
+        return env
+    return TransformedEnv(env, DoubleToFloat())
 
 
 def collect_dataset(

@@ -1,0 +1,235 @@
+import hashlib
+import os
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from torchrl_offhrl.data import DatasetError, OfflineDataset, load_dataset, make_toy_dataset, save_dataset
+
+
+def _md5(path):
+    return hashlib.md5(open(path, "rb").read()).hexdigest()
+
+
+def _write(path, **arrays):
+    with h5py.File(path, "w") as f:
+        for k, v in arrays.items():
+            f.create_dataset(k, data=v)
+    return path
+
+
+def _d4rl_arrays(n=10, obs_dim=3, act_dim=2, next_obs=True):
+    obs = np.arange(n * obs_dim, dtype=np.float32).reshape(n, obs_dim)
+    out = {
+        "observations": obs,
+        "actions": np.ones((n, act_dim), np.float32) * 0.5,
+        "rewards": np.arange(n, dtype=np.float32),
+        # episode A: rows 0-3 ends terminal; B: rows 4-7 ends by timeout; C: rows 8-9 unfinished
+        "terminals": np.array([0, 0, 0, 1, 0, 0, 0, 0, 0, 0], bool),
+        "timeouts": np.array([0, 0, 0, 0, 0, 0, 0, 1, 0, 0], bool),
+    }
+    if next_obs:
+        out["next_observations"] = obs + 1000
+    return out
+
+
+def test_d4rl_file_with_next_observations(tmp_path):
+    path = _write(tmp_path / "d.hdf5", **_d4rl_arrays())
+    ds = load_dataset(path)
+    assert len(ds) == 10 and ds.num_episodes == 3
+    td = ds.data
+    assert td["next", "terminated"].squeeze(-1).tolist() == [0, 0, 0, 1, 0, 0, 0, 0, 0, 0]
+    # the file stops mid-episode: the last row becomes a truncation
+    assert td["next", "truncated"].squeeze(-1).tolist() == [0, 0, 0, 0, 0, 0, 0, 1, 0, 1]
+    assert td["episode"].tolist() == [0, 0, 0, 0, 1, 1, 1, 1, 2, 2]
+    assert torch.equal(td["next", "observation"], td["observation"] + 1000)
+    assert td["next", "reward"].shape == (10, 1)
+
+
+def test_d4rl_file_without_next_observations_derives_them(tmp_path):
+    path = _write(tmp_path / "d.hdf5", **_d4rl_arrays(next_obs=False))
+    ds = load_dataset(path)
+    # rows 3 (terminal), 7 (timeout) and 9 (end of file) have no recorded successor
+    assert len(ds) == 7
+    assert ds.metadata["dropped_transitions"] == 3
+    obs = ds.data["observation"][:, 0].tolist()
+    nobs = ds.data["next", "observation"][:, 0].tolist()
+    assert obs == [0, 3, 6, 12, 15, 18, 24]
+    assert nobs == [3, 6, 9, 15, 18, 21, 27]  # the next row of the file, within each episode
+    assert ds.num_episodes == 3
+    assert ds.data["next", "truncated"].squeeze(-1).tolist() == [0, 0, 1, 0, 0, 1, 1]
+
+
+def test_own_format_round_trip_with_metadata(tmp_path):
+    ds = make_toy_dataset(num_episodes=4, episode_length=6)
+    ds.metadata.update({"seed": 7, "returns": {"mean": 1.5}})
+    path = save_dataset(ds, tmp_path / "sub" / "toy.hdf5")
+    again = load_dataset(path)
+    for key in ds.data.keys(True, True):
+        assert torch.equal(again.data[key], ds.data[key]), key
+    assert again.metadata["seed"] == 7 and again.metadata["returns"] == {"mean": 1.5}
+    assert again.metadata["env_id"] == "Toy-v0"
+    assert torch.equal(again.action_low, ds.action_low)
+    assert not [p for p in os.listdir(path.parent) if p.endswith(".tmp")]
+
+
+def test_interrupted_write_leaves_no_file(tmp_path, monkeypatch):
+    ds = make_toy_dataset(num_episodes=2, episode_length=3)
+    target = tmp_path / "x.hdf5"
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("torchrl_offhrl.data.io.json.dumps", boom)
+    with pytest.raises(KeyboardInterrupt):
+        save_dataset(ds, target)
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("missing_key", r"missing key\(s\) \['rewards'\]"),
+        ("length", r"key 'actions' has 9 rows"),
+        ("nan", r"key 'observations' .* NaN/inf"),
+        ("inf", r"key 'rewards' .* NaN/inf"),
+        ("bad_next", r"'next_observations' has shape \(10, 4\)"),
+        ("rank", r"key 'observations' has shape \(10,\)"),
+    ],
+)
+def test_malformed_files_raise_and_are_not_modified(tmp_path, case, match):
+    arrays = _d4rl_arrays()
+    if case == "missing_key":
+        del arrays["rewards"]
+    elif case == "length":
+        arrays["actions"] = arrays["actions"][:9]
+    elif case == "nan":
+        arrays["observations"][4, 1] = np.nan
+    elif case == "inf":
+        arrays["rewards"][2] = np.inf
+    elif case == "bad_next":
+        arrays["next_observations"] = np.zeros((10, 4), np.float32)
+    elif case == "rank":
+        arrays["observations"] = arrays["observations"][:, 0]
+        del arrays["next_observations"]
+    path = _write(tmp_path / f"{case}.hdf5", **arrays)
+    before = _md5(path)
+    with pytest.raises(DatasetError, match=match) as err:
+        load_dataset(path)
+    assert str(path) in str(err.value)
+    assert _md5(path) == before
+
+
+def test_not_hdf5_and_missing_path(tmp_path):
+    p = tmp_path / "notes.hdf5"
+    p.write_text("not an hdf5 file")
+    with pytest.raises(DatasetError, match="is not an HDF5 file"):
+        load_dataset(p)
+    assert p.read_text() == "not an hdf5 file"
+    with pytest.raises(DatasetError, match="no such file"):
+        load_dataset(tmp_path / "nope.hdf5")
+
+
+def test_dimension_mismatch_with_env(tmp_path):
+    path = _write(tmp_path / "d.hdf5", **_d4rl_arrays())
+    with pytest.raises(DatasetError, match="width 3 but Hopper-v5 observations have shape"):
+        load_dataset(path, env_id="Hopper-v5")
+
+
+def test_minari_local_dataset(tmp_path, monkeypatch):
+    minari = pytest.importorskip("minari")
+    import gymnasium as gym
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    env = gym.make("Pendulum-v1", max_episode_steps=20)
+    env.action_space.seed(0)
+    buffers = []
+    for e in range(2):
+        o, _ = env.reset(seed=e)
+        obs, acts, rews, terms, truncs = [o], [], [], [], []
+        for _ in range(20):
+            a = env.action_space.sample()
+            o, r, te, tr, _ = env.step(a)
+            obs.append(o), acts.append(a), rews.append(r), terms.append(te), truncs.append(tr)
+        buffers.append(
+            EpisodeBuffer(
+                id=e, observations=np.array(obs), actions=np.array(acts), rewards=np.array(rews),
+                terminations=np.array(terms), truncations=np.array(truncs),
+            )
+        )
+    minari.create_dataset_from_buffers("test/pendulum/tiny-v0", buffer=buffers, env=env, algorithm_name="random")
+    ds = load_dataset("test/pendulum/tiny-v0")
+    assert len(ds) == 40 and ds.num_episodes == 2 and ds.observation_dim == 3
+    assert ds.data["next", "truncated"].squeeze(-1).nonzero().flatten().tolist() == [19, 39]
+    # within an episode the next observation is the following observation
+    assert torch.allclose(ds.data["next", "observation"][:19], ds.data["observation"][1:20])
+    assert ds.metadata["env_id"] == "Pendulum-v1"
+    with pytest.raises(DatasetError, match="stored locally"):
+        load_dataset("test/pendulum/absent-v0")
+
+
+def test_stats_hand_computed():
+    from tensordict import TensorDict
+
+    td = TensorDict(
+        {
+            "observation": torch.tensor([[0.0], [2.0], [4.0]]),
+            "action": torch.tensor([[-1.0], [0.0], [1.0]]),
+            "next": {
+                "observation": torch.tensor([[1.0], [4.0], [7.0]]),
+                "reward": torch.tensor([[1.0], [2.0], [3.0]]),
+                "terminated": torch.zeros(3, 1, dtype=torch.bool),
+                "truncated": torch.tensor([[False], [False], [True]]),
+            },
+        },
+        batch_size=[3],
+    )
+    s = OfflineDataset(td).stats()
+    assert s.obs_mean.item() == pytest.approx(2.0) and s.obs_std.item() == pytest.approx(2.0)
+    assert s.delta_mean.item() == pytest.approx(2.0) and s.delta_std.item() == pytest.approx(1.0)
+    assert s.reward_mean.item() == pytest.approx(2.0)
+    assert s.obs_min.item() == 0.0 and s.obs_max.item() == 7.0
+    assert s.action_low.item() == -1.0 and s.action_high.item() == 1.0
+
+
+def test_split_by_episode():
+    ds = make_toy_dataset(num_episodes=20, episode_length=5)
+    train, val = ds.split(0.1, seed=3)
+    assert (len(train), len(val)) == (90, 10)
+    tr, va = set(train.data["episode"].tolist()), set(val.data["episode"].tolist())
+    assert tr.isdisjoint(va) and tr | va == set(range(20))
+    train2, val2 = ds.split(0.1, seed=3)
+    assert torch.equal(val2.data["episode"], val.data["episode"])
+    with pytest.raises(ValueError):
+        ds.split(1.5)
+
+
+def test_concatenate_renumbers_episodes():
+    a = make_toy_dataset(num_episodes=2, episode_length=3, seed=0)
+    b = make_toy_dataset(num_episodes=3, episode_length=3, seed=1)
+    c = OfflineDataset.concatenate([a, b])
+    assert len(c) == 15 and c.num_episodes == 5
+    assert c.data["episode"].tolist() == sum([[i] * 3 for i in range(5)], [])
+
+
+def test_collect_is_deterministic_and_consistent():
+    from torchrl_offhrl.data import collect_dataset
+
+    a = collect_dataset("Hopper-v5", 300, num_envs=2, seed=3, progress=False)
+    b = collect_dataset("Hopper-v5", 300, num_envs=2, seed=3, progress=False)
+    assert len(a) == 300
+    for key in a.data.keys(True, True):
+        assert torch.equal(a.data[key], b.data[key]), key
+    # inside an episode, s'_t == s_{t+1}
+    same_ep = a.data["episode"][1:] == a.data["episode"][:-1]
+    assert torch.allclose(a.data["next", "observation"][:-1][same_ep], a.data["observation"][1:][same_ep])
+    # every episode ends with done, and only there
+    done = a.data["next", "done"].squeeze(-1)
+    assert done[-1] and torch.equal(done[:-1], ~same_ep)
+    assert a.metadata["returns"]["episodes"] == a.num_episodes
+    c = collect_dataset("Hopper-v5", 300, num_envs=2, seed=4, progress=False)
+    assert not torch.equal(a.data["action"], c.data["action"])

@@ -1,0 +1,201 @@
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_offhrl.models import (
+    ConditionalVAE,
+    DynamicsEnsemble,
+    EnsembleLinear,
+    EnsembleMLP,
+    SupervisedTrainer,
+)
+
+
+def test_ensemble_linear_matches_member_loop():
+    torch.manual_seed(0)
+    layer = EnsembleLinear(4, 6, 3)
+    x = torch.randn(4, 10, 6)
+    out = layer(x)
+    for k in range(4):
+        ref = torch.nn.functional.linear(x[k], layer.weight[k].T, layer.bias[k, 0])
+        assert torch.allclose(out[k], ref, atol=1e-6)
+    shared = torch.randn(10, 6)
+    assert torch.allclose(layer(shared), layer(shared.expand(4, 10, 6)))
+    with pytest.raises(ValueError, match=r"\[4, B, 6\]"):
+        layer(torch.randn(3, 10, 6))
+
+
+def test_members_are_initialised_differently_and_flops():
+    net = EnsembleMLP(5, 14, 11, hidden_sizes=(512, 512))
+    w = net.net[0].weight
+    assert not torch.allclose(w[0], w[1])
+    assert net.flops_per_sample() == 2 * 5 * (14 * 512 + 512 * 512 + 512 * 11)
+
+
+def test_gradients_reach_each_member_independently():
+    torch.manual_seed(0)
+    net = EnsembleMLP(3, 4, 2, hidden_sizes=(8,))
+    x = torch.randn(3, 5, 4)
+    out = net(x)
+    # a loss on member 1 only: no gradient leaks into members 0 and 2
+    out[1].pow(2).sum().backward()
+    for p in net.parameters():
+        assert p.grad[1].abs().sum() > 0
+        assert p.grad[0].abs().sum() == 0 and p.grad[2].abs().sum() == 0
+    # the gradient of the summed losses equals each member's own gradient
+    net.zero_grad()
+    losses = net(x).pow(2).flatten(1).sum(-1)
+    losses.sum().backward()
+    summed = [p.grad.clone() for p in net.parameters()]
+    for k in range(3):
+        net.zero_grad()
+        net(x)[k].pow(2).sum().backward()
+        for g, p in zip(summed, net.parameters()):
+            assert torch.allclose(g[k], p.grad[k], atol=1e-5)
+
+
+def test_discrepancy_hand_computed():
+    # 3 members, 1 pair, 2 dims
+    delta = torch.tensor([[[0.0, 0.0]], [[3.0, 0.0]], [[0.0, 4.0]]])
+    var = DynamicsEnsemble.discrepancy_of(delta, "variance")
+    # per-dim population variance: dim0 of {0,3,0} = 2, dim1 of {0,0,4} = 32/9
+    assert var.item() == pytest.approx(2.0 + 32.0 / 9.0)
+    mp = DynamicsEnsemble.discrepancy_of(delta, "max_pairwise")
+    assert mp.item() == pytest.approx(5.0)  # |(3,0) - (0,4)|
+    with pytest.raises(ValueError, match="discrepancy must be one of"):
+        DynamicsEnsemble.discrepancy_of(delta, "bogus")
+
+
+class _Spy(torch.nn.Module):
+    """Records the minibatches each member sees."""
+
+    num_members = 3
+    train_keys = ("x",)
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.zeros(3, 1))
+        self.seen = []
+
+    def loss(self, batch):
+        x = batch["x"]
+        if x.dim() == 2:
+            self.seen.append(x.clone())
+            return (self.w - x.float().mean(-1, keepdim=True)).pow(2).squeeze(-1)
+        return (self.w.squeeze(-1) - x.float().mean()).pow(2)
+
+
+def test_trainer_draws_independent_bootstrap_batches():
+    spy = _Spy()
+    data = TensorDict({"x": torch.arange(1000)}, batch_size=[1000])
+    SupervisedTrainer(lr=1e-2, batch_size=64, max_epochs=1, steps_per_epoch=5, progress=False).fit(spy, data)
+    batch = spy.seen[0]
+    assert batch.shape == (3, 64)
+    assert not torch.equal(batch[0], batch[1]) and not torch.equal(batch[1], batch[2])
+    # with replacement over the whole set: indices are valid and repeats are allowed
+    assert batch.min() >= 0 and batch.max() < 1000
+
+
+def test_fit_learns_and_restores_best_weights(toy_data, fitted_ensemble):
+    hist = fitted_ensemble.training_history
+    first = torch.tensor(hist[0]["val_loss"])
+    best = torch.tensor([h["val_loss"] for h in hist]).min(0).values
+    assert (best < 0.5 * first).all(), (first, best)
+    # after fit every member holds the weights of its own best validation epoch
+    _, val = toy_data.split(0.1, seed=0)
+    now = SupervisedTrainer().evaluate(fitted_ensemble, val.data)
+    assert torch.allclose(now, best, rtol=1e-4, atol=1e-6)
+
+
+def test_predictions_are_accurate_on_toy_dynamics(toy_data, fitted_ensemble):
+    td = toy_data.data[:200]
+    out = fitted_ensemble.predict(td["observation"], td["action"])
+    err = (out["next_observation"] - td["next", "observation"]).abs().mean()
+    spread = (td["next", "observation"] - td["observation"]).abs().mean()
+    assert err < 0.2 * spread
+    rerr = (out["reward"] - td["next", "reward"].squeeze(-1)).abs().mean()
+    assert rerr < 0.2 * td["next", "reward"].abs().mean()
+
+
+def test_early_stopping_with_patience():
+    class Flat(_Spy):
+        def loss(self, batch):  # nothing to learn: the loss never improves after epoch 0
+            return self.w.squeeze(-1).detach() * 0 + 1.0 + 0 * self.w.squeeze(-1)
+
+    data = TensorDict({"x": torch.arange(100)}, batch_size=[100])
+    hist = SupervisedTrainer(max_epochs=50, steps_per_epoch=1, patience=3, progress=False).fit(Flat(), data, data)
+    assert len(hist) == 4  # epoch 0 sets the best, then 3 epochs without improvement
+
+
+@pytest.mark.parametrize("loss", ["mse", "nll"])
+def test_other_losses_train(toy_data, loss):
+    torch.manual_seed(0)
+    ens = DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(32,), loss=loss)
+    ens.fit(toy_data, lr=1e-3, max_epochs=8, progress=False)
+    h = ens.training_history
+    assert torch.tensor(h[-1]["val_loss"]).mean() < torch.tensor(h[0]["val_loss"]).mean()
+    out = ens.predict(toy_data[:3]["observation"], toy_data[:3]["action"])
+    assert out["next_observation"].shape == (2, 3, 3)
+
+
+def test_known_reward_function(toy_data):
+    fn = lambda obs, act, nobs: -(nobs**2).sum(-1)  # noqa: E731
+    ens = DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(8,), learn_reward=False, reward_fn=fn)
+    assert ens.reward_net is None
+    out = ens.predict(toy_data[:4]["observation"], toy_data[:4]["action"])
+    assert torch.allclose(out["reward"], -(out["next_observation"] ** 2).sum(-1))
+
+
+def test_save_load_round_trip(tmp_path, fitted_ensemble, fitted_cvae, toy_data):
+    obs, act = toy_data[:5]["observation"], toy_data[:5]["action"]
+    p = fitted_ensemble.save(tmp_path / "ens.pt")
+    blob = torch.load(p, weights_only=True)  # plain tensors and Python values only
+    assert blob["class"] == "DynamicsEnsemble"
+    again = DynamicsEnsemble.load(p)
+    a, b = fitted_ensemble.predict(obs, act), again.predict(obs, act)
+    assert torch.equal(a["next_observation"], b["next_observation"]) and torch.equal(a["reward"], b["reward"])
+    c = ConditionalVAE.load(fitted_cvae.save(tmp_path / "cvae.pt"))
+    z = torch.randn(5, c.latent_dim)
+    assert torch.equal(c.decoder(obs, z), fitted_cvae.decoder(obs, z))
+    with pytest.raises(ValueError, match="not a ConditionalVAE"):
+        ConditionalVAE.load(p)
+    with pytest.raises(FileNotFoundError):
+        DynamicsEnsemble.load(tmp_path / "missing.pt")
+
+
+def test_cvae_decoder_stays_in_action_box(toy_data, fitted_cvae):
+    obs = toy_data[:100]["observation"]
+    a = fitted_cvae.decoder(obs, 1e3 * torch.randn(100, fitted_cvae.latent_dim))
+    assert (a >= toy_data.action_low).all() and (a <= toy_data.action_high).all()
+
+
+def test_cvae_reconstructs_state_dependent_actions():
+    """Actions that are a function of the state: the CVAE must learn the mapping."""
+    from torchrl_offhrl.data import OfflineDataset
+
+    torch.manual_seed(0)
+    n = 4000
+    obs = torch.rand(n, 2) * 2 - 1
+    act = torch.tanh(torch.stack([obs[:, 0] + obs[:, 1], obs[:, 0] - obs[:, 1]], -1)) * 0.8
+    td = TensorDict(
+        {"observation": obs, "action": act, "next": {"observation": obs, "reward": torch.zeros(n, 1),
+         "terminated": torch.zeros(n, 1, dtype=torch.bool), "truncated": (torch.arange(n) % 20 == 19)[:, None]}},
+        batch_size=[n],
+    )
+    ds = OfflineDataset(td, action_bounds=(-torch.ones(2), torch.ones(2)))
+    cvae = ConditionalVAE.for_dataset(ds, hidden_sizes=(64, 64)).fit(ds, lr=3e-3, max_epochs=30, progress=False)
+    # decoding the prior mean gives the behaviour action for that state
+    pred = cvae.decoder(obs[:500], torch.zeros(500, 2))
+    assert (pred - act[:500]).abs().mean() < 0.1
+
+
+def test_goal_conditioned_cvae(toy_data):
+    data = toy_data
+    data.data.set("desired_goal", torch.randn(len(data), 2))
+    cvae = ConditionalVAE.for_dataset(data, goal_key="desired_goal", hidden_sizes=(16,))
+    cvae.fit(data, max_epochs=1, progress=False)
+    obs, g = data[:3]["observation"], data[:3]["desired_goal"]
+    assert cvae.decoder(obs, torch.zeros(3, 2), g).shape == (3, 2)
+    with pytest.raises(ValueError, match="goal-conditioned"):
+        cvae.decoder(obs, torch.zeros(3, 2))
+    data.data.del_("desired_goal")
