@@ -1,6 +1,8 @@
 """Reference scores and D4RL score normalisation."""
 from __future__ import annotations
 
+import re
+
 __all__ = ["D4RL_REF", "normalized_score"]
 
 #: D4RL reference returns (the same for v0/v1/v2 and every dataset type).
@@ -10,8 +12,12 @@ D4RL_REF: dict[str, tuple[float, float]] = {
 }
 
 
-def _key(env_id: str) -> str:
-    return env_id.split("/")[-1].split("-v")[0].lower()
+def _key(env_id: str) -> str | None:
+    # "Hopper-v5", "hopper-medium-v2", "mujoco/hopper/medium-v0" -> "hopper"
+    for token in re.split(r"[/\-_]", env_id.lower()):
+        if token in D4RL_REF:
+            return token
+    return None
 
 
 def normalized_score(env_id: str, ret: float, ref: tuple[float, float] | None = None) -> float | None:
@@ -27,11 +33,13 @@ def normalized_score(env_id: str, ret: float, ref: tuple[float, float] | None = 
         0.0
         >>> round(normalized_score("HalfCheetah-v5", 4770.0), 1)
         40.7
+        >>> round(normalized_score("mujoco/halfcheetah/medium-v0", 12135.0), 6)
+        100.0
         >>> normalized_score("Toy-v0", 1.0) is None
         True
     """
     if ref is None:
-        ref = D4RL_REF.get(_key(env_id))
+        ref = D4RL_REF.get(_key(env_id) or "")
         if ref is None:
             return None
     lo, hi = ref
