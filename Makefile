@@ -1,0 +1,35 @@
+# The README's two commands: `make demo` (main job) and `make test`.
+# Both create .venv and install everything on a fresh machine.
+# torch goes in first so that pip does not pull a multi-GB CUDA build:
+#   make test TORCH_VERSION=2.13.0                      (CPU build, default)
+#   make test TORCH_SPEC="torch" TORCH_INDEX=https://download.pytorch.org/whl/cu126   (GPU)
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_VERSION ?= 2.13.0
+TORCH_SPEC ?= torch==$(TORCH_VERSION)
+TORCH_INDEX ?=
+PY := $(VENV)/bin/python
+
+.PHONY: install demo test bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "$(TORCH_SPEC)" $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
+	$(PY) -m pip install --quiet -e ".[test]"
+	touch $@
+
+install: $(VENV)/.installed
+
+demo: install
+	$(PY) examples/model_pipeline.py
+
+test: install
+	$(PY) -m pytest
+
+bench: install
+	$(PY) benchmarks/ensemble_training.py
+	$(PY) benchmarks/env_throughput.py
+
+clean:
+	rm -rf $(VENV) outputs .pytest_cache
