@@ -13,7 +13,6 @@ transition whose ``("next", "done")`` is set.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, Sequence
 
 import torch
@@ -348,6 +347,3 @@ def check_finite(td: TensorDict, source: str) -> None:
                 f"{first}. Remove or repair those transitions before loading."
             )
 
-
-def _nan_safe(x: float) -> float | None:
-    return None if (x is None or not math.isfinite(x)) else float(x)

@@ -17,7 +17,6 @@ import json
 import logging
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from ..utils import atomic_write
 from .dataset import DatasetError, OfflineDataset, check_finite
 
 __all__ = ["load_dataset", "save_dataset", "METADATA_ATTR"]
@@ -224,32 +224,24 @@ def save_dataset(dataset: OfflineDataset, path: str | os.PathLike, compression: 
     import h5py
 
     path = Path(os.fspath(path)).expanduser()
-    path.parent.mkdir(parents=True, exist_ok=True)
     td = dataset.data
     meta = dict(dataset.metadata)
     meta.pop("source", None)
     meta.pop("split", None)
     meta["action_low"] = dataset.action_low.tolist()
     meta["action_high"] = dataset.action_high.tolist()
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            def put(name, tensor):
-                f.create_dataset(name, data=tensor.detach().cpu().numpy(), compression=compression)
+    with atomic_write(path) as tmp, h5py.File(tmp, "w") as f:
 
-            put("observations", td.get("observation"))
-            put("actions", td.get("action"))
-            put("next_observations", td.get(("next", "observation")))
-            put("rewards", td.get(("next", "reward")).reshape(-1))
-            put("terminals", td.get(("next", "terminated")).reshape(-1))
-            put("timeouts", (td.get(("next", "truncated")) & ~td.get(("next", "terminated"))).reshape(-1))
-            f.attrs[METADATA_ATTR] = json.dumps(meta, default=_json_default)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        def put(name, tensor):
+            f.create_dataset(name, data=tensor.detach().cpu().numpy(), compression=compression)
+
+        put("observations", td.get("observation"))
+        put("actions", td.get("action"))
+        put("next_observations", td.get(("next", "observation")))
+        put("rewards", td.get(("next", "reward")).reshape(-1))
+        put("terminals", td.get(("next", "terminated")).reshape(-1))
+        put("timeouts", (td.get(("next", "truncated")) & ~td.get(("next", "terminated"))).reshape(-1))
+        f.attrs[METADATA_ATTR] = json.dumps(meta, default=_json_default)
     return path
 
 
