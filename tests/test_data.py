@@ -161,7 +161,11 @@ def test_minari_local_dataset(tmp_path, monkeypatch):
                 terminations=np.array(terms), truncations=np.array(truncs),
             )
         )
-    minari.create_dataset_from_buffers("test/pendulum/tiny-v0", buffer=buffers, env=env, algorithm_name="random")
+    minari.create_dataset_from_buffers(
+        "test/pendulum/tiny-v0", buffer=buffers, env=env, eval_env=env, algorithm_name="random",
+        author="tests", author_email="tests@localhost", code_permalink="tests/test_data.py",
+        description="two random Pendulum episodes",
+    )
     ds = load_dataset("test/pendulum/tiny-v0")
     assert len(ds) == 40 and ds.num_episodes == 2 and ds.observation_dim == 3
     assert ds.data["next", "truncated"].squeeze(-1).nonzero().flatten().tolist() == [19, 39]
