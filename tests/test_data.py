@@ -237,3 +237,20 @@ def test_collect_is_deterministic_and_consistent():
     assert a.metadata["returns"]["episodes"] == a.num_episodes
     c = collect_dataset("Hopper-v5", 300, num_envs=2, seed=4, progress=False)
     assert not torch.equal(a.data["action"], c.data["action"])
+
+
+def test_concatenated_parts_stay_separate_after_save_load(tmp_path):
+    from tensordict import TensorDict
+
+    def part(n):
+        return OfflineDataset(TensorDict({
+            "observation": torch.zeros(n, 1), "action": torch.zeros(n, 1),
+            "next": {"observation": torch.zeros(n, 1), "reward": torch.ones(n, 1),
+                     "terminated": torch.zeros(n, 1, dtype=torch.bool),
+                     "truncated": torch.zeros(n, 1, dtype=torch.bool)}},  # no final done flag
+            batch_size=[n]))
+
+    both = OfflineDataset.concatenate([part(3), part(4)])
+    assert both.num_episodes == 2
+    again = load_dataset(save_dataset(both, tmp_path / "c.hdf5"))
+    assert again.num_episodes == 2 and again.episode_returns().tolist() == [3.0, 4.0]

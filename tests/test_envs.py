@@ -221,3 +221,54 @@ def test_cuda(toy_data, fitted_ensemble, fitted_cvae):
     ).to("cuda")
     td = env.rollout(5, break_when_any_done=False)
     assert td.device.type == "cuda" and torch.isfinite(td["next", "observation"]).all()
+
+
+@pytest.mark.parametrize("chain, loop", [(False, "step_mdp"), (False, "maybe_reset"), (True, "maybe_reset")])
+def test_hand_written_loop_keeps_every_decoded_action(make_env, fitted_cvae, chain, loop):
+    """Manual loops: stored actions are right and never share storage across steps."""
+    dec = fitted_cvae.decoder
+    base = make_env(batch_size=[3], horizon=4)
+    latent = LatentActionTransform(dec)
+    env = TransformedEnv(base, Compose(latent, StepCounter())) if chain else TransformedEnv(base, latent)
+    td = env.reset()
+    kept = []
+    for _ in range(6):
+        td["latent_action"] = torch.randn(3, 2)
+        if loop == "step_mdp":
+            td = env.step(td)
+            kept.append(td)
+            td = env.step_mdp(td)
+        else:
+            out, td = env.step_and_maybe_reset(td)
+            kept.append(out)
+    stacked = torch.stack(kept, 1)
+    expect = dec(stacked["observation"], stacked["latent_action"].clamp(-2, 2))
+    assert torch.allclose(stacked["action"], expect, atol=1e-6)
+    assert len({t["action"].data_ptr() for t in kept}) == len(kept)
+
+
+def test_compose_with_step_mdp_loop_warns(make_env, fitted_cvae):
+    env = TransformedEnv(make_env(batch_size=[3]), Compose(LatentActionTransform(fitted_cvae.decoder), StepCounter()))
+    td = env.reset()
+    with pytest.warns(RuntimeWarning, match="step_and_maybe_reset"):
+        for _ in range(2):
+            td["latent_action"] = torch.randn(3, 2)
+            td = env.step_mdp(env.step(td))
+
+
+def test_transform_leaves_the_decoder_trainable(fitted_cvae):
+    LatentActionTransform(fitted_cvae.decoder)
+    assert all(p.requires_grad for p in fitted_cvae.decoder.parameters())
+    assert fitted_cvae.decoder.training == fitted_cvae.training
+
+
+def test_step_mode_reports_the_member_it_used(make_env):
+    env = make_env(batch_size=[64], threshold=float("inf"), member_mode="step", horizon=50)
+    td = env.reset()
+    a = torch.zeros(64, 2)
+    out = env.step(td.clone().set("action", a))["next"]
+    used = out["model_member"].squeeze(-1)
+    pred = env.ensemble.predict(td["observation"], a)["next_observation"]
+    assert torch.allclose(out["observation"], pred[used, torch.arange(64)])
+    roll = env.rollout(10, break_when_any_done=False)["next", "model_member"].squeeze(-1)
+    assert (roll != roll[:, :1]).any()  # redrawn within episodes

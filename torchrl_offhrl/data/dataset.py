@@ -193,7 +193,7 @@ class OfflineDataset:
         ep = self.data.get("episode")
         _, inverse = torch.unique_consecutive(ep, return_inverse=True)
         rewards = self.data.get(("next", "reward")).squeeze(-1).double()
-        out = torch.zeros(int(inverse.max()) + 1, dtype=torch.float64)
+        out = torch.zeros(int(inverse.max()) + 1, dtype=torch.float64, device=rewards.device)
         out.index_add_(0, inverse, rewards)
         return out
 
@@ -272,6 +272,10 @@ class OfflineDataset:
         offset = 0
         for ds in datasets:
             td = ds.data.clone()
+            # a part's last transition always ends its episode, also after save/load
+            trunc = td.get(("next", "truncated"))
+            trunc[-1] |= ~td.get(("next", "terminated"))[-1]
+            td.set(("next", "done"), td.get(("next", "terminated")) | trunc)
             _, inv = torch.unique_consecutive(td.get("episode"), return_inverse=True)
             td.set("episode", inv + offset)
             offset += int(inv.max()) + 1

@@ -1,10 +1,12 @@
 """Acting in the CVAE's latent action space."""
 from __future__ import annotations
 
+import warnings
+
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Bounded
-from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms import Compose, Transform
 
 __all__ = ["LatentActionTransform"]
 
@@ -70,10 +72,7 @@ class LatentActionTransform(Transform):
         if latent_bound <= 0:
             raise ValueError(f"latent_bound must be > 0, got {latent_bound}.")
         super().__init__(in_keys_inv=[action_key], out_keys_inv=[latent_key])
-        self.decoder = decoder
-        for p in self.decoder.parameters():
-            p.requires_grad_(False)
-        self.decoder.eval()
+        self.decoder = decoder  # decoded under no_grad; the caller's module is left as it is
         self.latent_dim = int(decoder.latent_dim)
         self.latent_bound = float(latent_bound)
         self.clip = clip
@@ -81,6 +80,7 @@ class LatentActionTransform(Transform):
         self.action_key = action_key
         self.observation_key = observation_key
         self.goal_key = goal_key
+        self._warned = False
 
     def transform_input_spec(self, input_spec):
         action_spec = input_spec["full_action_spec", self.action_key]
@@ -112,21 +112,48 @@ class LatentActionTransform(Transform):
         goal = tensordict.get(self.goal_key) if self.goal_key is not None else None
         action = self.decoder(obs, latent.to(obs.dtype), goal)
         slot = tensordict.get(self.action_key, None)
-        if isinstance(slot, torch.Tensor) and slot.shape == action.shape and slot.dtype == action.dtype:
-            # Write into the slot the reset / previous step left in the root
-            # tensordict: inside a Compose, inverse transforms see a shallow
+        if (
+            isinstance(slot, torch.Tensor)
+            and not getattr(slot, "_offhrl_used", False)
+            and slot.shape == action.shape
+            and slot.dtype == action.dtype
+        ):
+            # Write into the unused slot left in the root tensordict (by this
+            # transform at reset and after each step, or by TorchRL's reset
+            # merge): inside a Compose, inverse transforms see a shallow
             # clone, and only an in-place write reaches the rollout's data.
+            # Every tensor written is marked used, so no two steps ever share
+            # the storage of their actions.
             slot.copy_(action)
+            slot._offhrl_used = True
             return tensordict
+        if slot is not None and self._in_compose() and not self._warned:
+            self._warned = True
+            warnings.warn(
+                "LatentActionTransform inside a Compose got a tensordict whose 'action' slot was "
+                "already used (a hand-written env.step / env.step_mdp loop): the decoded action "
+                "reaches the base env but cannot be recorded in your tensordict. Use "
+                "env.step_and_maybe_reset (as rollout and collectors do) or make the transform "
+                "the env's own transform: TransformedEnv(base, LatentActionTransform(...)).",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        action._offhrl_used = True
         return tensordict.set(self.action_key, action)
+
+    def _in_compose(self) -> bool:
+        ref = self.__dict__.get("_container")
+        return isinstance(ref() if ref is not None else None, Compose)
 
     def _action_slot(self, reference: TensorDictBase) -> torch.Tensor:
         # the parent is the env *before* this transform: "action" is its action
         spec = self.parent.full_action_spec.get(self.action_key, None) if self.parent is not None else None
         if spec is not None:
-            return torch.zeros(spec.shape, dtype=spec.dtype, device=spec.device)
-        obs = reference.get(self.observation_key)
-        return torch.zeros(*obs.shape[:-1], self.decoder.action_dim, device=obs.device)
+            slot = torch.zeros(spec.shape, dtype=spec.dtype, device=spec.device)
+        else:
+            obs = reference.get(self.observation_key)
+            slot = torch.zeros(*obs.shape[:-1], self.decoder.action_dim, device=obs.device)
+        return slot
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         # a fresh slot for the first decoded action of the episode

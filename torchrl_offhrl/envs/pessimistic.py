@@ -63,7 +63,8 @@ class PessimisticModelEnv(EnvBase):
 
     The env writes, besides TorchRL's standard keys, ``discrepancy``
     (``[*B, 1]``), ``penalized`` (pessimistic termination, ``[*B, 1]``),
-    ``model_member`` and ``model_step`` (``[*B, 1]``, int64).
+    ``model_member`` (the member that made the step; its value is meaningless
+    with ``member_mode="mean"``) and ``model_step`` (``[*B, 1]``, int64).
 
     Examples:
         >>> import torch
@@ -145,7 +146,9 @@ class PessimisticModelEnv(EnvBase):
         starts = data.initial_observations() if reset_states == "initial" else data.data.get("observation")
         self.register_buffer("start_states", starts.float().to(self.device))
 
-        self._rng = torch.Generator(device=self.device)
+        # draws happen on the CPU and move to the env's device, so the env
+        # keeps working after env.to(other_device)
+        self._rng = torch.Generator()
         self._rng.manual_seed(int(torch.empty((), dtype=torch.int64).random_().item()) if seed is None else seed)
         self._make_specs(data)
 
@@ -183,8 +186,8 @@ class PessimisticModelEnv(EnvBase):
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         B = self.batch_size
         n = max(1, B.numel())
-        idx = torch.randint(0, self.start_states.shape[0], (n,), generator=self._rng, device=self.device)
-        member = torch.randint(0, self.num_members, (n, 1), generator=self._rng, device=self.device)
+        idx = torch.randint(0, self.start_states.shape[0], (n,), generator=self._rng).to(self.device)
+        member = torch.randint(0, self.num_members, (n, 1), generator=self._rng).to(self.device)
         out = TensorDict(
             {
                 "observation": self.start_states[idx].reshape(*B, -1),
@@ -227,7 +230,7 @@ class PessimisticModelEnv(EnvBase):
             reward = rewards.mean(0)
         else:
             if self.member_mode == "step":
-                member = torch.randint(0, self.num_members, (n,), generator=self._rng, device=self.device)
+                member = torch.randint(0, self.num_members, (n,), generator=self._rng).to(self.device)
             rows = torch.arange(n, device=self.device)
             next_obs = pred["next_observation"][member, rows]
             reward = rewards[member, rows]
@@ -252,7 +255,7 @@ class PessimisticModelEnv(EnvBase):
                 "reward": reward.reshape(*B, 1),
                 "discrepancy": disc.reshape(*B, 1),
                 "penalized": penalized.reshape(*B, 1),
-                "model_member": tensordict.get("model_member"),
+                "model_member": member.reshape(*B, 1) if self.member_mode == "step" else tensordict.get("model_member"),
                 "model_step": step.reshape(*B, 1),
                 "terminated": terminated.reshape(*B, 1),
                 "truncated": truncated.reshape(*B, 1),
