@@ -126,14 +126,15 @@ class PessimisticModelEnv(EnvBase):
         self.member_mode = member_mode
         self.num_members = ensemble.num_members
 
+        self._data = data
         if threshold is None:
-            self.calibration: CalibrationReport = calibrate_threshold(
+            self._calibration: CalibrationReport | None = calibrate_threshold(
                 self.ensemble, data, discrepancy, quantile=quantile, fraction=fraction
             )
-        else:
-            disc = dataset_discrepancy(self.ensemble, data, discrepancy)
-            self.calibration = CalibrationReport.from_values(disc, float(threshold), "explicit", None, discrepancy)
-        self.threshold = self.calibration.threshold
+            self.threshold = self._calibration.threshold
+        else:  # the report is computed on first use only: no start-up cost
+            self._calibration = None
+            self.threshold = float(threshold)
 
         if termination_fn == "auto":
             termination_fn = termination_fn_for(data.env_id)
@@ -270,6 +271,14 @@ class PessimisticModelEnv(EnvBase):
             self._rng.manual_seed(int(seed))
 
     # ------------------------------------------------------------- reporting
+    @property
+    def calibration(self) -> CalibrationReport:
+        """How the threshold sits on the dataset's discrepancies (computed once)."""
+        if self._calibration is None:
+            disc = dataset_discrepancy(self.ensemble, self._data, self.discrepancy_kind)
+            self._calibration = CalibrationReport.from_values(disc, self.threshold, "explicit", None, self.discrepancy_kind)
+        return self._calibration
+
     def calibration_report(self, plot_path: str | None = None) -> str:
         """A text summary of the threshold; also saves the histogram when ``plot_path`` is given."""
         text = self.calibration.summary() + f"\npenalty on violation: -{self.penalty:g}"
