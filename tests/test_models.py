@@ -144,6 +144,12 @@ def test_known_reward_function(toy_data):
     assert ens.reward_net is None
     out = ens.predict(toy_data[:4]["observation"], toy_data[:4]["action"])
     assert torch.allclose(out["reward"], -(out["next_observation"] ** 2).sum(-1))
+    # a reward of the current state only, [N], is shared by every member
+    ens.reward_fn = lambda obs, act, nobs: -(obs**2).sum(-1)  # noqa: E731
+    out = ens.predict(toy_data[:4]["observation"], toy_data[:4]["action"])
+    assert out["reward"].shape == (2, 4)
+    assert torch.equal(out["reward"][0], out["reward"][1])
+    assert torch.allclose(out["reward"][0], -(toy_data[:4]["observation"] ** 2).sum(-1))
 
 
 def test_save_load_round_trip(tmp_path, fitted_ensemble, fitted_cvae, toy_data):

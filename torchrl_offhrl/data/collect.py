@@ -6,8 +6,6 @@ import time
 from typing import Callable
 
 import torch
-from tensordict import TensorDict
-
 from .dataset import OfflineDataset
 
 __all__ = ["make_gym_env", "collect_dataset"]
@@ -107,7 +105,7 @@ def collect_dataset(
         "versions": _versions(),
     }
     meta.update(metadata or {})
-    ds = OfflineDataset(TensorDict(data.to_dict(), batch_size=data.batch_size), meta, (low, high))
+    ds = OfflineDataset(data, meta, (low, high))
     rets = ds.episode_returns()
     ds.metadata["returns"] = {
         "mean": float(rets.mean()),

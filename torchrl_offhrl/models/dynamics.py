@@ -24,7 +24,7 @@ class DynamicsEnsemble(FitMixin, nn.Module):
     next-state residual: ``s' = s + delta_mean + delta_std * T_k(s_bar, a)``.
     Rewards come from a learned reward ensemble ``R_k(s_bar, a)`` (the
     paper's locomotion setting) or from a known function
-    ``reward_fn(obs, action, next_obs) -> [N]`` (sparse goal rewards).
+    ``reward_fn(obs, action, next_obs)`` (sparse goal rewards).
 
     Args:
         observation_dim / action_dim: sizes.
@@ -36,7 +36,9 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             ``reward_fn`` for a known reward.
         reward_hidden_sizes: hidden widths of the reward members (default:
             ``hidden_sizes``).
-        reward_fn: known reward ``f(obs, action, next_obs) -> [N]``; used
+        reward_fn: known reward ``f(obs, action, next_obs)`` returning ``[K, N]``
+            (``next_obs`` holds every member's prediction, ``[K, N, obs_dim]``)
+            or ``[N]``; used
             instead of the learned one when given. Not saved in checkpoints:
             pass it again to :meth:`load` through ``reward_fn=...`` on the
             returned model.
@@ -145,8 +147,9 @@ class DynamicsEnsemble(FitMixin, nn.Module):
         delta, _ = self._split(self.dynamics(x))
         next_obs = observation + self.delta_mean + self.delta_std * delta
         if self.reward_fn is not None:
+            # [K, N] (computed per member's next state) or [N] / [N, 1] (shared)
             r = self.reward_fn(observation, action, next_obs)
-            reward = r.reshape(1, -1).expand(self.num_members, -1) if r.dim() <= 2 and r.numel() == observation.shape[0] else r
+            reward = r.reshape(-1, observation.shape[0]).expand(self.num_members, -1)
         elif self.reward_net is not None:
             r, _ = self._split(self.reward_net(x))
             reward = (self.reward_mean + self.reward_std * r).squeeze(-1)

@@ -6,7 +6,7 @@ import math
 from typing import Protocol, Sequence
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 
 __all__ = ["SupervisedTrainer", "TrainableModel", "make_adam"]
 
