@@ -77,8 +77,9 @@ def main(cfg: DictConfig) -> None:
             print(f"{name}: loaded from {info['model_dir']}")
 
     env = make_model_env(cfg, ensemble, cvae, data, batch_size=cfg.rollout.batch_size)
-    check_env_specs(make_model_env(cfg, ensemble, cvae, data, batch_size=None))
-    check_env_specs(make_model_env(cfg, ensemble, cvae, data, batch_size=4))
+    threshold = env.base_env.threshold  # calibrated once, reused
+    check_env_specs(make_model_env(cfg, ensemble, cvae, data, batch_size=None, threshold=threshold))
+    check_env_specs(make_model_env(cfg, ensemble, cvae, data, batch_size=4, threshold=threshold))
     print("check_env_specs: passed (unbatched and batched)")
     base = env.base_env
     print("\n== calibration ==")

@@ -274,8 +274,7 @@ class OfflineDataset:
             td = ds.data.clone()
             # a part's last transition always ends its episode, also after save/load
             trunc = td.get(("next", "truncated"))
-            trunc[-1] |= ~td.get(("next", "terminated"))[-1]
-            td.set(("next", "done"), td.get(("next", "terminated")) | trunc)
+            trunc[-1] |= ~td.get(("next", "terminated"))[-1]  # "done" is rebuilt by OfflineDataset
             _, inv = torch.unique_consecutive(td.get("episode"), return_inverse=True)
             td.set("episode", inv + offset)
             offset += int(inv.max()) + 1

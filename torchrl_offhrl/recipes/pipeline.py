@@ -130,17 +130,22 @@ def make_model_env(
     data: OfflineDataset,
     batch_size: int | None = None,
     latent: bool = True,
+    threshold: float | None = None,
 ) -> TransformedEnv:
     """``TransformedEnv(PessimisticModelEnv(...), LatentActionTransform(...))``.
 
     ``latent=False`` (the paper's "no CVAE" ablation, and transfer) leaves the
-    agent acting in real actions.
+    agent acting in real actions. ``threshold`` overrides ``cfg.env.threshold``:
+    pass an env's calibrated ``base_env.threshold`` to build more envs (e.g. for
+    evaluation) without scoring the dataset again.
     """
     env_cfg = cfg["env"]
+    if threshold is None:
+        threshold = env_cfg.get("threshold")
     base = PessimisticModelEnv(
         ensemble,
         data,
-        threshold=env_cfg.get("threshold"),
+        threshold=threshold,
         penalty=env_cfg.get("penalty", 20.0),
         discrepancy=env_cfg.get("discrepancy", "variance"),
         quantile=env_cfg.get("quantile", 0.99),
@@ -151,12 +156,13 @@ def make_model_env(
         device=cfg.get("device", "cpu"),
         seed=cfg.get("seed"),
     )
-    env = TransformedEnv(base)
-    if latent:
-        if cvae is None:
-            raise ValueError("latent=True needs a fitted ConditionalVAE.")
-        env.append_transform(LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", 2.0)))
-    return env
+    if not latent:
+        return TransformedEnv(base)
+    if cvae is None:
+        raise ValueError("latent=True needs a fitted ConditionalVAE.")
+    # the transform as the env's own transform (not in a Compose): the decoded
+    # action is then kept in every stepping style, hand-written loops included
+    return TransformedEnv(base, LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", 2.0)))
 
 
 def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = 2.0, device="cpu"):
