@@ -1,0 +1,296 @@
+"""Option-critic networks and rollout-time option selection.
+
+An agent with ``n`` options has, for a state ``s``:
+
+* a policy over options ``pi_O(o|s)`` (categorical logits ``[n]``),
+* ``n`` intra-option policies ``pi_o(a|s)``: tanh-squashed Gaussians bounded
+  to the action box (or the latent-action box under
+  :class:`~torchrl_offhrl.envs.LatentActionTransform`),
+* a termination head ``beta(s, o)`` (one sigmoid per option),
+* option values ``Q(s, o)`` (the critic, :class:`OptionValueNet`).
+
+:class:`OptionHeads` computes the first three for every option at once;
+:class:`OptionCriticActor` runs them during rollouts: it carries the current
+option across steps in ``prev_option`` (declared with a
+:class:`~torchrl.envs.TensorDictPrimer`, see :meth:`OptionCriticActor.make_transforms`),
+terminates it with probability ``beta(s, prev_option)``, picks a new option
+from ``pi_O`` when it terminates or when the episode starts (``is_init`` from
+:class:`~torchrl.envs.InitTracker`), then acts with that option's policy.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from torch import nn
+
+__all__ = ["ObservationNormalizer", "OptionCriticActor", "OptionHeads", "OptionValueNet", "make_option_critic"]
+
+_ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}
+
+
+def _activation(name: str) -> type[nn.Module]:
+    try:
+        return _ACTIVATIONS[name]
+    except KeyError:
+        raise ValueError(f"activation {name!r} is not one of {sorted(_ACTIVATIONS)}") from None
+
+
+def mlp(in_dim: int, out_dim: int, hidden: Sequence[int], activation: str = "tanh") -> nn.Sequential:
+    """A plain MLP; the last layer has no activation."""
+    act = _activation(activation)
+    layers, d = [], in_dim
+    for h in hidden:
+        layers += [nn.Linear(d, h), act()]
+        d = h
+    layers.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*layers)
+
+
+class ObservationNormalizer(nn.Module):
+    """``(x - loc) / scale`` with fixed buffers (e.g. the dataset's statistics).
+
+    Offline data gives the statistics up front, so networks normalise with
+    them instead of running estimates. With ``loc=None`` it is the identity.
+    """
+
+    def __init__(self, dim: int, loc: torch.Tensor | None = None, scale: torch.Tensor | None = None):
+        super().__init__()
+        loc = torch.zeros(dim) if loc is None else torch.as_tensor(loc, dtype=torch.float32).reshape(dim)
+        scale = torch.ones(dim) if scale is None else torch.as_tensor(scale, dtype=torch.float32).reshape(dim)
+        self.register_buffer("loc", loc.clone())
+        self.register_buffer("scale", scale.clamp_min(1e-6).clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.loc) / self.scale
+
+
+class OptionHeads(nn.Module):
+    """Policy over options, intra-option Gaussians and terminations for all options.
+
+    ``forward(observation)`` returns ``(option_logits [*, n], loc [*, n, A],
+    scale [*, n, A], termination [*, n])``. ``loc``/``scale`` parametrise the
+    pre-tanh Gaussian of each option; ``scale`` is a state-independent learned
+    parameter per option and action dimension (as in PPO for MuJoCo).
+
+    Args:
+        obs_dim, act_dim, num_options: sizes.
+        hidden: hidden layer sizes of each tower (or of the shared trunk).
+        shared_trunk: one trunk feeding three linear heads (``True``) or a
+            separate tower per head (``False``, the official MOC layout).
+        activation: ``"tanh"`` (default, MOC's choice), ``"relu"`` or ``"elu"``.
+        obs_loc, obs_scale: optional normalisation statistics.
+        init_log_std: initial log standard deviation of the pre-tanh Gaussians.
+
+    Examples:
+        >>> heads = OptionHeads(5, 2, num_options=3, hidden=(16,))
+        >>> logits, loc, scale, beta = heads(torch.zeros(4, 5))
+        >>> logits.shape, loc.shape, scale.shape, beta.shape
+        (torch.Size([4, 3]), torch.Size([4, 3, 2]), torch.Size([4, 3, 2]), torch.Size([4, 3]))
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        num_options: int,
+        hidden: Sequence[int] = (64, 64),
+        shared_trunk: bool = False,
+        activation: str = "tanh",
+        obs_loc: torch.Tensor | None = None,
+        obs_scale: torch.Tensor | None = None,
+        init_log_std: float = 0.0,
+    ):
+        super().__init__()
+        if num_options < 1:
+            raise ValueError(f"num_options must be >= 1, got {num_options}")
+        self.obs_dim, self.act_dim, self.num_options = obs_dim, act_dim, num_options
+        self.shared_trunk = shared_trunk
+        self.normalizer = ObservationNormalizer(obs_dim, obs_loc, obs_scale)
+        n, a = num_options, act_dim
+        if shared_trunk:
+            hidden = list(hidden)
+            self.trunk = nn.Sequential(mlp(obs_dim, hidden[-1], hidden[:-1], activation), _activation(activation)())
+            self.option_head = nn.Linear(hidden[-1], n)
+            self.intra_head = nn.Linear(hidden[-1], n * a)
+            self.termination_head = nn.Linear(hidden[-1], n)
+        else:
+            self.trunk = nn.Identity()
+            self.option_head = mlp(obs_dim, n, hidden, activation)
+            self.intra_head = mlp(obs_dim, n * a, hidden, activation)
+            self.termination_head = mlp(obs_dim, n, hidden, activation)
+        self.log_std = nn.Parameter(torch.full((n, a), float(init_log_std)))
+        # small last layers: near-uniform pi_O, near-zero means, beta ~ 0.5
+        for head in (self.option_head, self.intra_head, self.termination_head):
+            last = head if isinstance(head, nn.Linear) else head[-1]
+            nn.init.orthogonal_(last.weight, gain=0.01)
+            nn.init.zeros_(last.bias)
+
+    def forward(self, observation: torch.Tensor):
+        h = self.trunk(self.normalizer(observation))
+        logits = self.option_head(h)
+        loc = self.intra_head(h).unflatten(-1, (self.num_options, self.act_dim))
+        scale = self.log_std.clamp(-5.0, 2.0).exp().expand_as(loc)
+        termination = torch.sigmoid(self.termination_head(h))
+        return logits, loc, scale, termination
+
+
+class OptionValueNet(nn.Module):
+    """``Q(s, o)`` for every option: ``observation [*, D] -> [*, n]``."""
+
+    def __init__(self, obs_dim: int, num_options: int, hidden: Sequence[int] = (64, 64), activation: str = "tanh", obs_loc=None, obs_scale=None):
+        super().__init__()
+        self.num_options = num_options
+        self.normalizer = ObservationNormalizer(obs_dim, obs_loc, obs_scale)
+        self.net = mlp(obs_dim, num_options, hidden, activation)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return self.net(self.normalizer(observation))
+
+
+def make_option_critic(obs_dim: int, num_options: int, hidden=(64, 64), activation: str = "tanh", obs_loc=None, obs_scale=None, observation_key="observation", out_key="option_value") -> TensorDictModule:
+    """The critic as a TensorDict module: ``observation -> option_value [*, n]``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> critic = make_option_critic(3, num_options=4, hidden=(8,))
+        >>> critic(TensorDict(observation=torch.zeros(2, 3), batch_size=[2]))["option_value"].shape
+        torch.Size([2, 4])
+    """
+    return TensorDictModule(OptionValueNet(obs_dim, num_options, hidden, activation, obs_loc, obs_scale), in_keys=[observation_key], out_keys=[out_key])
+
+
+def _is_deterministic() -> bool:
+    from torchrl.envs.utils import ExplorationType, exploration_type
+
+    return exploration_type() in (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
+
+
+class OptionCriticActor(TensorDictModuleBase):
+    """Rollout-time option-critic policy: keeps an option, terminates it, picks the next, acts.
+
+    At every step, with ``beta = beta(s, prev_option)`` (forced to 1 where
+    ``is_init`` marks an episode start): terminate with probability ``beta``;
+    on termination draw a new option from ``pi_O(.|s)``; then sample the action
+    from that option's tanh-Gaussian. In deterministic exploration mode
+    (``set_exploration_type(ExplorationType.DETERMINISTIC)``) it terminates
+    when ``beta > 0.5``, takes the most likely option and the mode of the
+    action distribution.
+
+    Reads ``observation``, ``prev_option`` and ``is_init``; writes ``option``,
+    ``option_start`` (a new option was picked this step),
+    ``termination_prob`` (``beta(s, prev_option)``, 1 at episode starts),
+    ``option_log_probs`` (``log pi_o(a|s)`` of the taken action under every
+    option, ``[*, n]``), ``option_assignment_log_prob`` (``log P_t(o)``, the
+    log-probability that option ``o`` executes at this step given
+    ``prev_option``, ``[*, n]``), the action, and ``("next", "prev_option")``
+    so the option is carried to the next step. The env needs
+    :meth:`make_transforms` (an :class:`~torchrl.envs.InitTracker` and a
+    :class:`~torchrl.envs.TensorDictPrimer` for ``prev_option``); partial
+    resets re-pick the option only in the envs that reset.
+
+    Args:
+        heads: an :class:`OptionHeads`.
+        low, high: the action box the tanh squashes to.
+        action_key: where to write the action (``"latent_action"`` under the
+            latent transform).
+
+    Examples:
+        >>> from torchrl.envs import GymEnv, TransformedEnv, Compose
+        >>> from torchrl.envs.utils import set_exploration_type, ExplorationType
+        >>> heads = OptionHeads(3, 1, num_options=2, hidden=(16,))
+        >>> actor = OptionCriticActor(heads, low=-2.0, high=2.0)
+        >>> env = TransformedEnv(GymEnv("Pendulum-v1"), Compose(*actor.make_transforms()))
+        >>> td = env.rollout(5, actor)
+        >>> td["option"].shape, td["option_log_probs"].shape, bool(td["option_start"][0])
+        (torch.Size([5]), torch.Size([5, 2]), True)
+        >>> bool((td["next", "prev_option"] == td["option"]).all())
+        True
+    """
+
+    def __init__(
+        self,
+        heads: OptionHeads,
+        low: float | torch.Tensor = -1.0,
+        high: float | torch.Tensor = 1.0,
+        observation_key="observation",
+        action_key="action",
+    ):
+        super().__init__()
+        self.heads = heads
+        self.num_options = heads.num_options
+        self.register_buffer("low", torch.as_tensor(low, dtype=torch.float32).expand(heads.act_dim).clone())
+        self.register_buffer("high", torch.as_tensor(high, dtype=torch.float32).expand(heads.act_dim).clone())
+        self.observation_key = observation_key
+        self.action_key = action_key
+        self.in_keys = [observation_key, "prev_option", "is_init"]
+        self.out_keys = [
+            "option",
+            "option_start",
+            "termination_prob",
+            "option_log_probs",
+            "option_assignment_log_prob",
+            action_key,
+            ("next", "prev_option"),
+        ]
+
+    def distribution(self, loc: torch.Tensor, scale: torch.Tensor):
+        """The tanh-Gaussian of given pre-tanh ``loc``/``scale`` on this actor's box."""
+        from torchrl.modules import TanhNormal
+
+        return TanhNormal(loc, scale, low=self.low, high=self.high, safe_tanh=True)
+
+    def make_transforms(self):
+        """``[InitTracker(), TensorDictPrimer(prev_option)]``: append them to the env."""
+        from torchrl.data import Categorical
+        from torchrl.envs import InitTracker, TensorDictPrimer
+
+        return [
+            InitTracker(),
+            TensorDictPrimer({"prev_option": Categorical(self.num_options, shape=(), dtype=torch.int64)}, default_value=0, expand_specs=True),
+        ]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get(self.observation_key)
+        batch = obs.shape[:-1]
+        if "is_init" not in tensordict:
+            raise KeyError(
+                "OptionCriticActor needs 'is_init' to know where episodes start: append "
+                "actor.make_transforms() (InitTracker + prev_option primer) to the env."
+            )
+        is_init = tensordict.get("is_init").reshape(batch)
+        prev = tensordict.get("prev_option", None)
+        if prev is None:
+            prev = torch.zeros(batch, dtype=torch.long, device=obs.device)
+        prev = prev.reshape(batch).long()
+        logits, loc, scale, beta = self.heads(obs)
+        beta_prev = beta.gather(-1, prev.unsqueeze(-1)).squeeze(-1)
+        beta_prev = torch.where(is_init, torch.ones_like(beta_prev), beta_prev)
+        pi = torch.softmax(logits, -1)
+        onehot = F.one_hot(prev, self.num_options).to(pi.dtype)
+        assign = beta_prev.unsqueeze(-1) * pi + (1 - beta_prev.unsqueeze(-1)) * onehot
+        det = _is_deterministic()
+        if det:
+            terminate = beta_prev > 0.5
+            new = logits.argmax(-1)
+        else:
+            terminate = torch.rand_like(beta_prev) < beta_prev
+            new = torch.distributions.Categorical(logits=logits).sample()
+        terminate = terminate | is_init
+        option = torch.where(terminate, new, prev)
+        idx = option.reshape(*batch, 1, 1).expand(*batch, 1, loc.shape[-1])
+        dist = self.distribution(loc.gather(-2, idx).squeeze(-2), scale.gather(-2, idx).squeeze(-2))
+        action = dist.deterministic_sample if det else dist.sample()
+        all_logp = self.distribution(loc, scale).log_prob(action.unsqueeze(-2))
+        tensordict.set("option", option)
+        tensordict.set("option_start", terminate)
+        tensordict.set("termination_prob", beta_prev)
+        tensordict.set("option_log_probs", all_logp)
+        tensordict.set("option_assignment_log_prob", assign.clamp_min(1e-12).log())
+        tensordict.set(self.action_key, action)
+        tensordict.set(("next", "prev_option"), option)
+        return tensordict
+
