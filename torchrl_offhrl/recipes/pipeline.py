@@ -8,20 +8,27 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 from torchrl.envs import TransformedEnv
 
-from ..data import OfflineDataset, collect_dataset, load_dataset, make_gym_env, save_dataset
+from ..data import (
+    OfflineDataset,
+    collect_dataset,
+    load_dataset,
+    make_gym_env,
+    save_dataset,
+)
 from ..envs import LatentActionTransform, PessimisticModelEnv
 from ..models import ConditionalVAE, DynamicsEnsemble
 from ..utils import cache_dir
 
 __all__ = [
     "GaussianLatentPolicy",
-    "get_dataset",
     "fit_or_load_models",
+    "get_dataset",
     "make_model_env",
     "make_real_env",
 ]

@@ -1,0 +1,183 @@
+"""The SAC / PPO / MOC offline recipes end to end on tiny settings, resumption, aggregation."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchrl_offhrl.recipes import train as train_mod
+from torchrl_offhrl.recipes.report import aggregate
+from torchrl_offhrl.recipes.train import pessimism_for, train
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "ensemble.hidden_sizes=[32,32]",
+    "ensemble.fit.max_steps=40",
+    "cvae.hidden_sizes=[32,32]",
+    "cvae.fit.max_steps=40",
+    "collector.num_envs=4",
+    "train.total_frames=256",
+    "eval.every_frames=128",
+    "eval.episodes=2",
+    "eval.max_steps=40",
+    "algo.frames_per_batch=64",
+]
+ALGO_TINY = {"sac": ["algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32"], "ppo": ["algo.epochs=2"], "moc": ["algo.epochs=2"]}
+
+
+@pytest.fixture(scope="module")
+def hopper_file(tmp_path_factory):
+    from torchrl_offhrl.data import collect_dataset, save_dataset
+
+    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
+    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    old = os.environ.get("TORCHRL_OFFHRL_CACHE")
+    path = tmp_path_factory.mktemp("cache")
+    os.environ["TORCHRL_OFFHRL_CACHE"] = str(path)
+    yield path
+    if old is None:
+        os.environ.pop("TORCHRL_OFFHRL_CACHE")
+    else:
+        os.environ["TORCHRL_OFFHRL_CACHE"] = old
+
+
+def _cfg(algo, data, out, extra=()):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base=None):
+        return compose("offline_train", overrides=[f"algo={algo}", f"dataset={data}", f"out_root={out}", *TINY, *ALGO_TINY[algo], *extra])
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo", "moc"])
+def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
+    summary = train(_cfg(algo, hopper_file, tmp_path), progress=False)
+    run = Path(summary["run_dir"])
+    assert run.name == f"{algo}-hopper-hopper_random-seed0"
+    assert summary["frames"] == 256 and summary["updates"] > 0
+    evals = json.loads((run / "evals.json").read_text())
+    assert [e["frames"] for e in evals] == [128, 256]
+    final = evals[-1]
+    assert final["normalized_d4rl"] == pytest.approx(100 * (final["return_mean"] + 20.272305) / (3234.3 + 20.272305))
+    for f in ("checkpoint.pt", "summary.json", "config.json", "learning_curve.png"):
+        assert (run / f).is_file(), f
+    assert (run / "logs" / "scalars" / "eval" / "return_mean.csv").is_file()
+    cfg = json.loads((run / "config.json").read_text())
+    # random data is not a named level: the env group's default pessimism applies
+    assert cfg["resolved_pessimism"] == {"quantile": 0.99, "penalty": 20.0}
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["frames"] == 256
+    if algo == "moc":
+        usage = torch.load(run / "option_usage.pt")
+        assert usage.shape[1] == 4 and (run / "option_usage.png").is_file()
+        # every step of a running episode has exactly one active option
+        rows = usage[usage.sum(-1) > 0]
+        torch.testing.assert_close(rows.sum(-1), torch.ones(rows.shape[0]))
+        assert sum(final["option_usage_mean"]) == pytest.approx(1.0)
+
+
+def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, monkeypatch):
+    cfg = _cfg("moc", hopper_file, tmp_path)
+    real_update = train_mod._update
+    calls = {"n": 0}
+
+    def crash_on_third(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:  # after the first evaluation + checkpoint at 128 frames
+            raise KeyboardInterrupt
+        return real_update(*a, **k)
+
+    monkeypatch.setattr(train_mod, "_update", crash_on_third)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, progress=False)
+    run = next(tmp_path.glob("moc-*"))
+    first = json.loads((run / "evals.json").read_text())
+    assert [e["frames"] for e in first] == [128]
+    saved = torch.load(run / "checkpoint.pt", weights_only=True)["agent"]["loss"]
+    monkeypatch.setattr(train_mod, "_update", real_update)
+
+    loaded = {}
+    real_load = train_mod.make_agent
+
+    def spy_make_agent(*a, **k):
+        agent = real_load(*a, **k)
+        orig = agent.load_state_dict
+
+        def load(state):
+            orig(state)
+            loaded.update({k: v.clone() for k, v in agent.loss.state_dict().items()})
+
+        agent.load_state_dict = load
+        return agent
+
+    monkeypatch.setattr(train_mod, "make_agent", spy_make_agent)
+    summary = train(cfg, progress=False)
+    evals = json.loads((run / "evals.json").read_text())
+    assert [e["frames"] for e in evals] == [128, 256]
+    assert evals[0] == first[0]  # the record from before the interruption is kept
+    assert summary["frames"] == 256
+    for k, v in saved.items():  # the second run started from the checkpoint's weights
+        torch.testing.assert_close(loaded[k], v)
+
+
+def test_ablation_no_cvae_acts_in_real_actions(hopper_file, cache, tmp_path):
+    summary = train(_cfg("ppo", hopper_file, tmp_path, ["ablation.no_cvae=true", "ablation.no_pessimism=true"]), progress=False)
+    run = Path(summary["run_dir"])
+    assert run.name.endswith("-no_cvae-no_pessimism-seed0")
+    assert summary["pessimism"] == {"threshold": float("inf"), "penalty": 0.0}
+    assert summary["frames"] == 256
+
+
+def test_pessimism_table_is_the_papers():
+    from omegaconf import OmegaConf
+
+    hop = OmegaConf.load(ROOT / "configs" / "env" / "hopper.yaml")
+    hc = OmegaConf.load(ROOT / "configs" / "env" / "halfcheetah.yaml")
+    assert pessimism_for(hop, "medium") == {"fraction": 1.08, "penalty": 20.0}
+    assert pessimism_for(hop, "medium-expert") == {"fraction": 0.08, "penalty": 30.0}
+    assert pessimism_for(hc, "medium") == {"fraction": 0.1, "penalty": 20.0}
+    assert pessimism_for(hc, "medium-expert") == {"fraction": 0.0101, "penalty": 20.0}
+    assert pessimism_for(hop, None) == {"quantile": 0.99, "penalty": 20.0}
+    # an override of the quantile on a fraction-based level: fraction still wins unless cleared
+    assert pessimism_for(hop, "medium", {"penalty": 50.0}) == {"fraction": 1.08, "penalty": 50.0}
+
+
+def test_paper_hyperparameters_in_configs():
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base=None):
+        moc = compose("offline_train", overrides=["algo=moc"]).algo
+        ppo_h = compose("offline_train", overrides=["algo=ppo", "env=hopper"]).algo
+        ppo_c = compose("offline_train", overrides=["algo=ppo", "env=halfcheetah"]).algo
+    assert (moc.lr, moc.clip_epsilon, moc.eta, moc.gamma, moc.lmbda) == (1e-4, 0.2, 0.7, 0.99, 0.95)
+    assert (ppo_h.lr, ppo_h.clip_epsilon, ppo_c.lr, ppo_c.clip_epsilon) == (9.80828e-05, 0.1, 3e-4, 0.2)
+    assert (ppo_h.frames_per_batch, ppo_h.vf_coef, ppo_h.ent_coef) == (2048, 0.835671, 0.00229519)
+
+
+def test_aggregate_seeds(tmp_path):
+    for seed, offset in ((0, 0.0), (1, 10.0)):
+        d = tmp_path / f"moc-hopper-medium-seed{seed}"
+        d.mkdir()
+        evals = [{"frames": f, "return_mean": f / 10 + offset, "return_std": 1.0, "normalized_d4rl": f / 100 + offset} for f in (100, 200)]
+        (d / "evals.json").write_text(json.dumps(evals))
+        (d / "config.json").write_text(json.dumps({"algo": {"name": "moc"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {}}))
+    table = aggregate(sorted(tmp_path.glob("moc-*")), tmp_path / "agg")
+    # final returns 20 and 30: mean 25, std 7.07; scores 2 and 12: mean 7
+    assert "| moc | Hopper-v5 | medium | - | 2 | 200 | 25.0 ± 7.1 | 7.0 ± 7.1 |" in table
+    assert (tmp_path / "agg" / "curves.png").is_file() and (tmp_path / "agg" / "results.csv").is_file()
+
+
+def test_offline_train_script_cli(hopper_file, cache, tmp_path):
+    """The user-facing command, through hydra's command line."""
+    args = [sys.executable, str(ROOT / "examples" / "offline_train.py"), "algo=moc", f"dataset={hopper_file}", f"out_root={tmp_path}", *TINY, *ALGO_TINY["moc"]]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=300, env={**os.environ})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "D4RL-normalised" in proc.stdout
+    assert (tmp_path / "moc-hopper-hopper_random-seed0" / "summary.json").is_file()

@@ -1,0 +1,156 @@
+"""Plots and multi-seed aggregation of recipe runs.
+
+Each run directory written by :func:`~torchrl_offhrl.recipes.train.train`
+holds ``config.json``, ``evals.json`` (one record per evaluation) and
+``summary.json``. :func:`aggregate` groups runs by (algorithm, env, dataset,
+ablation), and writes one table (Markdown + CSV: final normalised score,
+mean and standard deviation over seeds) and one figure (learning curves,
+mean ± std over seeds).
+"""
+from __future__ import annotations
+
+import csv
+import json
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+__all__ = ["aggregate", "load_run", "plot_curve", "plot_option_usage"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _curve_stats(runs: Sequence[Sequence[dict]], key: str):
+    """Mean and std over runs at the evaluation points every run has."""
+    common = sorted(set.intersection(*[{r["frames"] for r in recs} for recs in runs])) if runs else []
+    if not common:
+        return [], torch.zeros(0), torch.zeros(0)
+    vals = torch.tensor([[next(r[key] for r in recs if r["frames"] == f) for f in common] for recs in runs], dtype=torch.float64)
+    std = vals.std(0) if vals.shape[0] > 1 else torch.zeros(vals.shape[1], dtype=torch.float64)
+    return common, vals.mean(0), std
+
+
+def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", behaviour: float | None = None, key: str = "return_mean", ax=None):
+    """Learning curve(s): the mean over runs, shaded ± one std over runs.
+
+    With a single run, the band is the std over its evaluation episodes.
+    """
+    plt = _plt()
+    own = ax is None
+    if own:
+        fig, ax = plt.subplots(figsize=(6, 4))
+    frames, mean, std = _curve_stats(runs, key)
+    if len(runs) == 1 and key == "return_mean":
+        std = torch.tensor([r.get("return_std", 0.0) for r in runs[0] if r["frames"] in frames], dtype=torch.float64)
+    ax.plot(frames, mean, marker="o", ms=3, label=f"{label} (n={len(runs)})" if label else None)
+    ax.fill_between(frames, mean - std, mean + std, alpha=0.25)
+    if behaviour is not None:
+        ax.axhline(behaviour, color="gray", ls="--", label="behaviour (dataset)")
+    ax.set_xlabel("model-env frames")
+    ax.set_ylabel("real-env return" if key == "return_mean" else key)
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    if own:
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return path
+
+
+def plot_option_usage(usage: torch.Tensor, path, title: str = "option usage"):
+    """``usage [T, n]``: fraction of running episodes in which each option is active at each step."""
+    plt = _plt()
+    t, n = usage.shape
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.stackplot(range(t), usage.T.numpy(), labels=[f"option {i}" for i in range(n)], alpha=0.85)
+    ax.set_xlim(0, max(t - 1, 1))
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("time step in episode")
+    ax.set_ylabel("fraction of episodes")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=8, ncol=min(n, 4))
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def load_run(run_dir) -> dict:
+    """``{"dir", "config", "evals", "summary"}`` of a run directory (summary may be missing for unfinished runs)."""
+    d = Path(run_dir)
+    evals_path = d / "evals.json"
+    if not evals_path.is_file():
+        raise FileNotFoundError(f"{d} has no evals.json: not a run directory written by offline_train")
+    cfg = json.loads((d / "config.json").read_text()) if (d / "config.json").is_file() else {}
+    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").is_file() else None
+    return {"dir": str(d), "config": cfg, "evals": json.loads(evals_path.read_text()), "summary": summary}
+
+
+def _group_key(run: dict) -> tuple:
+    cfg = run["config"]
+    abl = ",".join(k for k, v in sorted((cfg.get("ablation") or {}).items()) if v) or "-"
+    return (cfg.get("algo", {}).get("name", "?"), cfg.get("env", {}).get("env_id", "?"), str(cfg.get("dataset", "?")), abl)
+
+
+def aggregate(run_dirs: Sequence, out_dir) -> str:
+    """Aggregate seeds: writes ``out_dir/results.md``, ``results.csv`` and ``curves.png``; returns the Markdown table."""
+    runs = [load_run(d) for d in run_dirs]
+    if not runs:
+        raise ValueError("aggregate: no run directories given")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for r in runs:
+        groups[_group_key(r)].append(r)
+    rows = []
+    for key, rs in sorted(groups.items()):
+        finals = torch.tensor([r["evals"][-1]["return_mean"] for r in rs], dtype=torch.float64)
+        scores = [r["evals"][-1].get("normalized_d4rl") for r in rs]
+        sc = torch.tensor([s for s in scores if s is not None], dtype=torch.float64)
+        frames = min(r["evals"][-1]["frames"] for r in rs)
+        beh = [r["summary"]["behaviour_normalized_d4rl"] for r in rs if r["summary"] and r["summary"].get("behaviour_normalized_d4rl") is not None]
+        rows.append(
+            {
+                "algo": key[0], "env": key[1], "dataset": key[2], "ablation": key[3], "seeds": len(rs), "frames": frames,
+                "return_mean": float(finals.mean()), "return_std": float(finals.std()) if len(rs) > 1 else 0.0,
+                "score_mean": float(sc.mean()) if sc.numel() else None,
+                "score_std": float(sc.std()) if sc.numel() > 1 else 0.0,
+                "behaviour_score": float(sum(beh) / len(beh)) if beh else None,
+            }
+        )
+    header = "| algo | env | dataset | ablation | seeds | frames | return (mean ± std) | D4RL score (mean ± std) | behaviour score |"
+    lines = [header, "|" + "---|" * 9]
+    for r in rows:
+        score = "n/a" if r["score_mean"] is None else f"{r['score_mean']:.1f} ± {r['score_std']:.1f}"
+        beh = "n/a" if r["behaviour_score"] is None else f"{r['behaviour_score']:.1f}"
+        lines.append(
+            f"| {r['algo']} | {r['env']} | {r['dataset']} | {r['ablation']} | {r['seeds']} | {r['frames']} | "
+            f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {score} | {beh} |"
+        )
+    table = "\n".join(lines)
+    (out / "results.md").write_text(table + "\n")
+    with open(out / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(rows)
+    plt = _plt()
+    envs = sorted({k[1] for k in groups})
+    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4), squeeze=False)
+    for ax, env_id in zip(axes[0], envs):
+        for key, rs in sorted(groups.items()):
+            if key[1] == env_id:
+                label = f"{key[0]} {key[2]}" + ("" if key[3] == "-" else f" [{key[3]}]")
+                plot_curve([r["evals"] for r in rs], None, label=label, title=env_id, ax=ax)
+    fig.tight_layout()
+    fig.savefig(out / "curves.png", dpi=110)
+    plt.close(fig)
+    return table

@@ -1,0 +1,359 @@
+"""The offline training recipe shared by SAC, PPO and MOC.
+
+``train(cfg)`` (driven by ``examples/offline_train.py`` / ``offhrl train``):
+
+1. resolve the dataset (a file, a local Minari id, or a named dataset that is
+   generated and cached on first use);
+2. fit or load the cached dynamics ensemble and CVAE;
+3. build ``TransformedEnv(PessimisticModelEnv, LatentActionTransform)`` with
+   the paper's per-dataset pessimism (``configs/env/*.yaml``);
+4. build the agent (``configs/algo/*.yaml``) and train it with a TorchRL
+   collector on the model env: on-policy (PPO, MOC: GAE over each batch,
+   epochs of minibatches) or off-policy (SAC: replay buffer);
+5. every ``eval.every_frames`` frames, evaluate deterministically in the real
+   Gymnasium env through the same decoder; log (TorchRL logger), checkpoint
+   atomically (an interrupted run resumes from it), and at the end draw the
+   learning curve and, for MOC, the option-usage plot.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..data import OfflineDataset, load_dataset
+from ..scores import normalized_score
+from ..utils import atomic_write
+from .agents import make_agent
+from .behaviour import evaluate_policy
+from .pipeline import _plain, fit_or_load_models, make_model_env, make_real_env
+
+__all__ = ["default_run_dir", "pessimism_for", "resolve_dataset", "train"]
+
+log = logging.getLogger(__name__)
+
+_LEVELS = ("random", "medium", "expert", "medium-expert", "medium-replay")
+
+
+def resolve_dataset(spec: str, env_name: str, env_id: str, num_transitions: int | None = None, seed: int = 0) -> OfflineDataset:
+    """A dataset from ``spec``: a file path, a local Minari id, or a level name.
+
+    Level names (``medium``, ``hopper-medium``, ``medium-expert``, ...) are
+    generated with the shipped behaviour policies on first use and cached
+    (:func:`torchrl_offhrl.data.named_dataset`).
+    """
+    spec = str(spec)
+    path = Path(spec).expanduser()
+    if path.exists() or path.suffix in (".hdf5", ".h5"):
+        return load_dataset(path, env_id=env_id)
+    if "/" in spec:  # a Minari id such as mujoco/hopper/medium-v0
+        return load_dataset(spec, env_id=env_id)
+    level = spec[len(env_name) + 1 :] if spec.startswith(env_name + "-") else spec
+    if level not in _LEVELS:
+        raise ValueError(
+            f"dataset={spec!r} is neither an existing file, a Minari id, nor a level name "
+            f"({', '.join(_LEVELS)}); give a path to an HDF5 file or one of those names."
+        )
+    from ..data import named_dataset
+
+    return named_dataset(f"{env_name}-{level}", num_transitions=num_transitions, seed=seed)
+
+
+def pessimism_for(env_cfg: Mapping, level: str | None, overrides: Mapping | None = None) -> dict:
+    """The P-MDP settings for a dataset level: the paper's table in ``env_cfg['pessimism']``, then overrides."""
+    table = _plain(env_cfg.get("pessimism", {}))
+    out = dict(table.get("default", {"quantile": 0.99, "penalty": 20.0}))
+    if level and level in table:
+        out = dict(table[level])
+    for k, v in (overrides or {}).items():
+        if v is not None:
+            out[k] = v
+    if out.get("fraction") is not None:
+        out.pop("quantile", None)
+    return out
+
+
+def default_run_dir(cfg: Mapping) -> Path:
+    ds = Path(str(cfg["dataset"])).stem.replace("/", "_")
+    abl = "".join(f"-{k}" for k, v in _plain(cfg.get("ablation", {})).items() if v)
+    return Path(cfg.get("out_root", "outputs/runs")) / f"{cfg['algo']['name']}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
+
+
+def _sum_losses(out) -> torch.Tensor:
+    return sum(v for k, v in out.items() if k.startswith("loss_"))
+
+
+def _scalars(out, prefix="train/") -> dict:
+    res = {}
+    for k, v in out.items():
+        if isinstance(v, torch.Tensor) and v.numel() == 1:
+            res[prefix + k] = float(v.detach())
+    return res
+
+
+def _alive(td) -> torch.Tensor:
+    """``[E, T]``: steps up to and including each env's first ``done``."""
+    done = td["next", "done"].reshape(td.batch_size[0], -1)
+    return (torch.cumsum(done.int(), 1) - done.int()) == 0
+
+
+def option_usage(td, num_options: int) -> torch.Tensor:
+    """``[T, n]``: the fraction of still-running episodes in which each option is active at each step.
+
+    ``td`` is a ``[E, T]`` evaluation rollout of auto-resetting envs; steps
+    after an env's first ``done`` are ignored.
+    """
+    opt = td["option"].reshape(td.batch_size[0], -1)
+    alive = _alive(td)
+    onehot = torch.nn.functional.one_hot(opt, num_options).float() * alive.unsqueeze(-1)
+    return onehot.sum(0) / alive.sum(0).clamp_min(1).unsqueeze(-1)
+
+
+def train(cfg: Mapping, progress: bool = True) -> dict:
+    """Run one recipe end to end; returns the summary also written to ``run_dir/summary.json``."""
+    from torchrl.collectors import Collector
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+    from torchrl.envs import RewardSum
+    from torchrl.record.loggers import get_logger
+    from tqdm.auto import tqdm
+
+    from .report import plot_curve, plot_option_usage
+
+    cfg = _plain(cfg)
+    t_start = time.time()
+    algo, env_cfg = cfg["algo"], cfg["env"]
+    run_dir = Path(cfg.get("run_dir") or default_run_dir(cfg))
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg["seed"])
+    device = torch.device(cfg.get("device", "cpu"))
+
+    # 1-2. data and models
+    data = resolve_dataset(cfg["dataset"], env_cfg["name"], env_cfg["env_id"], cfg.get("num_transitions"), cfg["seed"])
+    level = data.metadata.get("level")
+    if level is None and str(cfg["dataset"]).removeprefix(env_cfg["name"] + "-") in _LEVELS:
+        level = str(cfg["dataset"]).removeprefix(env_cfg["name"] + "-")
+    pcfg = {
+        "seed": cfg["seed"],
+        "device": str(device),
+        "dataset": {"val_ratio": cfg.get("val_ratio", 0.1)},
+        "ensemble": cfg["ensemble"],
+        "cvae": cfg["cvae"],
+    }
+    ensemble, cvae, model_info = fit_or_load_models(pcfg, data, progress=progress)
+
+    # 3. the composed model env
+    abl = cfg.get("ablation", {})
+    latent = not abl.get("no_cvae", False)
+    pess = pessimism_for(env_cfg, level, cfg.get("model_env", {}).get("pessimism"))
+    if abl.get("no_pessimism", False):
+        pess = {"threshold": float("inf"), "penalty": 0.0}
+    menv_cfg = {k: v for k, v in cfg.get("model_env", {}).items() if k != "pessimism"}
+    pcfg["env"] = {**menv_cfg, **pess}
+    frames_per_batch = int(algo["frames_per_batch"])
+    num_envs = int(cfg["collector"]["num_envs"])
+    env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=num_envs, latent=latent)
+    threshold = env.base_env.threshold
+    stats = data.stats()
+    action_key = "latent_action" if latent else "action"
+    agent = make_agent(algo["name"], env, algo, obs_loc=stats.obs_mean, obs_scale=stats.obs_std, action_key=action_key)
+    agent.loss.to(device)
+    for t in agent.env_transforms():
+        env.append_transform(t)
+    env.append_transform(RewardSum())  # ("next", "episode_reward"): model returns in the logs
+    episodes = int(cfg["eval"]["episodes"])
+    eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=menv_cfg.get("latent_bound", 2.0))
+    for t in agent.env_transforms():
+        eval_env.append_transform(t)
+
+    # resume
+    ckpt_path = run_dir / "checkpoint.pt"
+    records: list[dict] = []
+    frames = updates = 0
+    rb = None
+    if not agent.on_policy:
+        rb = ReplayBuffer(storage=LazyTensorStorage(int(algo.get("buffer_size", 1_000_000)), device=device), batch_size=int(algo["batch_size"]))
+    if ckpt_path.is_file():
+        state = torch.load(ckpt_path, weights_only=True, map_location=device)
+        agent.load_state_dict(state["agent"])
+        frames, updates, records = int(state["frames"]), int(state["updates"]), list(state["records"])
+        torch.set_rng_state(state["rng"])
+        if rb is not None and (run_dir / "replay").is_dir():
+            rb.loads(run_dir / "replay")
+        print(f"resuming {run_dir} from its checkpoint at {frames} frames")
+    (run_dir / "config.json").write_text(json.dumps({**cfg, "resolved_pessimism": pess, "threshold": threshold}, indent=2, default=str))
+
+    logger = None
+    if cfg.get("logger", {}).get("backend"):
+        lcfg = cfg["logger"]
+        logger = get_logger(lcfg["backend"], logger_name=str(run_dir), experiment_name="logs", **lcfg.get("kwargs", {}))
+
+    total = int(cfg["train"]["total_frames"])
+    eval_every = int(cfg["eval"]["every_frames"])
+    remaining = max(total - frames, 0)
+    env.set_seed(cfg["seed"] + frames)
+    init_random = 0 if (agent.on_policy or frames) else int(algo.get("init_random_frames", 0))
+    ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
+    ref = ref if None not in ref else None
+
+    def evaluate(final: bool = False):
+        eval_env.set_seed(int(cfg["seed"]) * 1000 + 7)
+        rets, td = evaluate_policy(eval_env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=True, return_rollout=True)
+        rec = {
+            "frames": frames,
+            "updates": updates,
+            "wall_s": round(time.time() - t_start, 1),
+            "return_mean": float(rets.mean()),
+            "return_std": float(rets.std()),
+            "normalized_d4rl": normalized_score(env_cfg["env_id"], float(rets.mean())),
+            "normalized_dataset": normalized_score(env_cfg["env_id"], float(rets.mean()), ref=ref) if ref else None,
+        }
+        if agent.options:
+            usage = option_usage(td, agent.options)
+            alive = _alive(td)
+            rec["option_usage_mean"] = (torch.nn.functional.one_hot(td["option"].reshape(alive.shape), agent.options).float()[alive].mean(0)).tolist()
+            if final:
+                torch.save(usage, run_dir / "option_usage.pt")
+                plot_option_usage(usage, run_dir / "option_usage.png", title=f"MOC option usage, {env_cfg['env_id']}, {cfg['dataset']}")
+        return rec
+
+    def checkpoint():
+        state = {"agent": agent.state_dict(), "frames": frames, "updates": updates, "records": records, "rng": torch.get_rng_state()}
+        with atomic_write(ckpt_path) as tmp:
+            torch.save(state, tmp)
+        with atomic_write(run_dir / "evals.json") as tmp:
+            Path(tmp).write_text(json.dumps(records, indent=1))
+        if rb is not None:
+            tmp_dir = run_dir / "replay.tmp"
+            rb.dumps(tmp_dir)
+            import shutil
+
+            shutil.rmtree(run_dir / "replay", ignore_errors=True)
+            tmp_dir.rename(run_dir / "replay")
+
+    t_train = time.time()
+    frames_at_start = frames
+    train_time = 0.0
+    if remaining > 0:
+        collector = Collector(
+            env,
+            agent.policy,
+            frames_per_batch=frames_per_batch,
+            total_frames=remaining,
+            init_random_frames=init_random,
+            split_trajs=False,
+            device=device,
+        )
+        bar = tqdm(total=total, initial=frames, desc=f"{algo['name']} on {env_cfg['name']}-{level}", disable=not progress, unit="frame")
+        next_eval = (frames // eval_every + 1) * eval_every
+        for batch in collector:
+            t0 = time.time()
+            frames += batch.numel()
+            metrics = _update(agent, batch, algo, rb, frames, init_random)
+            updates += metrics.pop("_updates")
+            train_time += time.time() - t0
+            done = batch["next", "done"]
+            if done.any():
+                metrics["train/model_episode_return"] = float(batch["next", "episode_reward"][done].mean()) if ("next", "episode_reward") in batch.keys(True) else float("nan")
+            metrics["train/penalized_rate"] = float(batch["next", "penalized"].float().mean()) if ("next", "penalized") in batch.keys(True) else float("nan")
+            if logger is not None:
+                for k, v in metrics.items():
+                    logger.log_scalar(k, v, step=frames)
+            bar.update(batch.numel())
+            if frames >= next_eval or frames >= total:
+                rec = evaluate(final=frames >= total)
+                records.append(rec)
+                if logger is not None:
+                    for k in ("return_mean", "normalized_d4rl"):
+                        if rec[k] is not None:
+                            logger.log_scalar(f"eval/{k}", rec[k], step=frames)
+                bar.set_postfix(ret=f"{rec['return_mean']:.0f}", score=f"{rec['normalized_d4rl'] or 0:.1f}")
+                bar.write(f"[{frames} frames] real {env_cfg['env_id']} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f} (D4RL-normalised {rec['normalized_d4rl'] or float('nan'):.1f})")
+                checkpoint()
+                next_eval = (frames // eval_every + 1) * eval_every
+        bar.close()
+        collector.shutdown()
+    elif not records:
+        records.append(evaluate(final=True))
+        checkpoint()
+    if agent.options and not (run_dir / "option_usage.png").is_file():
+        records[-1] = evaluate(final=True)
+    elapsed = time.time() - t_train
+    plot_curve([records], run_dir / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})", behaviour=data.episode_returns().mean().item())
+    behaviour = data.episode_returns()
+    final = records[-1]
+    summary = {
+        "algo": algo["name"],
+        "env_id": env_cfg["env_id"],
+        "dataset": str(cfg["dataset"]),
+        "level": level,
+        "seed": cfg["seed"],
+        "ablation": abl,
+        "pessimism": pess,
+        "threshold": threshold,
+        "frames": frames,
+        "updates": updates,
+        "final": final,
+        "behaviour_return_mean": float(behaviour.mean()),
+        "behaviour_normalized_d4rl": normalized_score(env_cfg["env_id"], float(behaviour.mean())),
+        "frames_per_s": (frames - frames_at_start) / elapsed if elapsed > 0 and frames > frames_at_start else None,
+        "updates_per_s": (updates / train_time) if train_time > 0 else None,
+        "update_time_s": round(train_time, 1),
+        "total_s": round(time.time() - t_start, 1),
+        "models": model_info["model_dir"],
+        "run_dir": str(run_dir),
+    }
+    with atomic_write(run_dir / "summary.json") as tmp:
+        Path(tmp).write_text(json.dumps(summary, indent=2, default=str))
+    eval_env.close()
+    return summary
+
+
+def _update(agent, batch, algo: Mapping, rb, frames: int, init_random: int) -> dict[str, Any]:
+    """One round of learning on a collected batch; returns averaged scalar metrics."""
+    loss = agent.loss
+    params = [p for g in (o.param_groups for o in agent.optimizers) for grp in g for p in grp["params"]]
+    max_norm = float(algo.get("max_grad_norm", 0.5)) if algo.get("max_grad_norm") is not None else None
+    acc: dict[str, float] = {}
+    n = 0
+    if agent.on_policy:
+        with torch.no_grad():
+            loss.value_estimator(batch)
+        flat = batch.reshape(-1)
+        mb = int(algo["minibatch_size"])
+        for _ in range(int(algo["epochs"])):
+            for idx in torch.randperm(flat.numel()).split(mb):
+                out = loss(flat[idx])
+                total = _sum_losses(out)
+                for o in agent.optimizers:
+                    o.zero_grad()
+                total.backward()
+                if max_norm:
+                    torch.nn.utils.clip_grad_norm_(params, max_norm)
+                for o in agent.optimizers:
+                    o.step()
+                for k, v in _scalars(out).items():
+                    acc[k] = acc.get(k, 0.0) + v
+                n += 1
+    else:
+        rb.extend(batch.reshape(-1))
+        if frames >= init_random:
+            for _ in range(max(1, round(batch.numel() * float(algo.get("utd_ratio", 1.0))))):
+                out = loss(rb.sample())
+                total = _sum_losses(out)
+                for o in agent.optimizers:
+                    o.zero_grad()
+                total.backward()
+                for o in agent.optimizers:
+                    o.step()
+                agent.target_updater.step()
+                for k, v in _scalars(out).items():
+                    acc[k] = acc.get(k, 0.0) + v
+                n += 1
+    res = {k: v / max(n, 1) for k, v in acc.items()}
+    res["_updates"] = n
+    return res
