@@ -106,15 +106,20 @@ def collect_dataset(
     }
     meta.update(metadata or {})
     ds = OfflineDataset(data, meta, (low, high))
+    ds.metadata["returns"] = _return_stats(ds)
+    return ds
+
+
+def _return_stats(ds: OfflineDataset) -> dict:
+    """Mean/std/min/max and count of the episode returns (unfinished episodes included)."""
     rets = ds.episode_returns()
-    ds.metadata["returns"] = {
+    return {
         "mean": float(rets.mean()),
         "std": float(rets.std()) if rets.numel() > 1 else 0.0,
         "min": float(rets.min()),
         "max": float(rets.max()),
         "episodes": int(rets.numel()),
     }
-    return ds
 
 
 def _versions() -> dict:
