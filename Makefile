@@ -22,7 +22,7 @@ $(VENV)/.installed: pyproject.toml
 install: $(VENV)/.installed
 
 demo: install
-	$(PY) examples/model_pipeline.py
+	$(VENV)/bin/offhrl demo
 
 test: install
 	$(PY) -m pytest

@@ -80,9 +80,11 @@ def collect_dataset(
     parts = []
     t0 = time.time()
     bar = tqdm(total=steps_per_env * num_envs, desc=f"collect {env_id}", disable=not progress, unit="step")
-    for batch in collector:
+    left = steps_per_env * num_envs
+    for batch in collector:  # the collector rounds its budget up to whole batches
         parts.append(batch.select(*keys).cpu())
-        bar.update(batch.numel())
+        bar.update(min(batch.numel(), left))
+        left -= batch.numel()
     bar.close()
     collector.shutdown()
     data = torch.cat(parts, dim=-1)  # [num_envs, T] in time order per env

@@ -172,9 +172,9 @@ def make_model_env(
     return TransformedEnv(base, LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", 2.0)))
 
 
-def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = 2.0, device="cpu"):
+def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = 2.0, device="cpu", **gym_kwargs):
     """The real Gymnasium env (batched, float32), through the decoder when ``cvae`` is given."""
-    env = make_gym_env(env_id, num_envs=num_envs, device=device)
+    env = make_gym_env(env_id, num_envs=num_envs, device=device, **gym_kwargs)
     if cvae is not None:
         env.append_transform(LatentActionTransform(cvae.decoder, latent_bound=latent_bound))
     return env

@@ -1,0 +1,196 @@
+"""``offhrl``: the command line of torchrl_offhrl.
+
+Hyper-parameters live in the hydra configs under ``configs/`` (``offline_train.yaml``
+and its ``algo/`` and ``env/`` groups); commands that train or fit take
+hydra-style ``key=value`` overrides after their own options.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+EPILOG = """examples:
+  offhrl demo                                         # the embedded demo (short budget, < 10 min on 2 CPUs)
+  offhrl policies                                     # shipped behaviour policies and their returns
+  offhrl collect hopper medium -n 1000000             # D4RL-protocol dataset, cached
+  offhrl fit env=hopper dataset=medium                # ensemble + CVAE, cached
+  offhrl train algo=moc env=hopper dataset=medium     # any recipe: algo=sac|ppo|moc
+  offhrl evaluate outputs/runs/moc-hopper-medium-seed0 --episodes 10
+  offhrl aggregate outputs/runs/moc-hopper-medium-seed* --out outputs/report
+"""
+
+
+def _config_dir() -> Path:
+    """The configs shipped next to the package (a source checkout) or inside it (an install)."""
+    here = Path(__file__).resolve().parent
+    for cand in (here.parent / "configs", here / "configs"):
+        if (cand / "offline_train.yaml").is_file():
+            return cand
+    raise FileNotFoundError(f"no configs/ directory found next to {here}; run from a source checkout of torchrl_offhrl")
+
+
+def compose(config_name: str, overrides: list[str]):
+    """The hydra config ``config_name`` with ``overrides`` (``key=value`` strings)."""
+    from hydra import compose as hcompose
+    from hydra import initialize_config_dir
+
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise SystemExit(f"error: overrides must look like key=value, got {bad}; see `offhrl {config_name} --help`")
+    with initialize_config_dir(config_dir=str(_config_dir()), version_base=None):
+        return hcompose(config_name, overrides=overrides)
+
+
+def cmd_policies(args) -> int:
+    from .data import list_policies, load_policy
+
+    names = list_policies()
+    if not names:
+        print("no behaviour policies are shipped; train one with scripts/train_behaviour.py")
+        return 0
+    print(f"{'name':22s} {'env':16s} {'steps':>8s} {'return (stoch.)':>18s} {'D4RL score':>10s}")
+    for n in names:
+        _, card = load_policy(n)
+        ev = card["eval"]
+        st = ev["stochastic"]
+        print(f"{n:22s} {card['env_id']:16s} {card['train_steps']:8d} {st['mean']:10.1f} ± {st['std']:5.1f} {ev.get('normalized_d4rl') or float('nan'):10.1f}")
+    return 0
+
+
+def cmd_collect(args) -> int:
+    from .data import export_minari, named_dataset, save_dataset
+    from .data.generate import dataset_path
+
+    name = f"{args.env}-{args.level}"
+    t0 = time.time()
+    ds = named_dataset(name, num_transitions=args.num_transitions, seed=args.seed, num_envs=args.num_envs)
+    print(ds)
+    r = ds.metadata.get("returns", {})
+    print(f"{len(ds)} transitions, {r.get('episodes')} episodes, return {r.get('mean', float('nan')):.1f} ± {r.get('std', float('nan')):.1f}; "
+          f"cached at {dataset_path(name, args.num_transitions, args.seed, args.num_envs)} ({time.time() - t0:.0f} s)")
+    if args.out:
+        save_dataset(ds, args.out)
+        print(f"written to {args.out}")
+    if args.minari_id:
+        export_minari(ds, args.minari_id)
+        print(f"exported as the local Minari dataset {args.minari_id}")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from .recipes.pipeline import fit_or_load_models
+    from .recipes.train import resolve_dataset
+
+    cfg = compose("offline_train", args.overrides)
+    data = resolve_dataset(cfg.dataset, cfg.env.name, cfg.env.env_id, cfg.num_transitions, cfg.seed)
+    pcfg = {"seed": cfg.seed, "device": cfg.device, "dataset": {"val_ratio": cfg.val_ratio}, "ensemble": cfg.ensemble, "cvae": cfg.cvae}
+    _, _, info = fit_or_load_models(pcfg, data)
+    for name in ("ensemble", "cvae"):
+        hist = info.get(f"{name}_history")
+        val = hist[-1].get("val_loss") if hist else None
+        print(f"{name}: {info[name]}" + (f", validation loss per member {[round(v, 4) for v in val]}" if val else ""))
+    print(f"models in {info['model_dir']}")
+    return 0
+
+
+def cmd_train(args) -> int:
+    from .recipes.train import train
+
+    cfg = compose("offline_train", args.overrides)
+    s = train(cfg)
+    f = s["final"]
+    print(f"\n{s['algo']} on {s['env_id']} ({s['dataset']}), {s['frames']} frames: real return {f['return_mean']:.1f} ± {f['return_std']:.1f}, "
+          f"D4RL-normalised {f['normalized_d4rl']:.1f}; outputs in {s['run_dir']}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from .recipes.train import evaluate_run
+
+    res = evaluate_run(args.run_dir, episodes=args.episodes, seed=args.seed, frames_dir=args.frames, deterministic=not args.stochastic)
+    print(json.dumps(res, indent=2))
+    return 0
+
+
+def cmd_aggregate(args) -> int:
+    from .recipes.report import aggregate
+
+    print(aggregate(args.runs, args.out))
+    print(f"\nwritten: {args.out}/results.md, results.csv, curves.png")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .recipes.demo import run_demo
+
+    run_demo(args.overrides)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="offhrl",
+        description="Offline hierarchical RL with TorchRL: datasets, pessimistic models, SAC / PPO / MOC recipes.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="command")
+
+    s = sub.add_parser("demo", help="the embedded demo: medium data -> models -> MOC -> real-env evaluation (< 10 min on 2 CPUs)",
+                       description="Collects a small Hopper-v5 dataset with the shipped medium policy, fits the ensemble and the CVAE, "
+                       "trains MOC on the pessimistic model for a short budget, evaluates in the real env and prints a summary. "
+                       "Extra key=value arguments override configs/demo.yaml.")
+    s.add_argument("overrides", nargs="*", help="hydra overrides of configs/demo.yaml, e.g. train.total_frames=50000")
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("policies", help="list the shipped behaviour policies with their evaluation returns")
+    s.set_defaults(func=cmd_policies)
+
+    s = sub.add_parser("collect", help="generate (or load from the cache) a D4RL-protocol dataset",
+                       description="Rolls out a shipped behaviour policy (stochastic, as D4RL) or uniform actions in the real env. "
+                       "Cached under $TORCHRL_OFFHRL_CACHE (default ~/.cache/torchrl_offhrl)/datasets; asking again loads the file.")
+    s.add_argument("env", help="hopper | halfcheetah")
+    s.add_argument("level", help="random | medium | expert | medium-expert")
+    s.add_argument("-n", "--num-transitions", type=int, default=1_000_000, help="transitions (per part for medium-expert); default 1M as D4RL")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--num-envs", type=int, default=8, help="envs stepped side by side")
+    s.add_argument("--out", help="also write the dataset to this HDF5 file")
+    s.add_argument("--minari-id", help="also export it as a local Minari dataset with this id (needs `pip install minari`)")
+    s.set_defaults(func=cmd_collect)
+
+    s = sub.add_parser("fit", help="fit (or load from the cache) the dynamics ensemble and the CVAE on a dataset",
+                       description="Uses configs/offline_train.yaml; e.g. `offhrl fit env=hopper dataset=medium ensemble.fit.max_steps=null`.")
+    s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml")
+    s.set_defaults(func=cmd_fit)
+
+    s = sub.add_parser("train", help="train SAC, PPO or MOC offline (configs/offline_train.yaml, algo=sac|ppo|moc)",
+                       description="Same as examples/offline_train.py: e.g. `offhrl train algo=moc env=hopper dataset=medium seed=1`. "
+                       "Rerunning the same command resumes from the run's checkpoint.")
+    s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml")
+    s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("evaluate", help="evaluate a run's checkpoint in the real env (normalised score, optional frames)")
+    s.add_argument("run_dir", help="a run directory written by `offhrl train`")
+    s.add_argument("--episodes", type=int, default=10)
+    s.add_argument("--seed", type=int, default=12345)
+    s.add_argument("--stochastic", action="store_true", help="sample actions and options instead of the deterministic policy")
+    s.add_argument("--frames", help="save PNG frames of the first episode here (headless: set MUJOCO_GL=egl or osmesa)")
+    s.set_defaults(func=cmd_evaluate)
+
+    s = sub.add_parser("aggregate", help="aggregate several runs (seeds) into one table and one figure")
+    s.add_argument("runs", nargs="+", help="run directories")
+    s.add_argument("--out", default="outputs/report")
+    s.set_defaults(func=cmd_aggregate)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
