@@ -146,6 +146,9 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     }
     ensemble, cvae, model_info = fit_or_load_models(pcfg, data, progress=progress)
 
+    if cfg.get("torch_threads"):
+        torch.set_num_threads(int(cfg["torch_threads"]))
+
     # 3. the composed model env
     abl = cfg.get("ablation", {})
     latent = not abl.get("no_cvae", False)

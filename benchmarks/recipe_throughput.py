@@ -1,0 +1,92 @@
+"""Throughput of the three offline recipes on the composed env, side by side in one run.
+
+    python benchmarks/recipe_throughput.py [--device cuda] [--frames 16384]
+
+For SAC, PPO and MOC with their config values (configs/algo/*.yaml) this
+measures, on the same TransformedEnv(PessimisticModelEnv, LatentActionTransform)
+(Hopper-v5 dimensions, ensemble 5 x MLP(512, 512), CVAE MLP(720, 720);
+weights barely trained, which does not change the cost): collection frames/s
+(model env + policy), gradient updates/s, and end-to-end frames/s of the
+training loop (collection + updates, no evaluation).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--frames", type=int, default=16384, help="frames per recipe (after one warm-up batch)")
+    p.add_argument("--num-envs", type=int, default=16)
+    a = p.parse_args()
+
+    from omegaconf import OmegaConf
+    from torchrl.collectors import Collector
+
+    from torchrl_offhrl.cli import compose
+    from torchrl_offhrl.data import collect_dataset
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.agents import make_agent
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+    from torchrl_offhrl.recipes.train import _update
+
+    dev = torch.device(a.device)
+    torch.manual_seed(0)
+    data = collect_dataset("Hopper-v5", 5000, num_envs=8, seed=0, progress=False)
+    ens = DynamicsEnsemble.for_dataset(data, num_models=5, hidden_sizes=(512, 512)).fit(data, max_steps=20, progress=False)
+    cvae = ConditionalVAE.for_dataset(data, hidden_sizes=(720, 720)).fit(data, max_steps=20, progress=False)
+    ens, cvae = ens.to(dev), cvae.to(dev)
+    stats = data.stats()
+    rows = []
+    threshold = None
+    for algo in ("sac", "ppo", "moc"):
+        cfg = OmegaConf.to_container(compose("offline_train", [f"algo={algo}"]), resolve=True)
+        pcfg = {"seed": 0, "device": str(dev), "env": {"quantile": 0.99, "penalty": 20.0, "threshold": threshold}}
+        env = make_model_env(pcfg, ens, cvae, data, batch_size=a.num_envs)
+        threshold = env.base_env.threshold
+        acfg = cfg["algo"]
+        agent = make_agent(algo, env, acfg, obs_loc=stats.obs_mean.to(dev), obs_scale=stats.obs_std.to(dev))
+        agent.loss.to(dev)
+        for t in agent.env_transforms():
+            env.append_transform(t)
+        fpb = acfg["frames_per_batch"] if agent.on_policy else max(acfg["frames_per_batch"], a.num_envs)
+        fpb = max(a.num_envs, fpb // a.num_envs * a.num_envs)
+        rb = None
+        if not agent.on_policy:
+            from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+            rb = ReplayBuffer(storage=LazyTensorStorage(100_000, device=dev), batch_size=acfg["batch_size"])
+        collector = Collector(env, agent.policy, frames_per_batch=fpb, total_frames=fpb + a.frames, device=dev)
+        t_collect = t_update = 0.0
+        updates = frames = 0
+        it = iter(collector)
+        batch = next(it)  # warm-up
+        _update(agent, batch, acfg, rb, 10**9, 0)
+        t0 = time.perf_counter()
+        t_last = t0
+        for batch in it:
+            t1 = time.perf_counter()
+            t_collect += t1 - t_last
+            m = _update(agent, batch, acfg, rb, 10**9, 0)
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+            t_last = time.perf_counter()
+            t_update += t_last - t1
+            updates += m["_updates"]
+            frames += batch.numel()
+        total = time.perf_counter() - t0
+        collector.shutdown()
+        rows.append((algo, fpb, frames, frames / t_collect, updates / t_update, frames / total, updates / frames))
+    print(f"\ndevice: {dev}, {a.num_envs} model envs, {torch.get_num_threads()} torch threads")
+    print(f"| recipe | frames/batch | frames | collection frames/s | updates/s | end-to-end frames/s | updates per frame |")
+    print("|---|---|---|---|---|---|---|")
+    for algo, fpb, frames, cf, us, ef, upf in rows:
+        print(f"| {algo} | {fpb} | {frames} | {cf:,.0f} | {us:,.1f} | {ef:,.0f} | {upf:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
