@@ -19,18 +19,10 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 
 from ..data.collect import make_gym_env
+from ..modules.options import mlp
 from ..utils import atomic_write
 
 __all__ = ["evaluate_policy", "make_behaviour_actor", "pick_checkpoint", "train_behaviour_sac"]
-
-
-def _mlp(in_dim: int, out_dim: int, hidden) -> nn.Sequential:
-    layers, d = [], in_dim
-    for h in hidden:
-        layers += [nn.Linear(d, h), nn.ReLU()]
-        d = h
-    layers.append(nn.Linear(d, out_dim))
-    return nn.Sequential(*layers)
 
 
 def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256)):
@@ -49,7 +41,7 @@ def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256
     """
     from torchrl.modules import ProbabilisticActor, TanhNormal
 
-    net = nn.Sequential(_mlp(obs_dim, 2 * act_dim, hidden), NormalParamExtractor())
+    net = nn.Sequential(mlp(obs_dim, 2 * act_dim, hidden, activation="relu"), NormalParamExtractor())
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     return ProbabilisticActor(
         module,
