@@ -82,14 +82,23 @@ def test_bad_override_is_explained(cache):
         main(["fit", "dataset"])
 
 
-def test_unknown_dataset_name_is_explained(cache):
-    with pytest.raises(ValueError, match="neither an existing file"):
-        main(["fit", "dataset=hopper-mediumm"])
+def test_unknown_dataset_name_is_explained(cache, capsys):
+    assert main(["fit", "dataset=hopper-mediumm"]) == 2
+    assert "neither an existing file" in capsys.readouterr().err
 
 
-def test_evaluate_rejects_a_non_run_directory(tmp_path):
-    with pytest.raises(FileNotFoundError, match="not a .*run directory"):
-        main(["evaluate", str(tmp_path)])
+def test_missing_policy_is_explained(cache, capsys, monkeypatch):
+    import torchrl_offhrl.data.policies as pol
+
+    monkeypatch.setattr(pol, "POLICY_DIR", cache / "no_policies")  # as if nothing were shipped
+    assert main(["collect", "hopper", "medium", "-n", "100"]) == 2
+    err = capsys.readouterr().err
+    assert "hopper-medium" in err and "train_behaviour.py" in err
+
+
+def test_evaluate_rejects_a_non_run_directory(tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path)]) == 2
+    assert "not a (checkpointed) run directory" in capsys.readouterr().err
 
 
 def test_demo_tiny(cache, tmp_path, capsys):

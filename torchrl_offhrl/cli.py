@@ -188,8 +188,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a command; a user error (missing file or policy, bad name or value) prints one message and returns 2."""
+    from .data import DatasetError, PolicyNotFoundError
+
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError) as err:
+        print(f"offhrl {args.command}: error: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
