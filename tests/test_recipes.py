@@ -181,3 +181,21 @@ def test_offline_train_script_cli(hopper_file, cache, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "D4RL-normalised" in proc.stdout
     assert (tmp_path / "moc-hopper-hopper_random-seed0" / "summary.json").is_file()
+
+
+def test_option_usage_hand_computed():
+    from tensordict import TensorDict
+
+    from torchrl_offhrl.recipes.train import option_usage
+
+    td = TensorDict(
+        {
+            "option": torch.tensor([[0, 0, 1, 1], [2, 2, 2, 3]]),
+            "next": {"done": torch.tensor([[False, True, False, False], [False, False, True, False]]).unsqueeze(-1)},
+        },
+        batch_size=[2, 4],
+    )
+    usage = option_usage(td, 4)
+    # env 0 runs steps 0-1 (option 0), env 1 steps 0-2 (option 2); step 3 belongs to no running episode
+    expected = torch.tensor([[0.5, 0, 0.5, 0], [0.5, 0, 0.5, 0], [0, 0, 1, 0]])
+    torch.testing.assert_close(usage, expected)

@@ -106,12 +106,15 @@ def option_usage(td, num_options: int) -> torch.Tensor:
     """``[T, n]``: the fraction of still-running episodes in which each option is active at each step.
 
     ``td`` is a ``[E, T]`` evaluation rollout of auto-resetting envs; steps
-    after an env's first ``done`` are ignored.
+    after an env's first ``done`` are ignored, and ``T`` stops at the last
+    step any episode is still running.
     """
     opt = td["option"].reshape(td.batch_size[0], -1)
     alive = _alive(td)
     onehot = torch.nn.functional.one_hot(opt, num_options).float() * alive.unsqueeze(-1)
-    return onehot.sum(0) / alive.sum(0).clamp_min(1).unsqueeze(-1)
+    running = alive.sum(0)
+    last = int(running.nonzero().max()) + 1 if running.any() else 0
+    return (onehot.sum(0) / running.clamp_min(1).unsqueeze(-1))[:last]
 
 
 def train(cfg: Mapping, progress: bool = True) -> dict:
