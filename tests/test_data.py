@@ -254,3 +254,15 @@ def test_concatenated_parts_stay_separate_after_save_load(tmp_path):
     assert both.num_episodes == 2
     again = load_dataset(save_dataset(both, tmp_path / "c.hdf5"))
     assert again.num_episodes == 2 and again.episode_returns().tolist() == [3.0, 4.0]
+
+
+def test_atomic_write_gives_default_permissions(tmp_path):
+    import os
+
+    from torchrl_offhrl.utils import atomic_write
+
+    with atomic_write(tmp_path / "f.txt") as tmp:
+        open(tmp, "w").write("x")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "f.txt").stat().st_mode & 0o777 == 0o666 & ~umask
