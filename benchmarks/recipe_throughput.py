@@ -1,6 +1,6 @@
 """Throughput of the three offline recipes on the composed env, side by side in one run.
 
-    python benchmarks/recipe_throughput.py [--device cuda] [--frames 16384]
+    python benchmarks/recipe_throughput.py [--device cuda] [--frames 16384] [--threads 1]
 
 For SAC, PPO and MOC with their config values (configs/algo/*.yaml) this
 measures, on the same TransformedEnv(PessimisticModelEnv, LatentActionTransform)
@@ -21,8 +21,11 @@ def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
     p.add_argument("--frames", type=int, default=16384, help="frames per recipe (after one warm-up batch)")
-    p.add_argument("--num-envs", type=int, default=16)
+    p.add_argument("--num-envs", type=int, default=64)
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     a = p.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
 
     from omegaconf import OmegaConf
     from torchrl.collectors import Collector

@@ -15,19 +15,12 @@ resumes from the checkpoint. Aggregate seeds with `offhrl aggregate outputs/runs
 import hydra
 from omegaconf import DictConfig
 
-from torchrl_offhrl.recipes.train import train
+from torchrl_offhrl.recipes.train import format_summary, train
 
 
 @hydra.main(config_path="../configs", config_name="offline_train", version_base=None)
 def main(cfg: DictConfig) -> None:
-    summary = train(cfg)
-    final = summary["final"]
-    print(
-        f"\n{summary['algo']} on {summary['env_id']} ({summary['dataset']}), {summary['frames']} frames: "
-        f"real return {final['return_mean']:.1f} ± {final['return_std']:.1f}, D4RL-normalised "
-        f"{final['normalized_d4rl']:.1f} (behaviour data: {summary['behaviour_normalized_d4rl']:.1f})\n"
-        f"outputs in {summary['run_dir']}"
-    )
+    print("\n" + format_summary(train(cfg)))
 
 
 if __name__ == "__main__":

@@ -59,7 +59,7 @@ def test_collect_fit_train_evaluate_aggregate(cache, tmp_path, capsys):
 
     runs = tmp_path / "runs"
     assert main(["train", "algo=moc", f"dataset={out_file}", f"out_root={runs}", *TINY_MODELS, *TINY_TRAIN]) == 0
-    run = runs / "moc-hopper-hopper_random-seed0"
+    (run,) = runs.glob("moc-hopper-hopper_random-*-seed0")
     assert (run / "checkpoint.pt").is_file()
     capsys.readouterr()
 
@@ -109,7 +109,7 @@ def test_demo_tiny(cache, tmp_path, capsys):
     args = ["demo", "num_transitions=400", f"out_root={tmp_path}", *TINY_MODELS, *TINY_TRAIN]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "behaviour data (hopper-medium)" in out and "MOC agent, real Hopper-v5" in out
+    assert "behaviour data (hopper-medium)" in out and "MOC agent, real Hopper-v5" in out and "400 transitions" in out
     assert "short-budget run" in out and "offhrl train algo=moc env=hopper dataset=medium" in out
     run = tmp_path / "moc-hopper-medium-seed0"
     assert (run / "option_usage.png").is_file() and (run / "demo_summary.json").is_file()

@@ -127,10 +127,14 @@ def test_importance_correction_values():
     p1 = _tanh_normal_logp(torch.tensor(-0.3), torch.tensor(0.5), torch.tensor(1.0)).exp()
     assert ratio[1, 0].item() == pytest.approx((p0 / p1).item() * 0.3 / 0.6, rel=1e-5)
     assert ratio[1, 1].item() == pytest.approx(1.0)
-    # the loss agrees with these ratios
-    out = loss(batch)
-    expected, _ = _expected_objective(new, old, 1.0)
-    torch.testing.assert_close(out["loss_objective"], expected)
+    # the loss uses exactly these ratios: single out element 1 and option 0 (P = 0.3 there)
+    one = batch[1:2].clone()
+    one["option_assignment_log_prob"] = torch.tensor([[0.3, 0.6, 1e-12]]).log()
+    out = loss(one)
+    r = (p0 / p1).item() * 0.3 / 0.6
+    a = ADV[1]  # negative advantage: the surrogate is min(r A, clip(r) A)
+    surr0 = min(r * a, min(max(r, 0.8), 1.2) * a)
+    torch.testing.assert_close(out["loss_objective"].double(), torch.tensor(-(0.3 * surr0 + 0.6 * 1.0 * a)).double(), rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("q_prev,direction", [(-1.0, +1), (2.0, -1)])
@@ -254,15 +258,16 @@ def _check_carry(td):
     """option constant within episodes when beta ~ 0; re-picked at every episode start."""
     is_init = td["is_init"].squeeze(-1)
     assert (td["option_start"] == is_init).all()
-    cont = ~is_init
-    assert (td["prev_option"][cont] == td["option"][cont]).all()
-    assert (td["next", "prev_option"] == td["option"]).all()
+    # the carry itself: at a non-initial step, the env hands back the option of the step before
+    cont = ~is_init[..., 1:]
+    assert (td["prev_option"][..., 1:][cont] == td["option"][..., :-1][cont]).all()
     assert (td["termination_prob"][is_init] == 1).all()
 
 
 def test_option_carried_and_repicked_after_partial_resets():
     torch.manual_seed(0)
-    heads = _constant_heads([0.0, 0.0, 0.0, 0.0], [[0.0]] * 4, [[0.0]] * 4, [-30.0] * 4)  # beta ~ 0
+    # beta ~ 0; option 0 (the primer's reset value) is never picked, so a lost carry would show
+    heads = _constant_heads([-30.0, 0.0, 0.0, 0.0], [[0.0]] * 4, [[0.0]] * 4, [-30.0] * 4)
     actor = OptionCriticActor(heads)
     env = _rollout_env(actor)
     check_env_specs(env)
@@ -290,7 +295,7 @@ def test_option_carry_across_collector_batches():
     from torchrl.collectors import Collector
 
     torch.manual_seed(1)
-    heads = _constant_heads([0.0, 0.0, 0.0], [[0.0]] * 3, [[0.0]] * 3, [-30.0] * 3)
+    heads = _constant_heads([-30.0, 0.0, 0.0], [[0.0]] * 3, [[0.0]] * 3, [-30.0] * 3)  # never option 0
     actor = OptionCriticActor(heads)
     collector = Collector(_rollout_env(actor, (4, 9)), actor, frames_per_batch=2 * 6, total_frames=2 * 24, split_trajs=False)
     batches = [b.clone() for b in collector]
@@ -298,7 +303,8 @@ def test_option_carry_across_collector_batches():
     td = torch.cat(batches, -1)
     _check_carry(td)
     # batch boundaries at t = 6, 12, 18 are not episode starts for env 1 at t=6: the option carries over
-    assert not td["is_init"][1, 6] and td["option"][1, 6] == td["option"][1, 5]
+    assert not td["is_init"][1, 6] and td["prev_option"][1, 6] == td["option"][1, 5] != 0
+    assert (td["option"] != 0).all()
 
 
 def test_deterministic_mode_takes_most_likely_option_and_mean_action():

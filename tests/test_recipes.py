@@ -1,6 +1,7 @@
 """The SAC / PPO / MOC offline recipes end to end on tiny settings, resumption, aggregation."""
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -60,7 +61,8 @@ def _cfg(algo, data, out, extra=()):
 def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
     summary = train(_cfg(algo, hopper_file, tmp_path), progress=False)
     run = Path(summary["run_dir"])
-    assert run.name == f"{algo}-hopper-hopper_random-seed0"
+    # a file dataset: its stem plus a hash of its path
+    assert re.fullmatch(rf"{algo}-hopper-hopper_random-[0-9a-f]{{6}}-seed0", run.name), run.name
     assert summary["frames"] == 256 and summary["updates"] > 0
     evals = json.loads((run / "evals.json").read_text())
     assert [e["frames"] for e in evals] == [128, 256]
@@ -145,8 +147,9 @@ def test_pessimism_table_is_the_papers():
     assert pessimism_for(hc, "medium") == {"fraction": 0.1, "penalty": 20.0}
     assert pessimism_for(hc, "medium-expert") == {"fraction": 0.0101, "penalty": 20.0}
     assert pessimism_for(hop, None) == {"quantile": 0.99, "penalty": 20.0}
-    # an override of the quantile on a fraction-based level: fraction still wins unless cleared
+    # overrides: a penalty keeps the table's fraction; a quantile replaces it
     assert pessimism_for(hop, "medium", {"penalty": 50.0}) == {"fraction": 1.08, "penalty": 50.0}
+    assert pessimism_for(hop, "medium", {"quantile": 0.95, "fraction": None}) == {"quantile": 0.95, "penalty": 20.0}
 
 
 def test_paper_hyperparameters_in_configs():
@@ -180,7 +183,7 @@ def test_offline_train_script_cli(hopper_file, cache, tmp_path):
     proc = subprocess.run(args, capture_output=True, text=True, timeout=300, env={**os.environ})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "D4RL-normalised" in proc.stdout
-    assert (tmp_path / "moc-hopper-hopper_random-seed0" / "summary.json").is_file()
+    assert len(list(tmp_path.glob("moc-hopper-hopper_random-*-seed0/summary.json"))) == 1
 
 
 def test_option_usage_hand_computed():
@@ -199,3 +202,49 @@ def test_option_usage_hand_computed():
     # env 0 runs steps 0-1 (option 0), env 1 steps 0-2 (option 2); step 3 belongs to no running episode
     expected = torch.tensor([[0.5, 0, 0.5, 0], [0.5, 0, 0.5, 0], [0, 0, 1, 0]])
     torch.testing.assert_close(usage, expected)
+
+
+def test_resume_refuses_another_configuration(hopper_file, cache, tmp_path):
+    train(_cfg("ppo", hopper_file, tmp_path), progress=False)
+    with pytest.raises(ValueError, match="different configuration"):
+        train(_cfg("ppo", hopper_file, tmp_path, ["algo.lr=0.01"]), progress=False)
+    # a longer budget is a resumption, not another run
+    summary = train(_cfg("ppo", hopper_file, tmp_path, ["train.total_frames=384"]), progress=False)
+    assert summary["frames"] == 384
+
+
+def test_sac_resumes_with_its_replay_buffer(hopper_file, cache, tmp_path):
+    train(_cfg("sac", hopper_file, tmp_path, ["algo.buffer_size=1000"]), progress=False)
+    (run,) = tmp_path.glob("sac-*")
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["replay"] == "replay-256" and [p.name for p in run.glob("replay-*")] == ["replay-256"]
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+    rb = ReplayBuffer(storage=LazyTensorStorage(1000))
+    rb.loads(run / "replay-256")
+    assert len(rb) == 256  # every collected frame is in the saved buffer
+    summary = train(_cfg("sac", hopper_file, tmp_path, ["algo.buffer_size=1000", "train.total_frames=384"]), progress=False)
+    assert summary["frames"] == 384
+    rb = ReplayBuffer(storage=LazyTensorStorage(1000))
+    rb.loads(run / "replay-384")
+    assert len(rb) == 384  # the resumed run kept the first 256 frames and added 128
+    assert [p.name for p in run.glob("replay-*")] == ["replay-384"]  # the old buffer is gone
+
+
+def test_sac_target_entropy_is_per_env():
+    """The default target entropy is -(latent action dim), not -(envs x dim)."""
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.agents import make_agent
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    d = make_toy_dataset(num_episodes=4, episode_length=10)
+    env = make_model_env(
+        {"env": {"threshold": 1.0}},
+        DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)),
+        ConditionalVAE.for_dataset(d, hidden_sizes=(8,)),
+        d,
+        batch_size=64,
+    )
+    agent = make_agent("sac", env, {"frames_per_batch": 64})
+    assert float(agent.loss.target_entropy) == -2.0

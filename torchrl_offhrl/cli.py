@@ -32,16 +32,26 @@ def _config_dir() -> Path:
     raise FileNotFoundError(f"no configs/ directory found next to {here}; run from a source checkout of torchrl_offhrl")
 
 
-def compose(config_name: str, overrides: list[str]):
-    """The hydra config ``config_name`` with ``overrides`` (``key=value`` strings)."""
+def compose(config_name: str, overrides: list[str], command: str | None = None):
+    """The hydra config ``config_name`` with ``overrides`` (``key=value`` strings).
+
+    A malformed override, an unknown config group option or key raises
+    ``ValueError`` with hydra's explanation.
+    """
     from hydra import compose as hcompose
     from hydra import initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
 
     bad = [o for o in overrides if "=" not in o]
     if bad:
-        raise SystemExit(f"error: overrides must look like key=value, got {bad}; see `offhrl {config_name} --help`")
-    with initialize_config_dir(config_dir=str(_config_dir()), version_base=None):
-        return hcompose(config_name, overrides=overrides)
+        raise SystemExit(f"error: overrides must look like key=value, got {bad}; see `offhrl {command or 'train'} --help`")
+    try:
+        with initialize_config_dir(config_dir=str(_config_dir()), version_base=None):
+            return hcompose(config_name, overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as err:
+        raise ValueError(f"{err} (configs in {_config_dir()}; an override is key=value, a config group option "
+                         f"is e.g. algo=sac|ppo|moc, env=hopper|halfcheetah)") from err
 
 
 def cmd_policies(args) -> int:
@@ -82,12 +92,11 @@ def cmd_collect(args) -> int:
 
 def cmd_fit(args) -> int:
     from .recipes.pipeline import fit_or_load_models
-    from .recipes.train import resolve_dataset
+    from .recipes.train import model_config, resolve_dataset
 
-    cfg = compose("offline_train", args.overrides)
-    data = resolve_dataset(cfg.dataset, cfg.env.name, cfg.env.env_id, cfg.num_transitions, cfg.seed)
-    pcfg = {"seed": cfg.seed, "device": cfg.device, "dataset": {"val_ratio": cfg.val_ratio}, "ensemble": cfg.ensemble, "cvae": cfg.cvae}
-    _, _, info = fit_or_load_models(pcfg, data)
+    cfg = compose("offline_train", args.overrides, "fit")
+    data = resolve_dataset(cfg.dataset, cfg.env.name, cfg.env.env_id, cfg.num_transitions, cfg.dataset_seed)
+    _, _, info = fit_or_load_models(model_config(cfg), data)
     for name in ("ensemble", "cvae"):
         hist = info.get(f"{name}_history")
         val = hist[-1].get("val_loss") if hist else None
@@ -97,13 +106,9 @@ def cmd_fit(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from .recipes.train import train
+    from .recipes.train import format_summary, train
 
-    cfg = compose("offline_train", args.overrides)
-    s = train(cfg)
-    f = s["final"]
-    print(f"\n{s['algo']} on {s['env_id']} ({s['dataset']}), {s['frames']} frames: real return {f['return_mean']:.1f} ± {f['return_std']:.1f}, "
-          f"D4RL-normalised {f['normalized_d4rl']:.1f}; outputs in {s['run_dir']}")
+    print("\n" + format_summary(train(compose("offline_train", args.overrides, "train"))))
     return 0
 
 

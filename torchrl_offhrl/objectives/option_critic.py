@@ -271,7 +271,7 @@ class OptionCriticLoss(LossModule):
 
     def _q(self, obs):
         with self.critic_network_params.to_module(self.critic_network):
-            td = TensorDict({self.tensor_keys.observation: obs}, batch_size=obs.shape[:-1])
+            td = TensorDict({self.critic_network.in_keys[0]: obs}, batch_size=obs.shape[:-1])
             return self.critic_network(td).get(self.critic_network.out_keys[0])
 
     # ----------------------------------------------------------------- loss

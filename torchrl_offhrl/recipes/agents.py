@@ -137,7 +137,8 @@ def _sac(env, cfg, obs_dim, act_dim, low, high, obs_loc, obs_scale, action_key) 
         delay_actor=False,
         delay_qvalue=True,
         alpha_init=cfg.get("alpha_init", 1.0),
-        action_spec=env.full_action_spec[action_key],
+        # the unbatched spec: the default target entropy is -(action elements), per env
+        action_spec=env.full_action_spec_unbatched[action_key],
     )
     loss.set_keys(action=action_key)
     loss.make_value_estimator(gamma=cfg.get("gamma", 0.99))
@@ -168,6 +169,7 @@ def _ppo(env, cfg, obs_dim, act_dim, low, high, obs_loc, obs_scale, action_key) 
         clip_epsilon=cfg.get("clip_epsilon", 0.2),
         entropy_coeff=cfg.get("ent_coef", 0.0),
         critic_coeff=cfg.get("vf_coef", 0.5),
+        loss_critic_type="l2",  # squared error, as SB3 (whose values the paper took) and as MOC's critic
         normalize_advantage=True,
     )
     loss.set_keys(action=action_key, sample_log_prob=f"{action_key}_log_prob")

@@ -22,7 +22,7 @@ from ..data.collect import make_gym_env
 from ..modules.options import mlp
 from ..utils import atomic_write
 
-__all__ = ["evaluate_policy", "make_behaviour_actor", "pick_checkpoint", "train_behaviour_sac"]
+__all__ = ["evaluate_policy", "first_episode_mask", "make_behaviour_actor", "pick_checkpoint", "train_behaviour_sac"]
 
 
 def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256)):
@@ -53,6 +53,18 @@ def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256
     )
 
 
+def first_episode_mask(done: torch.Tensor) -> torch.Tensor:
+    """``[E, T]`` bool: the steps of each env's first episode (up to and including its first ``done``).
+
+    Examples:
+        >>> first_episode_mask(torch.tensor([[False, True, False], [False, False, False]]))
+        tensor([[ True,  True, False],
+                [ True,  True,  True]])
+    """
+    done = done.int()
+    return torch.cumsum(done, dim=1) - done == 0
+
+
 @torch.no_grad()
 def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, deterministic: bool = True, seed: int | None = None, return_rollout: bool = False):
     """Returns of the first episode of each of ``env``'s parallel envs.
@@ -74,8 +86,7 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
         td = env.rollout(max_steps, policy, break_when_any_done=False, auto_cast_to_device=True)
     reward = td.get(("next", "reward")).reshape(episodes, -1)
     done = td.get(("next", "done")).reshape(episodes, -1)
-    # count a step while no earlier step was done
-    alive = torch.cumsum(done.int(), dim=1) - done.int() == 0
+    alive = first_episode_mask(done)
     returns = (reward * alive).sum(1).cpu()
     return (returns, td) if return_rollout else returns
 

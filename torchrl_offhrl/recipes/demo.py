@@ -13,57 +13,53 @@ smaller budgets).
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 __all__ = ["run_demo"]
 
 
 def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
-    """Run the demo with optional hydra ``overrides``; returns the training summary plus timings."""
+    """Run the demo with optional hydra ``overrides``; returns the training summary plus the printed table."""
     from ..cli import compose
-    from ..scores import normalized_score
     from .pipeline import _plain
-    from .train import resolve_dataset, train
+    from .train import _fmt, train
 
-    cfg = _plain(compose("demo", list(overrides or [])))
-    t0 = time.time()
-    data = resolve_dataset(cfg["dataset"], cfg["env"]["name"], cfg["env"]["env_id"], cfg.get("num_transitions"), cfg["seed"])
-    t_data = time.time() - t0
-    summary = train(cfg, progress=progress)
-    total = time.time() - t0
-    env_id = summary["env_id"]
-    beh = data.episode_returns()
-    final = summary["final"]
-    policy_name = str(data.metadata.get("policy", "?"))
-    ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
+    cfg = _plain(compose("demo", list(overrides or []), "demo"))
+    s = train(cfg, progress=progress)
+    final, algo = s["final"], s["algo"].upper()
     rows = [
-        ("behaviour data (" + policy_name + ")", float(beh.mean()), float(beh.std()), int(beh.numel())),
-        (f"MOC agent, real {env_id}", final["return_mean"], final["return_std"], int(cfg["eval"]["episodes"])),
+        (f"behaviour data ({s['dataset_policy']})", s["behaviour_return_mean"], s["behaviour_return_std"], s["behaviour_episodes"],
+         s["behaviour_normalized_d4rl"], s["behaviour_normalized_dataset"]),
+        (f"{algo} agent, real {s['env_id']}", final["return_mean"], final["return_std"], int(cfg["eval"]["episodes"]),
+         final["normalized_d4rl"], final["normalized_dataset"]),
     ]
     lines = [
         "",
-        "=" * 78,
-        f"torchrl_offhrl demo: offline MOC on {env_id} from {len(data):,} transitions of medium data",
-        "=" * 78,
-        f"{'':34s} {'return':>9s} {'± std':>8s} {'episodes':>9s} {'D4RL score':>11s} {'data score':>11s}",
+        "=" * 80,
+        f"torchrl_offhrl demo: offline {algo} on {s['env_id']} from {s['dataset_transitions']:,} transitions of "
+        f"{s['dataset_level'] or s['dataset']} data",
+        "=" * 80,
+        f"{'':36s} {'return':>9s} {'± std':>8s} {'episodes':>9s} {'D4RL score':>11s} {'data score':>11s}",
     ]
-    for name, m, s, n in rows:
-        d4rl = normalized_score(env_id, m)
-        own = normalized_score(env_id, m, ref=ref) if None not in ref else None
-        lines.append(f"{name:34s} {m:9.1f} {s:8.1f} {n:9d} {d4rl:11.1f} {('n/a' if own is None else f'{own:.1f}'):>11s}")
-    model_s = summary["total_s"] - summary["update_time_s"]
+    for name, m, sd, n, d4rl, own in rows:
+        lines.append(f"{name:36s} {m:9.1f} {sd:8.1f} {n:9d} {_fmt(d4rl):>11s} {_fmt(own):>11s}")
+    other = s["total_s"] - s["data_s"] - s["models_s"] - s["update_time_s"]
     lines += [
+        "(data score: normalised with the dataset's own random/expert reference returns; n/a without an expert policy)",
         "",
-        f"time: {total / 60:.1f} min in total (data {t_data:.0f} s; models, env calibration, collection and evaluation "
-        f"{model_s:.0f} s; MOC updates {summary['update_time_s']:.0f} s for {summary['frames']:,} model frames)",
-        f"plots: {summary['run_dir']}/learning_curve.png, {summary['run_dir']}/option_usage.png; logs: {summary['run_dir']}/logs",
+        f"time: {s['total_s'] / 60:.1f} min in total: data {s['data_s']:.0f} s, ensemble + CVAE {s['models_s']:.0f} s, "
+        f"{algo} updates {s['update_time_s']:.0f} s for {s['frames']:,} model frames, env calibration + collection + "
+        f"real-env evaluation {other:.0f} s",
+        f"plots: {s['run_dir']}/learning_curve.png" + (f", {s['run_dir']}/option_usage.png" if s["algo"] == "moc" else "")
+        + f"; logs: {s['run_dir']}/logs",
         "",
-        "This is a short-budget run (100k transitions, small models, 160k MOC frames) to show the pipeline end to end;",
-        "its score is not the paper's. The full-budget command (1M transitions, paper-size models, 1M frames):",
-        "    offhrl train algo=moc env=hopper dataset=medium",
+        f"This is a short-budget run ({s['dataset_transitions']:,} transitions, small models fitted for "
+        f"{cfg['ensemble']['fit']['max_steps']} steps, {s['frames']:,} {algo} frames) that shows the pipeline end to end;",
+        "its score is not a full-budget result. The full-budget command (1M transitions, paper-size models, 1M frames):",
+        f"    offhrl train algo={s['algo']} env={cfg['env']['name']} dataset={cfg['dataset']}",
     ]
-    print("\n".join(lines))
-    out = {**summary, "demo_total_s": total, "data_s": t_data}
-    (Path(summary["run_dir"]) / "demo_summary.json").write_text(json.dumps(out, indent=2, default=str))
+    text = "\n".join(lines)
+    print(text)
+    out = {**s, "table": text}
+    (Path(s["run_dir"]) / "demo_summary.json").write_text(json.dumps(out, indent=2, default=str))
     return out

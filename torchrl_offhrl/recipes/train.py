@@ -17,8 +17,10 @@
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -30,14 +32,15 @@ from ..data import OfflineDataset, load_dataset
 from ..scores import normalized_score
 from ..utils import atomic_write
 from .agents import make_agent
-from .behaviour import evaluate_policy
+from .behaviour import evaluate_policy, first_episode_mask
 from .pipeline import _plain, fit_or_load_models, make_model_env, make_real_env
 
-__all__ = ["default_run_dir", "pessimism_for", "resolve_dataset", "train"]
+__all__ = ["default_run_dir", "format_summary", "model_config", "pessimism_for", "resolve_dataset", "train"]
 
 log = logging.getLogger(__name__)
 
-_LEVELS = ("random", "medium", "expert", "medium-expert", "medium-replay")
+# settings that may change between a run and its resumption; anything else must match the checkpoint
+_RESUMABLE_KEYS = ("train", "eval", "logger", "run_dir", "out_root", "torch_threads", "device")
 
 
 def resolve_dataset(spec: str, env_name: str, env_id: str, num_transitions: int | None = None, seed: int = 0) -> OfflineDataset:
@@ -53,15 +56,28 @@ def resolve_dataset(spec: str, env_name: str, env_id: str, num_transitions: int 
         return load_dataset(path, env_id=env_id)
     if "/" in spec:  # a Minari id such as mujoco/hopper/medium-v0
         return load_dataset(spec, env_id=env_id)
+    from ..data.generate import LEVELS, named_dataset
+
     level = spec[len(env_name) + 1 :] if spec.startswith(env_name + "-") else spec
-    if level not in _LEVELS:
+    if level not in LEVELS:
         raise ValueError(
             f"dataset={spec!r} is neither an existing file, a Minari id, nor a level name "
-            f"({', '.join(_LEVELS)}); give a path to an HDF5 file or one of those names."
+            f"({', '.join(LEVELS)}); give a path to an HDF5 file or one of those names."
         )
-    from ..data import named_dataset
 
     return named_dataset(f"{env_name}-{level}", num_transitions=num_transitions, seed=seed)
+
+
+def model_config(cfg: Mapping) -> dict:
+    """The part of a recipe config that :func:`fit_or_load_models` reads (and keys its cache on)."""
+    cfg = _plain(cfg)
+    return {
+        "seed": cfg.get("dataset_seed", 0),
+        "device": str(cfg.get("device", "cpu")),
+        "dataset": {"val_ratio": cfg.get("val_ratio", 0.1)},
+        "ensemble": cfg["ensemble"],
+        "cvae": cfg["cvae"],
+    }
 
 
 def pessimism_for(env_cfg: Mapping, level: str | None, overrides: Mapping | None = None) -> dict:
@@ -70,16 +86,26 @@ def pessimism_for(env_cfg: Mapping, level: str | None, overrides: Mapping | None
     out = dict(table.get("default", {"quantile": 0.99, "penalty": 20.0}))
     if level and level in table:
         out = dict(table[level])
-    for k, v in (overrides or {}).items():
-        if v is not None:
-            out[k] = v
+    overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if "quantile" in overrides and "fraction" not in overrides:
+        out.pop("fraction", None)  # asking for a quantile replaces the table's fraction
+    out.update(overrides)
     if out.get("fraction") is not None:
         out.pop("quantile", None)
     return out
 
 
 def default_run_dir(cfg: Mapping) -> Path:
-    ds = Path(str(cfg["dataset"])).stem.replace("/", "_")
+    """``<out_root>/<algo>-<env>-<dataset>[-<ablations>]-seed<seed>``.
+
+    A dataset given as a file or a Minari id is named by its stem plus a short
+    hash of the full path, so two files with the same name never share a run.
+    """
+    spec = str(cfg["dataset"])
+    ds = spec
+    if "/" in spec or Path(spec).suffix:
+        digest = hashlib.sha1(str(Path(spec).expanduser().resolve()).encode()).hexdigest()[:6]
+        ds = f"{Path(spec).stem}-{digest}"
     abl = "".join(f"-{k}" for k, v in _plain(cfg.get("ablation", {})).items() if v)
     return Path(cfg.get("out_root", "outputs/runs")) / f"{cfg['algo']['name']}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
 
@@ -98,8 +124,7 @@ def _scalars(out, prefix="train/") -> dict:
 
 def _alive(td) -> torch.Tensor:
     """``[E, T]``: steps up to and including each env's first ``done``."""
-    done = td["next", "done"].reshape(td.batch_size[0], -1)
-    return (torch.cumsum(done.int(), 1) - done.int()) == 0
+    return first_episode_mask(td["next", "done"].reshape(td.batch_size[0], -1))
 
 
 def option_usage(td, num_options: int) -> torch.Tensor:
@@ -136,21 +161,18 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     device = torch.device(cfg.get("device", "cpu"))
 
     # 1-2. data and models
-    data = resolve_dataset(cfg["dataset"], env_cfg["name"], env_cfg["env_id"], cfg.get("num_transitions"), cfg["seed"])
+    # one dataset for every training seed: its own seed is dataset_seed
+    data = resolve_dataset(cfg["dataset"], env_cfg["name"], env_cfg["env_id"], cfg.get("num_transitions"), cfg.get("dataset_seed", 0))
     level = data.metadata.get("level")
-    if level is None and str(cfg["dataset"]).removeprefix(env_cfg["name"] + "-") in _LEVELS:
-        level = str(cfg["dataset"]).removeprefix(env_cfg["name"] + "-")
-    pcfg = {
-        "seed": cfg["seed"],
-        "device": str(device),
-        "dataset": {"val_ratio": cfg.get("val_ratio", 0.1)},
-        "ensemble": cfg["ensemble"],
-        "cvae": cfg["cvae"],
-    }
+    t_data = time.time() - t_start
+    pcfg = model_config(cfg)
     ensemble, cvae, model_info = fit_or_load_models(pcfg, data, progress=progress)
+    t_models = time.time() - t_start - t_data
 
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg["torch_threads"]))
+    # the agent's initial weights do not depend on whether the models were fitted or loaded
+    torch.manual_seed(cfg["seed"])
 
     # 3. the composed model env
     abl = cfg.get("ablation", {})
@@ -183,17 +205,28 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     rb = None
     if not agent.on_policy:
         rb = ReplayBuffer(storage=LazyTensorStorage(int(algo.get("buffer_size", 1_000_000)), device=device), batch_size=int(algo["batch_size"]))
+    fingerprint = json.dumps({k: v for k, v in cfg.items() if k not in _RESUMABLE_KEYS}, sort_keys=True, default=str)
+    replay_name = None
     if ckpt_path.is_file():
         state = torch.load(ckpt_path, weights_only=True, map_location=device)
+        if state.get("fingerprint") not in (None, fingerprint):
+            raise ValueError(
+                f"{run_dir} holds a checkpoint of a run with a different configuration (only {', '.join(_RESUMABLE_KEYS)} "
+                f"may change when resuming); give another run_dir= or out_root=, or delete {ckpt_path} to start over"
+            )
         agent.load_state_dict(state["agent"])
         frames, updates, records = int(state["frames"]), int(state["updates"]), list(state["records"])
         torch.set_rng_state(state["rng"])
-        if rb is not None and (run_dir / "replay").is_dir():
-            rb.loads(run_dir / "replay")
+        replay_name = state.get("replay")
+        if rb is not None and replay_name is not None:
+            if not (run_dir / replay_name).is_dir():
+                raise FileNotFoundError(f"the checkpoint's replay buffer {run_dir / replay_name} is missing; delete {ckpt_path} to start over")
+            rb.loads(run_dir / replay_name)
         print(f"resuming {run_dir} from its checkpoint at {frames} frames")
-    (run_dir / "config.json").write_text(
-        json.dumps({**cfg, "resolved_pessimism": pess, "threshold": threshold, "model_dir": model_info["model_dir"]}, indent=2, default=str)
-    )
+    with atomic_write(run_dir / "config.json") as tmp:
+        Path(tmp).write_text(
+            json.dumps({**cfg, "resolved_pessimism": pess, "threshold": threshold, "model_dir": model_info["model_dir"]}, indent=2, default=str)
+        )
 
     logger = None
     if cfg.get("logger", {}).get("backend"):
@@ -230,21 +263,28 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         return rec
 
     def checkpoint():
-        state = {"agent": agent.state_dict(), "frames": frames, "updates": updates, "records": records, "rng": torch.get_rng_state()}
+        # the replay buffer goes to a folder named by the frame count, written before the
+        # checkpoint that names it; the previous one is deleted only after that
+        nonlocal replay_name
+        new_replay = None
+        if rb is not None:
+            new_replay = f"replay-{frames}"
+            shutil.rmtree(run_dir / new_replay, ignore_errors=True)
+            rb.dumps(run_dir / new_replay)
+        state = {
+            "agent": agent.state_dict(), "frames": frames, "updates": updates, "records": records,
+            "rng": torch.get_rng_state(), "replay": new_replay, "fingerprint": fingerprint,
+        }
         with atomic_write(ckpt_path) as tmp:
             torch.save(state, tmp)
         with atomic_write(run_dir / "evals.json") as tmp:
             Path(tmp).write_text(json.dumps(records, indent=1))
-        if rb is not None:
-            tmp_dir = run_dir / "replay.tmp"
-            rb.dumps(tmp_dir)
-            import shutil
-
-            shutil.rmtree(run_dir / "replay", ignore_errors=True)
-            tmp_dir.rename(run_dir / "replay")
+        if replay_name is not None and replay_name != new_replay:
+            shutil.rmtree(run_dir / replay_name, ignore_errors=True)
+        replay_name = new_replay
 
     t_train = time.time()
-    frames_at_start = frames
+    frames_at_start, updates_at_start = frames, updates
     train_time = 0.0
     if remaining > 0:
         collector = Collector(
@@ -290,6 +330,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         checkpoint()
     if agent.options and not (run_dir / "option_usage.png").is_file():
         records[-1] = evaluate(final=True)
+        checkpoint()
     elapsed = time.time() - t_train
     plot_curve([records], run_dir / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})", behaviour=data.episode_returns().mean().item())
     behaviour = data.episode_returns()
@@ -307,10 +348,18 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         "updates": updates,
         "final": final,
         "behaviour_return_mean": float(behaviour.mean()),
+        "behaviour_return_std": float(behaviour.std()) if behaviour.numel() > 1 else 0.0,
+        "behaviour_episodes": int(behaviour.numel()),
         "behaviour_normalized_d4rl": normalized_score(env_cfg["env_id"], float(behaviour.mean())),
+        "behaviour_normalized_dataset": normalized_score(env_cfg["env_id"], float(behaviour.mean()), ref=ref) if ref else None,
+        "dataset_transitions": len(data),
+        "dataset_policy": str(data.metadata.get("policy", "?")),
+        "dataset_level": level,
         "frames_per_s": (frames - frames_at_start) / elapsed if elapsed > 0 and frames > frames_at_start else None,
-        "updates_per_s": (updates / train_time) if train_time > 0 else None,
+        "updates_per_s": ((updates - updates_at_start) / train_time) if train_time > 0 else None,
         "update_time_s": round(train_time, 1),
+        "data_s": round(t_data, 1),
+        "models_s": round(t_models, 1),
         "total_s": round(time.time() - t_start, 1),
         "models": model_info["model_dir"],
         "run_dir": str(run_dir),
@@ -402,7 +451,7 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     agent = make_agent(cfg["algo"]["name"], env, cfg["algo"], action_key="latent_action" if latent else "action")
     for t in agent.env_transforms():
         env.append_transform(t)
-    state = torch.load(ckpt_path, weights_only=True)
+    state = torch.load(ckpt_path, weights_only=True, map_location="cpu")
     agent.load_state_dict(state["agent"])
     rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)
     env.close()
@@ -446,3 +495,17 @@ def _render_episode(env_id, cvae, bound, agent, out: Path, max_steps: int, seed:
             f"or MUJOCO_GL=osmesa (CPU, needs libosmesa) and try again"
         ) from err
     return out
+
+
+def _fmt(x, spec=".1f") -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+def format_summary(summary: Mapping) -> str:
+    """The one-paragraph result of a run, as printed by ``offhrl train`` and ``examples/offline_train.py``."""
+    f = summary["final"]
+    return (
+        f"{summary['algo']} on {summary['env_id']} ({summary['dataset']}), {summary['frames']} frames: real return "
+        f"{f['return_mean']:.1f} ± {f['return_std']:.1f}, D4RL-normalised {_fmt(f['normalized_d4rl'])} "
+        f"(behaviour data: {_fmt(summary['behaviour_normalized_d4rl'])}); outputs in {summary['run_dir']}"
+    )
