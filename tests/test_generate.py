@@ -6,6 +6,7 @@ shipped into a temporary folder, which stands in for the policies folder.
 """
 import json
 import os
+import re
 
 import pytest
 import torch
@@ -297,7 +298,7 @@ def test_named_dataset_cache_hit(policies_here, monkeypatch, capsys):
     monkeypatch.setattr(gen, "_reference_returns", _stub_refs(calls))
     ds = named_dataset("hopper-medium", num_transitions=200, seed=1, num_envs=2)
     path = dataset_path("hopper-medium", 200, seed=1, num_envs=2)
-    assert path.name == "hopper-medium-200-seed1-envs2.hdf5" and path.parent.name == "datasets"
+    assert re.fullmatch(r"hopper-medium-200-seed1-envs2-p[0-9a-f]{8}\.hdf5", path.name) and path.parent.name == "datasets"
     assert path.is_file() and ds.metadata["source"] == str(path)
     err = capsys.readouterr().err
     assert "not cached" in err and "generating it now" in err and "estimated" in err
@@ -385,3 +386,21 @@ def test_export_minari_round_trip(medium_a, tmp_path, monkeypatch):
     for key in ("observation", "action", ("next", "observation"), ("next", "reward"),
                 ("next", "terminated"), ("next", "truncated"), "episode"):
         assert torch.equal(back.data[key], ds.data[key]), key
+
+
+
+def test_cache_key_follows_the_policy_weights(policies_here, monkeypatch, tmp_path):
+    """Other shipped weights under the same name give another cache file (never a stale dataset)."""
+    import shutil
+
+    copy = tmp_path / "policies_copy"
+    shutil.copytree(pol.POLICY_DIR, copy)
+    monkeypatch.setattr(pol, "POLICY_DIR", copy)
+    before = dataset_path("hopper-medium", 200, seed=1, num_envs=2)
+    weights = pol.POLICY_DIR / "hopper-medium.pt"
+    state = torch.load(weights, weights_only=True)
+    state = {k: v + 1.0 for k, v in state.items()}
+    torch.save(state, weights)
+    after = dataset_path("hopper-medium", 200, seed=1, num_envs=2)
+    assert before != after and before.name.split("-p")[0] == after.name.split("-p")[0]
+    assert dataset_path("hopper-random", 200, seed=1).name == "hopper-random-200-seed1.hdf5"

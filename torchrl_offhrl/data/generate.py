@@ -18,6 +18,7 @@ normalise scores on the v5 envs besides D4RL's own constants.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import sys
@@ -344,11 +345,35 @@ def _parse_name(name: str) -> tuple[str, str, str, int | None]:
     return env_id, short, m["level"].lower(), n
 
 
+_POLICY_LEVELS = {"random": [], "medium": ["medium"], "expert": ["expert"], "medium-expert": ["medium", "expert"]}
+
+
+def _policy_tag(short: str, level: str) -> str:
+    """``-p<hash>`` of the shipped policy weights a level uses ('' for random or when not shipped).
+
+    Part of the cache key: a dataset generated with other weights (an older
+    package version) is never mistaken for one of the shipped policy.
+    """
+    from . import policies
+
+    needed = _POLICY_LEVELS[level]
+    h = hashlib.sha1()
+    for lv in needed:
+        f = Path(policies.POLICY_DIR) / f"{short}-{lv}.pt"
+        if not f.is_file():
+            return ""
+        h.update(f.read_bytes())
+    return f"-p{h.hexdigest()[:8]}" if needed else ""
+
+
 def dataset_path(name: str, num_transitions: int | None = None, seed: int = 0, num_envs: int = 8) -> Path:
-    """Where :func:`named_dataset` caches a dataset: ``cache_dir()/datasets/<name>-<N>-seed<S>.hdf5``."""
+    """Where :func:`named_dataset` caches a dataset: ``cache_dir()/datasets/<name>-<N>-seed<S>[-envs<k>][-p<hash>].hdf5``.
+
+    ``-p<hash>`` identifies the shipped policy weights of medium/expert levels.
+    """
     _, short, level, n = _resolve_size(name, num_transitions)
     envs = "" if num_envs == 8 else f"-envs{num_envs}"
-    return cache_dir() / "datasets" / f"{short}-{level}-{n}-seed{seed}{envs}.hdf5"
+    return cache_dir() / "datasets" / f"{short}-{level}-{n}-seed{seed}{envs}{_policy_tag(short, level)}.hdf5"
 
 
 def _resolve_size(name: str, num_transitions: int | None):
@@ -408,7 +433,8 @@ def named_dataset(
         num_envs: environments stepped side by side (part of the cache key
             when not 8, since it changes the data).
 
-    The file is ``cache_dir()/datasets/<env>-<level>-<N>-seed<S>.hdf5``; it is
+    The file is ``cache_dir()/datasets/<env>-<level>-<N>-seed<S>[-p<hash>].hdf5``
+    (the hash names the shipped policy weights); it is
     written under a temporary name and renamed when complete, so an
     interrupted generation never leaves a file that would be loaded. A
     ``medium-expert`` dataset is built from the cached ``medium`` and
@@ -423,7 +449,7 @@ def named_dataset(
     path = dataset_path(f"{short}-{level}", n, seed, num_envs)
     if path.is_file():
         return load_dataset(path)
-    needed = {"random": [], "medium": ["medium"], "expert": ["expert"], "medium-expert": ["medium", "expert"]}[level]
+    needed = _POLICY_LEVELS[level]
     shipped = list_policies()
     for lv in needed:
         if f"{short}-{lv}" not in shipped:
