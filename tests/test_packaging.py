@@ -38,3 +38,27 @@ def test_public_api_imports():
 @pytest.mark.parametrize("name", ["torchrl", "tensordict"])
 def test_torchrl_family_versions(name):
     assert md.version(name).startswith("0.14")
+
+
+def test_wheel_ships_configs_and_policies(tmp_path):
+    """A non-editable install must find the hydra configs and the shipped policies."""
+    import subprocess
+    import sys
+    import zipfile
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    try:  # build with the venv's setuptools when it is recent enough, else let pip fetch one
+        import setuptools
+
+        isolation = [] if int(setuptools.__version__.split(".")[0]) >= 77 else None
+    except ImportError:
+        isolation = None
+    flags = ["--no-build-isolation"] if isolation is not None else []
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(root), "--no-deps", *flags, "-q", "-w", str(tmp_path)], check=True)
+    (wheel,) = tmp_path.glob("*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for cfg in ("offline_train.yaml", "demo.yaml", "algo/moc.yaml", "algo/ppo.yaml", "algo/sac.yaml", "env/hopper.yaml", "env/halfcheetah.yaml"):
+        assert f"torchrl_offhrl/configs/{cfg}" in names, cfg
+    shipped = {Path(n).name for n in names if n.startswith("torchrl_offhrl/data/policies/")}
+    assert {"hopper-medium.pt", "hopper-medium.json"} <= shipped

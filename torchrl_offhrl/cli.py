@@ -24,12 +24,11 @@ EPILOG = """examples:
 
 
 def _config_dir() -> Path:
-    """The configs shipped next to the package (a source checkout) or inside it (an install)."""
-    here = Path(__file__).resolve().parent
-    for cand in (here.parent / "configs", here / "configs"):
-        if (cand / "offline_train.yaml").is_file():
-            return cand
-    raise FileNotFoundError(f"no configs/ directory found next to {here}; run from a source checkout of torchrl_offhrl")
+    """The hydra configs, shipped inside the package (``configs/`` in a checkout links to them)."""
+    path = Path(__file__).resolve().parent / "configs"
+    if not (path / "offline_train.yaml").is_file():
+        raise FileNotFoundError(f"the package's configs are missing from {path}; reinstall torchrl_offhrl")
+    return path
 
 
 def compose(config_name: str, overrides: list[str], command: str | None = None):
