@@ -51,10 +51,10 @@ def test_wheel_ships_configs_and_policies(tmp_path):
     try:  # build with the venv's setuptools when it is recent enough, else let pip fetch one
         import setuptools
 
-        isolation = [] if int(setuptools.__version__.split(".")[0]) >= 77 else None
+        recent = int(setuptools.__version__.split(".")[0]) >= 77
     except ImportError:
-        isolation = None
-    flags = ["--no-build-isolation"] if isolation is not None else []
+        recent = False
+    flags = ["--no-build-isolation"] if recent else []
     subprocess.run([sys.executable, "-m", "pip", "wheel", str(root), "--no-deps", *flags, "-q", "-w", str(tmp_path)], check=True)
     (wheel,) = tmp_path.glob("*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
