@@ -63,7 +63,7 @@ def main():
             from torchrl.data import LazyTensorStorage, ReplayBuffer
 
             rb = ReplayBuffer(storage=LazyTensorStorage(100_000, device=dev), batch_size=acfg["batch_size"])
-        collector = Collector(env, agent.policy, frames_per_batch=fpb, total_frames=fpb + a.frames, device=dev)
+        collector = Collector(env, agent.policy, frames_per_batch=fpb, total_frames=fpb + a.frames, device=dev, auto_register_policy_transforms=False)
         t_collect = t_update = 0.0
         updates = frames = 0
         it = iter(collector)

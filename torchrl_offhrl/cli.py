@@ -193,9 +193,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run a command; a user error (missing file or policy, bad name or value) prints one message and returns 2."""
+    import logging
+
     from .data import DatasetError, PolicyNotFoundError
 
     args = build_parser().parse_args(argv)
+    # TorchRL's INFO lines (spec inference, spec checks) are noise on a command line
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
     try:
         return args.func(args)
     except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError) as err:

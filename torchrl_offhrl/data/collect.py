@@ -75,6 +75,7 @@ def collect_dataset(
         frames_per_batch=chunk * num_envs,
         total_frames=steps_per_env * num_envs,
         split_trajs=False,
+        auto_register_policy_transforms=False,  # the envs are built with the transforms they need
     )
     keys = ["observation", "action", ("next", "observation"), ("next", "reward"), ("next", "terminated"), ("next", "truncated")]
     parts = []

@@ -150,6 +150,7 @@ def train_behaviour_sac(
         total_frames=total_steps,
         init_random_frames=init_random_steps,
         split_trajs=False,
+        auto_register_policy_transforms=False,  # the envs are built with the transforms they need
     )
     records: list[dict] = []
     t0 = time.time()

@@ -294,6 +294,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
             total_frames=remaining,
             init_random_frames=init_random,
             split_trajs=False,
+        auto_register_policy_transforms=False,  # the envs are built with the transforms they need
             device=device,
         )
         bar = tqdm(total=total, initial=frames, desc=f"{algo['name']} on {env_cfg['name']}-{level}", disable=not progress, unit="frame")
