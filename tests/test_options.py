@@ -349,3 +349,23 @@ def test_moc_learns_a_bandit():
         td = env.rollout(1, actor, break_when_any_done=False)
     assert first < -0.15
     assert (td["action"] - 0.5).abs().max() < 0.1
+
+
+@pytest.mark.parametrize("normalize", [False, True])
+def test_termination_advantage_normalisation_is_scale_free(normalize):
+    """Normalised: the termination loss does not change when returns are 100x larger; raw: it scales with them."""
+    heads = _constant_heads([0.0, 0.0], [[0.0], [0.0]], [[0.0]] * 2, [0.0, 0.0])
+    batch = _batch([0.1, 0.1, 0.1], [0, 1, 0], [0, 1, 1], [False, False, False], [[0.0, 0.0]] * 3, [[0.5, 0.5]] * 3, [0.0] * 3, [0.0] * 3)
+    values = []
+    for scale in (1.0, 100.0):
+        loss = OptionCriticLoss(
+            OptionCriticActor(heads), _constant_critic([1.0 * scale, 3.0 * scale]), xi=0.01, normalize_option_advantages=normalize
+        )
+        values.append(loss(batch)["loss_termination"].item())
+    # Q - V for prev options (0, 1, 1): -1, +1, +1 (x scale); beta = 0.5
+    raw = [0.5 * ((-1 + 1 + 1) * s / 3 + 0.01) for s in (1.0, 100.0)]
+    if normalize:  # the std of Q(s, o) - V(s) over the batch and both options: (-1, 1) three times
+        std = torch.tensor([-1.0, 1.0] * 3).std().item()
+        assert values[0] == pytest.approx(values[1]) == pytest.approx(0.5 * ((1 / 3) / std + 0.01))
+    else:
+        assert values == pytest.approx(raw)

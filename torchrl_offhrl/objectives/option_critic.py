@@ -112,6 +112,14 @@ class OptionCriticLoss(LossModule):
         eta: multi-updates probability (0.7 in the paper).
         clip_epsilon: PPO clip (0.2).
         xi: termination regulariser (0 in MOC; Option-Critic uses ~0.01).
+        normalize_option_advantages: divide the option advantages
+            ``Q(s, o) - V(s)`` of the termination and policy-over-options losses
+            by their standard deviation over the batch (before adding ``xi``;
+            not in MOC, off by default). With raw returns of order 100, the
+            termination logits and pi_O otherwise saturate within a few
+            thousand updates (one option runs whole episodes) and the entropy
+            bonus and ``xi`` are negligible; normalised, they are in units of
+            the advantages' spread.
         critic_coef, termination_coef, option_coef: loss weights.
         entropy_coef: intra-option entropy bonus.
         option_entropy_coef: entropy bonus of ``pi_O`` (0.01).
@@ -177,6 +185,7 @@ class OptionCriticLoss(LossModule):
         eta: float = 0.7,
         clip_epsilon: float = 0.2,
         xi: float = 0.0,
+        normalize_option_advantages: bool = False,
         critic_coef: float = 0.5,
         termination_coef: float = 1.0,
         option_coef: float = 1.0,
@@ -201,6 +210,7 @@ class OptionCriticLoss(LossModule):
         self.eta = float(eta)
         self.clip_epsilon = float(clip_epsilon)
         self.xi = float(xi)
+        self.normalize_option_advantages = normalize_option_advantages
         self.critic_coef = float(critic_coef)
         self.termination_coef = float(termination_coef)
         self.option_coef = float(option_coef)
@@ -320,10 +330,13 @@ class OptionCriticLoss(LossModule):
         p = prev.unsqueeze(-1)
         beta_prev = beta.gather(-1, p).squeeze(-1)
         cont = (~is_init).to(beta.dtype)
-        termination_adv = q_d.gather(-1, p).squeeze(-1) - v + self.xi
+        option_adv = q_d - v.unsqueeze(-1)  # [B, n]: Q(s, o) - V(s)
+        if self.normalize_option_advantages and option_adv.numel() > 1:
+            option_adv = option_adv / option_adv.std().clamp_min(1e-8)
+        termination_adv = option_adv.gather(-1, p).squeeze(-1) + self.xi
         loss_termination = self.termination_coef * (beta_prev * termination_adv * cont).sum() / cont.sum().clamp_min(1.0)
         beta_sel = torch.where(is_init, torch.ones_like(beta_prev), beta_prev.detach())
-        loss_option = -self.option_coef * (beta_sel * (pi * (q_d - v.unsqueeze(-1))).sum(-1)).mean()
+        loss_option = -self.option_coef * (beta_sel * (pi * option_adv).sum(-1)).mean()
         option_entropy = -(pi * log_pi).sum(-1).mean()
         loss_option_entropy = -self.option_entropy_coef * option_entropy
         gauss_entropy = (0.5 * math.log(2 * math.pi * math.e) + scale.log()).sum(-1)  # [B, n]

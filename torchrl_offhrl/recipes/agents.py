@@ -197,6 +197,7 @@ def _moc(env, cfg, obs_dim, act_dim, low, high, obs_loc, obs_scale, action_key) 
         eta=cfg.get("eta", 0.7),
         clip_epsilon=cfg.get("clip_epsilon", 0.2),
         xi=cfg.get("xi", 0.0),
+        normalize_option_advantages=cfg.get("normalize_option_advantages", False),
         critic_coef=cfg.get("critic_coef", 0.5),
         entropy_coef=cfg.get("entropy_coef", 0.0),
         option_entropy_coef=cfg.get("option_entropy_coef", 0.01),
