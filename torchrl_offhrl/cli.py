@@ -198,8 +198,14 @@ def main(argv: list[str] | None = None) -> int:
     from .data import DatasetError, PolicyNotFoundError
 
     args = build_parser().parse_args(argv)
-    # TorchRL's INFO lines (spec inference, spec checks) are noise on a command line
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    # TorchRL's INFO lines (spec inference, spec checks) are noise on a command line; torchrl sets
+    # its logger's level when imported (RL_LOGGING_LEVEL), so import it first, unless the user chose
+    import os
+
+    import torchrl  # noqa: F401
+
+    if "RL_LOGGING_LEVEL" not in os.environ:
+        logging.getLogger("torchrl").setLevel(logging.WARNING)
     try:
         return args.func(args)
     except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError) as err:
