@@ -242,8 +242,10 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     ref = ref if None not in ref else None
 
     def evaluate(final: bool = False):
-        eval_env.set_seed(int(cfg["seed"]) * 1000 + 7)
-        rets, td = evaluate_policy(eval_env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=True, return_rollout=True)
+        rets, td = evaluate_policy(
+            eval_env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=True,
+            seed=int(cfg["seed"]) * 1000 + 7, return_rollout=True,
+        )
         rec = {
             "frames": frames,
             "updates": updates,
@@ -294,7 +296,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
             total_frames=remaining,
             init_random_frames=init_random,
             split_trajs=False,
-        auto_register_policy_transforms=False,  # the envs are built with the transforms they need
+            auto_register_policy_transforms=False,  # the envs are built with the transforms they need
             device=device,
         )
         bar = tqdm(total=total, initial=frames, desc=f"{algo['name']} on {env_cfg['name']}-{level}", disable=not progress, unit="frame")
@@ -333,8 +335,8 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         records[-1] = evaluate(final=True)
         checkpoint()
     elapsed = time.time() - t_train
-    plot_curve([records], run_dir / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})", behaviour=data.episode_returns().mean().item())
     behaviour = data.episode_returns()
+    plot_curve([records], run_dir / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})", behaviour=float(behaviour.mean()))
     final = records[-1]
     summary = {
         "algo": algo["name"],
@@ -375,7 +377,7 @@ def _update(agent, batch, algo: Mapping, rb, frames: int, init_random: int) -> d
     """One round of learning on a collected batch; returns averaged scalar metrics."""
     loss = agent.loss
     params = [p for g in (o.param_groups for o in agent.optimizers) for grp in g for p in grp["params"]]
-    max_norm = float(algo.get("max_grad_norm", 0.5)) if algo.get("max_grad_norm") is not None else None
+    max_norm = algo.get("max_grad_norm")  # None or absent: no clipping
     acc: dict[str, float] = {}
     n = 0
     if agent.on_policy:
@@ -391,7 +393,7 @@ def _update(agent, batch, algo: Mapping, rb, frames: int, init_random: int) -> d
                     o.zero_grad()
                 total.backward()
                 if max_norm:
-                    torch.nn.utils.clip_grad_norm_(params, max_norm)
+                    torch.nn.utils.clip_grad_norm_(params, float(max_norm))
                 for o in agent.optimizers:
                     o.step()
                 for k, v in _scalars(out).items():
