@@ -1,19 +1,23 @@
-"""Train a D4RL-style behaviour policy run (SAC) in a real Gymnasium env.
+"""Train a D4RL-style behaviour policy run (SAC or CrossQ) in a real Gymnasium env.
 
-    python scripts/train_behaviour.py Hopper-v5 --steps 200000 --out outputs/behaviour/hopper
+    python scripts/train_behaviour.py Hopper-v5 --steps 300000 --out outputs/behaviour/hopper
+    python scripts/train_behaviour.py HalfCheetah-v5 --algorithm crossq --steps 1000000 --out outputs/behaviour/halfcheetah
 
-Saves an actor snapshot and its evaluation at every ``--eval-every`` steps;
-``offhrl`` / ``torchrl_offhrl.data.policies`` ship the chosen snapshots.
+Saves an actor snapshot and its evaluation at every ``--eval-every`` steps,
+plus the state needed to continue: rerunning the same command after an
+interruption (or with a larger ``--steps``) resumes the run.
+``python -m torchrl_offhrl.data.policies ship`` ships the chosen snapshots.
 """
 import argparse
 
 import torch
 
-from torchrl_offhrl.recipes.behaviour import train_behaviour_sac
+from torchrl_offhrl.recipes.behaviour import ALGORITHMS, train_behaviour
 
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("env_id")
+    p.add_argument("--algorithm", choices=sorted(ALGORITHMS), default="sac")
     p.add_argument("--steps", type=int, default=200_000)
     p.add_argument("--eval-every", type=int, default=10_000)
     p.add_argument("--seed", type=int, default=0)
@@ -21,4 +25,4 @@ if __name__ == "__main__":
     p.add_argument("--out", required=True)
     a = p.parse_args()
     torch.set_num_threads(a.threads)
-    train_behaviour_sac(a.env_id, a.out, total_steps=a.steps, eval_every=a.eval_every, seed=a.seed)
+    train_behaviour(a.env_id, a.out, algorithm=a.algorithm, total_steps=a.steps, eval_every=a.eval_every, seed=a.seed)

@@ -1,4 +1,4 @@
-"""Online SAC in the real Gymnasium env, to make D4RL-style behaviour policies.
+"""Online SAC / CrossQ in the real Gymnasium env, to make D4RL-style behaviour policies.
 
 D4RL's protocol: "expert" is a fully trained SAC policy, "medium" a checkpoint
 of the same run stopped at about a third of the expert's return. This module
@@ -22,7 +22,7 @@ from ..data.collect import make_gym_env
 from ..modules.options import mlp
 from ..utils import atomic_write
 
-__all__ = ["evaluate_policy", "first_episode_mask", "make_behaviour_actor", "pick_checkpoint", "train_behaviour_sac"]
+__all__ = ["ALGORITHMS", "BehaviourLearner", "evaluate_policy", "first_episode_mask", "make_behaviour_actor", "pick_checkpoint", "train_behaviour", "train_behaviour_sac"]
 
 
 def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256)):
@@ -91,38 +91,171 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     return (returns, td) if return_rollout else returns
 
 
-def train_behaviour_sac(
+#: Defaults of each algorithm of :func:`train_behaviour` (the published ones,
+#: except CrossQ's critic width: 256 instead of 2048, for CPU budgets).
+ALGORITHMS = {
+    "sac": {"lr": 3e-4, "betas": (0.9, 0.999), "policy_delay": 1, "loss": "SAC (torchrl SACLoss)"},
+    "crossq": {"lr": 1e-3, "betas": (0.5, 0.999), "policy_delay": 3, "loss": "CrossQ (torchrl CrossQLoss)"},
+}
+_KEEP = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated"))
+
+
+class _CrossQCritic(nn.Module):
+    """CrossQ's critic: batch renormalisation on the input and after each hidden layer, no target copy."""
+
+    def __init__(self, in_dim: int, hidden, momentum: float = 0.01, warmup_steps: int = 10_000):
+        from torchrl.modules import BatchRenorm1d
+
+        super().__init__()
+        layers: list[nn.Module] = [BatchRenorm1d(in_dim, momentum=momentum, warmup_steps=warmup_steps)]
+        for h in hidden:
+            layers += [nn.Linear(in_dim, h), BatchRenorm1d(h, momentum=momentum, warmup_steps=warmup_steps), nn.ReLU()]
+            in_dim = h
+        layers.append(nn.Linear(in_dim, 1))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, observation, action):
+        return self.net(torch.cat([observation, action], -1))
+
+
+class BehaviourLearner:
+    """The losses, optimisers and update rule of :func:`train_behaviour` (SAC or CrossQ), for one actor.
+
+    ``update(batch)`` does one critic update (and, every ``policy_delay``
+    updates, one actor and temperature update; SAC: every update, plus the
+    Polyak step of its target critics). ``state_dict`` / ``load_state_dict``
+    cover the networks, the temperature and the optimisers.
+    """
+
+    def __init__(self, actor, obs_dim: int, act_dim: int, action_spec, algorithm: str = "sac", critic_hidden=(256, 256), lr: float | None = None, gamma: float = 0.99, tau: float = 0.005):
+        from torchrl.modules import MLP, ValueOperator
+        from torchrl.objectives import CrossQLoss, SACLoss, SoftUpdate
+
+        if algorithm not in ALGORITHMS:
+            raise ValueError(f"train_behaviour: algorithm must be one of {sorted(ALGORITHMS)}, got {algorithm!r}.")
+        self.algorithm = algorithm
+        algo = ALGORITHMS[algorithm]
+        self.policy_delay = algo["policy_delay"]
+        lr = algo["lr"] if lr is None else lr
+        if algorithm == "sac":
+            qnet = MLP(in_features=obs_dim + act_dim, out_features=1, num_cells=list(critic_hidden), activation_class=nn.ReLU)
+            qvalue = ValueOperator(qnet, in_keys=["observation", "action"])
+            self.loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True, action_spec=action_spec)
+            self.target_updater = SoftUpdate(self.loss, tau=tau)
+        else:
+            qvalue = ValueOperator(_CrossQCritic(obs_dim + act_dim, critic_hidden), in_keys=["observation", "action"])
+            self.loss = CrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", action_spec=action_spec)
+            self.target_updater = None
+        self.loss.make_value_estimator(gamma=gamma)
+        adam = lambda params: torch.optim.Adam(params, lr=lr, betas=algo["betas"])
+        self.opt_actor = adam(self.loss.actor_network_params.flatten_keys().values())
+        self.opt_q = adam(self.loss.qvalue_network_params.flatten_keys().values())
+        self.opt_alpha = adam([self.loss.log_alpha])
+        self.updates = 0
+
+    def update(self, batch) -> None:
+        self.updates += 1
+        if self.algorithm == "sac":  # one forward for the three losses (the critic is detached in the actor loss)
+            losses = self.loss(batch)
+            self._step((self.opt_q, self.opt_actor, self.opt_alpha), losses["loss_qvalue"] + losses["loss_actor"] + losses["loss_alpha"])
+            self.target_updater.step()
+            return
+        loss_q, _ = self.loss.qvalue_loss(batch)
+        self._step((self.opt_q,), loss_q)
+        if self.updates % self.policy_delay == 0:
+            loss_pi, meta = self.loss.actor_loss(batch)
+            self._step((self.opt_actor, self.opt_alpha), loss_pi + self.loss.alpha_loss(meta["log_prob"]))
+
+    @staticmethod
+    def _step(opts, total) -> None:
+        for opt in opts:
+            opt.zero_grad()
+        total.backward()
+        for opt in opts:
+            opt.step()
+
+    def state_dict(self) -> dict:
+        return {
+            "loss": self.loss.state_dict(),
+            "opt_actor": self.opt_actor.state_dict(),
+            "opt_q": self.opt_q.state_dict(),
+            "opt_alpha": self.opt_alpha.state_dict(),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.loss.load_state_dict(state["loss"])
+        for key in ("opt_actor", "opt_q", "opt_alpha"):
+            getattr(self, key).load_state_dict(state[key])
+        self.updates = state["updates"]
+
+
+def train_behaviour(
     env_id: str,
     out_dir: str | Path,
+    algorithm: str = "sac",
     total_steps: int = 200_000,
     init_random_steps: int = 5_000,
     eval_every: int = 10_000,
     eval_episodes: int = 10,
+    eval_max_steps: int = 1000,
     batch_size: int = 256,
     hidden=(256, 256),
-    lr: float = 3e-4,
+    critic_hidden=None,
+    lr: float | None = None,
     gamma: float = 0.99,
     tau: float = 0.005,
     frames_per_batch: int = 50,
     seed: int = 0,
     progress: bool = True,
 ) -> list[dict]:
-    """Train SAC online in ``env_id`` and save an actor snapshot at every evaluation.
+    """Train a behaviour policy online in ``env_id``; save the actor at every evaluation; resume if interrupted.
 
-    Writes ``out_dir/actor_<steps>.pt`` (actor state dict, atomic) and
-    ``out_dir/evals.json`` (one record per evaluation: steps, stochastic and
-    deterministic return mean/std over ``eval_episodes``, wall time). One
-    gradient update per environment step (updates are done in groups of
-    ``frames_per_batch``). Returns the list of evaluation records.
+    Args:
+        algorithm: ``"sac"`` (TorchRL's :class:`~torchrl.objectives.SACLoss`,
+            target critics with Polyak ``tau``, lr 3e-4) or ``"crossq"``
+            (TorchRL's :class:`~torchrl.objectives.CrossQLoss`: batch
+            renormalisation in the critic and no target critics; Adam lr
+            1e-3 with beta1 0.5 and an actor/temperature update every 3
+            critic updates, as published; the critic is ``critic_hidden``
+            wide, 256 by default instead of the paper's 2048).
+        total_steps: environment steps; one critic update per step (updates
+            run in groups of ``frames_per_batch`` after ``init_random_steps``
+            uniform-random steps).
+        hidden / critic_hidden: layer widths of the actor / critic
+            (``critic_hidden`` defaults to ``hidden``).
+        lr: learning rate of every optimiser (default: the algorithm's).
+        eval_max_steps: step limit of the evaluation episodes (the env's
+            1000; smaller only for quick tests).
+
+    Writes, atomically:
+
+    * ``out_dir/actor_<steps>.pt``: the actor's state dict at each evaluation;
+    * ``out_dir/evals.json``: env id, algorithm, seed, widths and one record
+      per evaluation (steps, stochastic and deterministic return mean/std
+      over ``eval_episodes`` fresh episodes, wall time);
+    * ``out_dir/state/``: everything needed to continue (networks,
+      optimisers, temperature, replay buffer, counters, RNG), refreshed at
+      every evaluation. Calling again with the same ``out_dir`` continues
+      from there (with a larger ``total_steps`` it trains further); a call
+      whose ``env_id``/``algorithm``/widths differ from the saved run's is
+      refused. The environment restarts from a reset, which at most cuts
+      one episode short.
+
+    Returns the list of evaluation records.
     """
     from torchrl.collectors import Collector
     from torchrl.data import LazyTensorStorage, ReplayBuffer
-    from torchrl.modules import MLP, ValueOperator
-    from torchrl.objectives import SACLoss, SoftUpdate
     from tqdm.auto import tqdm
 
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"train_behaviour: algorithm must be one of {sorted(ALGORITHMS)}, got {algorithm!r}.")
+    hidden = tuple(hidden)
+    critic_hidden = hidden if critic_hidden is None else tuple(critic_hidden)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    identity = {"env_id": env_id, "algorithm": algorithm, "hidden": list(hidden), "critic_hidden": list(critic_hidden), "seed": seed}
+
     torch.manual_seed(seed)
     env = make_gym_env(env_id, num_envs=1)
     env.set_seed(seed)
@@ -133,62 +266,116 @@ def train_behaviour_sac(
     low = spec.space.low.reshape(-1, act_dim)[0]
     high = spec.space.high.reshape(-1, act_dim)[0]
     actor = make_behaviour_actor(obs_dim, act_dim, low, high, hidden)
-    qnet = MLP(in_features=obs_dim + act_dim, out_features=1, num_cells=list(hidden), activation_class=nn.ReLU)
-    qvalue = ValueOperator(qnet, in_keys=["observation", "action"])
-    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True, action_spec=spec)
-    loss.make_value_estimator(gamma=gamma)
-    updater = SoftUpdate(loss, tau=tau)
-    opt_actor = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=lr)
-    opt_q = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=lr)
-    opt_alpha = torch.optim.Adam([loss.log_alpha], lr=lr)
+    learner = BehaviourLearner(actor, obs_dim, act_dim, spec, algorithm, critic_hidden, lr=lr, gamma=gamma, tau=tau)
     rb = ReplayBuffer(storage=LazyTensorStorage(total_steps), batch_size=batch_size)
+
+    records: list[dict] = []
+    steps = 0
+    wall0 = 0.0
+    state_dir = _latest_state(out)
+    if state_dir is not None:
+        state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=False)
+        saved = state["identity"]
+        if saved != identity:
+            diff = {k: (saved.get(k), v) for k, v in identity.items() if saved.get(k) != v}
+            raise ValueError(
+                f"{out}: holds a {saved['algorithm']} run on {saved['env_id']} that differs from this call "
+                f"in {diff} (saved, asked). Use another --out folder, or the saved settings to continue it."
+            )
+        if state["steps"] >= total_steps:
+            return state["records"]
+        learner.load_state_dict(state["learner"])
+        if state["capacity"] == total_steps:
+            rb.loads(state_dir / "replay")
+        else:  # a longer run than the saved one: copy the saved transitions into the larger buffer
+            saved_rb = ReplayBuffer(storage=LazyTensorStorage(state["capacity"]), batch_size=batch_size)
+            saved_rb.loads(state_dir / "replay")
+            rb.extend(saved_rb.storage[: len(saved_rb)])
+        torch.set_rng_state(state["rng"])
+        records, steps, wall0 = state["records"], state["steps"], state["wall_s"]
 
     collector = Collector(
         env,
         actor,
         frames_per_batch=frames_per_batch,
-        total_frames=total_steps,
-        init_random_frames=init_random_steps,
+        total_frames=total_steps - steps,
+        init_random_frames=max(0, init_random_steps - steps),
         split_trajs=False,
         auto_register_policy_transforms=False,  # the envs are built with the transforms they need
     )
-    records: list[dict] = []
-    t0 = time.time()
-    steps = 0
-    bar = tqdm(total=total_steps, desc=f"SAC {env_id}", disable=not progress, unit="step")
+    t0 = time.time() - wall0
+    bar = tqdm(total=total_steps, initial=steps, desc=f"{algorithm} {env_id}", disable=not progress, unit="step")
     for batch in collector:
-        batch = batch.reshape(-1)
+        batch = batch.reshape(-1).select(*_KEEP, strict=False)
         rb.extend(batch)
         steps += batch.numel()
         bar.update(batch.numel())
         if steps >= init_random_steps:
             for _ in range(batch.numel()):
-                sample = rb.sample()
-                losses = loss(sample)
-                opt_q.zero_grad()
-                opt_actor.zero_grad()
-                opt_alpha.zero_grad()
-                (losses["loss_qvalue"] + losses["loss_actor"] + losses["loss_alpha"]).backward()
-                opt_q.step()
-                opt_actor.step()
-                opt_alpha.step()
-                updater.step()
+                learner.update(rb.sample())
         if steps % eval_every < frames_per_batch and steps >= eval_every:
             rec = {"steps": steps, "wall_s": round(time.time() - t0, 1)}
             for det in (False, True):
-                rets = evaluate_policy(eval_env, actor, eval_episodes, deterministic=det, seed=10_000 + steps)
+                rets = evaluate_policy(eval_env, actor, eval_episodes, max_steps=eval_max_steps, deterministic=det, seed=10_000 + steps)
                 tag = "deterministic" if det else "stochastic"
                 rec[tag] = {"mean": float(rets.mean()), "std": float(rets.std())}
             records.append(rec)
             with atomic_write(out / f"actor_{steps}.pt") as tmp:
                 torch.save(actor.state_dict(), tmp)
             with atomic_write(out / "evals.json") as tmp:
-                Path(tmp).write_text(json.dumps({"env_id": env_id, "seed": seed, "hidden": list(hidden), "evals": records}, indent=1))
+                Path(tmp).write_text(json.dumps({**identity, "evals": records}, indent=1))
+            _save_state(
+                out,
+                rb,
+                {
+                    "identity": identity,
+                    "learner": learner.state_dict(),
+                    "rng": torch.get_rng_state(),
+                    "records": records,
+                    "steps": steps,
+                    "capacity": total_steps,
+                    "wall_s": time.time() - t0,
+                },
+            )
             bar.set_postfix(ret=f"{rec['stochastic']['mean']:.0f}")
             bar.write(f"[{steps}] stochastic {rec['stochastic']['mean']:.1f} ± {rec['stochastic']['std']:.1f}  deterministic {rec['deterministic']['mean']:.1f}  ({rec['wall_s']} s)")
     bar.close()
     collector.shutdown()
     return records
+
+
+def train_behaviour_sac(env_id: str, out_dir: str | Path, **kwargs) -> list[dict]:
+    """:func:`train_behaviour` with ``algorithm="sac"``."""
+    return train_behaviour(env_id, out_dir, algorithm="sac", **kwargs)
+
+
+def _latest_state(out: Path) -> Path | None:
+    """The complete saved state of a run, if any (``state/``, or ``state.old/`` after a crash mid-swap)."""
+    for name in ("state", "state.old"):
+        if (out / name / "state.pt").is_file():
+            return out / name
+    return None
+
+
+def _save_state(out: Path, rb, state: dict) -> None:
+    """Write the resumable state into ``state.tmp/``, then swap it in for ``state/``.
+
+    ``state.pt`` is written last, so a folder without it is incomplete; the
+    previous state is kept as ``state.old/`` until the new one is in place.
+    """
+    import shutil
+
+    tmp, cur, old = out / "state.tmp", out / "state", out / "state.old"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    rb.dumps(tmp / "replay")
+    with atomic_write(tmp / "state.pt") as f:
+        torch.save(state, f)
+    shutil.rmtree(old, ignore_errors=True)
+    if cur.exists():
+        cur.rename(old)
+    tmp.rename(cur)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def pick_checkpoint(records: list[dict], target: float | None = None, key: str = "stochastic") -> dict:

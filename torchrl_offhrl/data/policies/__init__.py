@@ -117,7 +117,7 @@ def ship_policy(
 
     Args:
         run_dir: the ``--out`` folder of ``scripts/train_behaviour.py``
-            (:func:`~torchrl_offhrl.recipes.behaviour.train_behaviour_sac`):
+            (:func:`~torchrl_offhrl.recipes.behaviour.train_behaviour`):
             ``actor_<steps>.pt`` files and ``evals.json``.
         name: the policy name, ``<env>-<level>`` by convention
             (``"hopper-medium"``).
@@ -143,7 +143,7 @@ def ship_policy(
         The path of the ``.pt`` file. Both files are written atomically
         (temporary name, then rename; the ``.json`` last).
     """
-    from ...recipes.behaviour import evaluate_policy, pick_checkpoint
+    from ...recipes.behaviour import ALGORITHMS, evaluate_policy, pick_checkpoint
     from ...scores import normalized_score
     from ..collect import _versions, make_gym_env
 
@@ -180,6 +180,9 @@ def ship_policy(
         raise FileNotFoundError(f"{ckpt}: checkpoint listed in evals.json but not on disk.")
     env_id = info["env_id"]
     hidden = list(info.get("hidden", (256, 256)))
+    algorithm = info.get("algorithm", "sac")  # runs from before CrossQ was added are SAC runs
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"{evals_path}: unknown algorithm {algorithm!r}; known: {sorted(ALGORITHMS)}.")
 
     env = make_gym_env(env_id, num_envs=episodes)
     try:
@@ -192,7 +195,7 @@ def ship_policy(
             "name": name,
             "env_id": env_id,
             "level": level,
-            "algorithm": "SAC (torchrl SACLoss)",
+            "algorithm": ALGORITHMS[algorithm]["loss"],
             "hidden": hidden,
             "obs_dim": obs_dim,
             "act_dim": act_dim,
@@ -217,8 +220,9 @@ def ship_policy(
     evaluation["training_eval"] = {k: record[k] for k in ("stochastic", "deterministic") if k in record}
     if command is None:
         eval_every = records[0]["steps"]
+        algo_flag = "" if algorithm == "sac" else f" --algorithm {algorithm}"
         train = (
-            f"python scripts/train_behaviour.py {env_id} --steps {max(r['steps'] for r in records)} "
+            f"python scripts/train_behaviour.py {env_id}{algo_flag} --steps {max(r['steps'] for r in records)} "
             f"--eval-every {eval_every} --seed {info.get('seed', 0)} --out {shlex.quote(str(run))}"
         )
         ship = (
@@ -229,7 +233,7 @@ def ship_policy(
             ship += f" --max-steps {max_steps}"
         command = f"{train} && {ship}"
         if hidden != [256, 256]:
-            command += f"  # the run used hidden={hidden}: train_behaviour_sac(..., hidden={tuple(hidden)})"
+            command += f"  # the run used hidden={hidden}: train_behaviour(..., hidden={tuple(hidden)})"
     card.update(
         {
             "train_steps": int(record["steps"]),

@@ -1,0 +1,89 @@
+"""The behaviour-policy trainer (SAC / CrossQ in the real env): outputs, resume, refusals, shipping."""
+import json
+
+import pytest
+import torch
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+import torchrl_offhrl.recipes.behaviour as beh
+from torchrl_offhrl.data import load_policy, ship_policy
+
+TINY = {"init_random_steps": 60, "eval_every": 100, "eval_episodes": 2, "eval_max_steps": 30, "batch_size": 16, "hidden": (8,), "frames_per_batch": 50, "progress": False}
+
+
+def _buffer(state_dir, capacity):
+    rb = ReplayBuffer(storage=LazyTensorStorage(capacity), batch_size=4)
+    rb.loads(state_dir / "replay")
+    return rb
+
+
+@pytest.mark.parametrize("algorithm", ["sac", "crossq"])
+def test_train_resume_and_extend(tmp_path, algorithm):
+    out = tmp_path / algorithm
+    records = beh.train_behaviour("Hopper-v5", out, algorithm=algorithm, total_steps=200, **TINY)
+    assert [r["steps"] for r in records] == [100, 200]
+    info = json.loads((out / "evals.json").read_text())
+    assert info["algorithm"] == algorithm and info["env_id"] == "Hopper-v5" and info["hidden"] == [8]
+    state = torch.load(out / "state" / "state.pt", weights_only=False)
+    assert state["steps"] == 200 and state["capacity"] == 200
+    # the first batch (50 steps) is below init_random_steps=60: no updates; then one per step
+    assert state["learner"]["updates"] == 150
+    first = _buffer(out / "state", 200)
+    assert len(first) == 200
+    # the snapshot of the last evaluation is the saved actor
+    actor_200 = torch.load(out / "actor_200.pt", weights_only=True)
+    saved = {k: v for k, v in state["learner"]["loss"].items() if k.startswith("actor_network_params")}
+    assert any(torch.equal(v, actor_200["module.0.module.0.0.weight"]) for v in saved.values())
+
+    # asking for what is already done trains nothing
+    again = beh.train_behaviour("Hopper-v5", out, algorithm=algorithm, total_steps=200, **TINY)
+    assert again == records
+
+    # a longer run continues: earlier records kept, buffer grown with the old transitions first
+    more = beh.train_behaviour("Hopper-v5", out, algorithm=algorithm, total_steps=300, **TINY)
+    assert [r["steps"] for r in more] == [100, 200, 300]
+    assert more[:2] == records
+    state = torch.load(out / "state" / "state.pt", weights_only=False)
+    assert state["steps"] == 300 and state["learner"]["updates"] == 250
+    grown = _buffer(out / "state", 300)
+    assert len(grown) == 300
+    torch.testing.assert_close(grown.storage[:200]["observation"], first.storage[:200]["observation"])
+    assert not torch.equal(torch.load(out / "actor_300.pt", weights_only=True)["module.0.module.0.0.weight"], actor_200["module.0.module.0.0.weight"])
+    assert not (out / "state.tmp").exists() and not (out / "state.old").exists()
+
+
+def test_refuses_a_different_run(tmp_path):
+    beh.train_behaviour("Hopper-v5", tmp_path, algorithm="crossq", total_steps=100, **TINY)
+    with pytest.raises(ValueError, match=r"algorithm.*'crossq', 'sac'"):
+        beh.train_behaviour("Hopper-v5", tmp_path, algorithm="sac", total_steps=200, **TINY)
+    with pytest.raises(ValueError, match="hidden"):
+        beh.train_behaviour("Hopper-v5", tmp_path, algorithm="crossq", total_steps=200, **{**TINY, "hidden": (16,)})
+    with pytest.raises(ValueError, match="algorithm must be one of"):
+        beh.train_behaviour("Hopper-v5", tmp_path / "x", algorithm="td3", total_steps=100, **TINY)
+
+
+def test_state_swap_survives_a_crash(tmp_path):
+    """A crash while the new state is written leaves the previous one usable."""
+    assert beh._latest_state(tmp_path) is None
+    rb = ReplayBuffer(storage=LazyTensorStorage(4), batch_size=2)
+    rb.extend(torch.arange(3.0).unsqueeze(-1))
+    beh._save_state(tmp_path, rb, {"steps": 3})
+    assert beh._latest_state(tmp_path) == tmp_path / "state"
+    # crash mid-swap: the current state was moved aside, the new one never renamed in
+    (tmp_path / "state").rename(tmp_path / "state.old")
+    (tmp_path / "state.tmp").mkdir()  # incomplete: no state.pt
+    assert beh._latest_state(tmp_path) == tmp_path / "state.old"
+    beh._save_state(tmp_path, rb, {"steps": 4})
+    assert beh._latest_state(tmp_path) == tmp_path / "state"
+    assert torch.load(tmp_path / "state" / "state.pt")["steps"] == 4
+    assert not (tmp_path / "state.old").exists() and not (tmp_path / "state.tmp").exists()
+
+
+def test_ship_a_crossq_run(tmp_path):
+    run = tmp_path / "run"
+    beh.train_behaviour("Hopper-v5", run, algorithm="crossq", total_steps=100, **TINY)
+    pt = ship_policy(run, "hopper-medium", "medium", steps=100, dest=tmp_path / "pol", max_steps=30)
+    _actor, card = load_policy(pt)
+    assert card["algorithm"] == "CrossQ (torchrl CrossQLoss)"
+    assert "--algorithm crossq" in card["command"] and "--steps 100" in card["command"]
+    assert card["hidden"] == [8]
