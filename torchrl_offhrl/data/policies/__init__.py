@@ -221,6 +221,9 @@ def ship_policy(
     if command is None:
         eval_every = records[0]["steps"]
         algo_flag = "" if algorithm == "sac" else f" --algorithm {algorithm}"
+        critic_hidden = info.get("critic_hidden", hidden)
+        if critic_hidden != hidden:
+            algo_flag += " --critic-hidden " + " ".join(str(w) for w in critic_hidden)
         train = (
             f"python scripts/train_behaviour.py {env_id}{algo_flag} --steps {max(r['steps'] for r in records)} "
             f"--eval-every {eval_every} --seed {info.get('seed', 0)} --out {shlex.quote(str(run))}"
