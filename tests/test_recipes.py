@@ -90,13 +90,13 @@ def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, m
     real_update = train_mod._update
     calls = {"n": 0}
 
-    def crash_on_third(*a, **k):
+    def crash_on_fourth(*a, **k):
         calls["n"] += 1
-        if calls["n"] == 3:  # after the first evaluation + checkpoint at 128 frames
+        if calls["n"] == 4:  # after the checkpoint at 128 frames and the logged update at 192
             raise KeyboardInterrupt
         return real_update(*a, **k)
 
-    monkeypatch.setattr(train_mod, "_update", crash_on_third)
+    monkeypatch.setattr(train_mod, "_update", crash_on_fourth)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, progress=False)
     run = next(tmp_path.glob("moc-*"))
@@ -127,6 +127,21 @@ def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, m
     assert summary["frames"] == 256
     for k, v in saved.items():  # the second run started from the checkpoint's weights
         torch.testing.assert_close(loaded[k], v)
+    # the CSV logs hold each step once: rows logged after the checkpoint were dropped on resume
+    logs = sorted((run / "logs").glob("**/*.csv"))
+    assert logs
+    for csv in logs:
+        steps = [float(line.split(",")[0]) for line in csv.read_text().splitlines() if line]
+        assert steps == sorted(set(steps)), (csv, steps)
+
+
+def test_trim_csv_logs(tmp_path):
+    (tmp_path / "scalars" / "train").mkdir(parents=True)
+    f = tmp_path / "scalars" / "train" / "loss.csv"
+    f.write_text("64,1.0\n128,2.0\n192,3.0\n")
+    assert train_mod._trim_csv_logs(tmp_path, 128) == 1
+    assert f.read_text() == "64,1.0\n128,2.0\n"
+    assert train_mod._trim_csv_logs(tmp_path, 128) == 0
 
 
 def test_ablation_no_cvae_acts_in_real_actions(hopper_file, cache, tmp_path):

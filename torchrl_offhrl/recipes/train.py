@@ -231,6 +231,8 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     logger = None
     if cfg.get("logger", {}).get("backend"):
         lcfg = cfg["logger"]
+        if frames and lcfg["backend"] == "csv":
+            _trim_csv_logs(run_dir / "logs", frames)
         logger = get_logger(lcfg["backend"], logger_name=str(run_dir), experiment_name="logs", **lcfg.get("kwargs", {}))
 
     total = int(cfg["train"]["total_frames"])
@@ -512,3 +514,22 @@ def format_summary(summary: Mapping) -> str:
         f"{f['return_mean']:.1f} ± {f['return_std']:.1f}, D4RL-normalised {_fmt(f['normalized_d4rl'])} "
         f"(behaviour data: {_fmt(summary['behaviour_normalized_d4rl'])}); outputs in {summary['run_dir']}"
     )
+
+
+def _trim_csv_logs(log_dir: Path, max_step: int) -> int:
+    """Drop the rows of TorchRL CSV logs (``step,value`` lines) logged after ``max_step``.
+
+    A resumed run restarts from its checkpoint, so the steps it logged between
+    that checkpoint and the interruption would otherwise appear twice.
+    Returns the number of rows dropped. Each file is rewritten atomically.
+    """
+    dropped = 0
+    for csv in sorted(Path(log_dir).glob("**/*.csv")):
+        lines = csv.read_text().splitlines()
+        keep = [line for line in lines if not line or float(line.split(",", 1)[0]) <= max_step]
+        if len(keep) != len(lines):
+            dropped += len(lines) - len(keep)
+            with atomic_write(csv) as tmp:
+                Path(tmp).write_text("".join(line + "\n" for line in keep))
+    return dropped
+
