@@ -238,9 +238,10 @@ def train_behaviour(
       optimisers, temperature, replay buffer, counters, RNG), refreshed at
       every evaluation. Calling again with the same ``out_dir`` continues
       from there (with a larger ``total_steps`` it trains further); a call
-      whose ``env_id``/``algorithm``/widths differ from the saved run's is
-      refused. The environment restarts from a reset, which at most cuts
-      one episode short.
+      whose ``env_id``, ``algorithm``, widths or ``seed`` differ from the
+      saved run's is refused (other arguments are taken from the call).
+      The environment restarts from a reset, which at most cuts one
+      episode short.
 
     Returns the list of evaluation records.
     """
@@ -255,6 +256,20 @@ def train_behaviour(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     identity = {"env_id": env_id, "algorithm": algorithm, "hidden": list(hidden), "critic_hidden": list(critic_hidden), "seed": seed}
+
+    state = None
+    state_dir = _latest_state(out)
+    if state_dir is not None:  # a saved run: check it is this one, and whether anything is left to do
+        state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=False)
+        saved = state["identity"]
+        if saved != identity:
+            diff = {k: (saved.get(k), v) for k, v in identity.items() if saved.get(k) != v}
+            raise ValueError(
+                f"{out}: holds a {saved['algorithm']} run on {saved['env_id']} that differs from this call "
+                f"in {diff} (saved, asked). Use another --out folder, or the saved settings to continue it."
+            )
+        if state["steps"] >= total_steps:
+            return state["records"]
 
     torch.manual_seed(seed)
     env = make_gym_env(env_id, num_envs=1)
@@ -272,18 +287,7 @@ def train_behaviour(
     records: list[dict] = []
     steps = 0
     wall0 = 0.0
-    state_dir = _latest_state(out)
-    if state_dir is not None:
-        state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=False)
-        saved = state["identity"]
-        if saved != identity:
-            diff = {k: (saved.get(k), v) for k, v in identity.items() if saved.get(k) != v}
-            raise ValueError(
-                f"{out}: holds a {saved['algorithm']} run on {saved['env_id']} that differs from this call "
-                f"in {diff} (saved, asked). Use another --out folder, or the saved settings to continue it."
-            )
-        if state["steps"] >= total_steps:
-            return state["records"]
+    if state is not None:
         learner.load_state_dict(state["learner"])
         if state["capacity"] == total_steps:
             rb.loads(state_dir / "replay")
