@@ -2,7 +2,7 @@
 
 D4RL's protocol: "expert" is a fully trained SAC policy, "medium" a checkpoint
 of the same run stopped at about a third of the expert's return. This module
-trains that run with TorchRL's :class:`~torchrl.objectives.SACLoss`, evaluates
+trains that run with TorchRL's :class:`~torchrl.objectives.SACLoss` (or CrossQLoss), evaluates
 it every ``eval_every`` environment steps and keeps every evaluated actor as a
 small state dict, so the medium and expert levels are picked afterwards from
 one run (:func:`pick_checkpoint`).
