@@ -87,3 +87,30 @@ def test_ship_a_crossq_run(tmp_path):
     assert card["algorithm"] == "CrossQ (torchrl CrossQLoss)"
     assert "--algorithm crossq --critic-hidden 16 --steps 100" in card["command"]
     assert card["hidden"] == [8]
+
+
+def test_evaluations_do_not_depend_on_the_previous_one():
+    """Envs are reset to their seeded start for every evaluation, whatever state the previous one left.
+
+    The hard case for TorchRL's gym vector envs: a rollout that ends exactly
+    when some envs end their episode (done at the last step) and others do
+    not; a plain reset then hands the first their auto-reset state.
+    """
+    from tensordict.nn import TensorDictModule
+
+    from torchrl_offhrl.data import make_gym_env
+
+    # full torque on every joint: Hopper falls within a few dozen steps
+    policy = TensorDictModule(lambda obs: torch.ones(*obs.shape[:-1], 3), in_keys=["observation"], out_keys=["action"])
+    env = make_gym_env("Hopper-v5", num_envs=3)
+    _, probe = beh.evaluate_policy(env, policy, 3, max_steps=120, seed=7, return_rollout=True)
+    first_done = probe["next", "done"].flatten(1).float().argmax(1)  # step of each env's first done
+    assert bool(probe["next", "done"].any(1).all()) and len(set(first_done.tolist())) > 1
+    horizon = int(first_done.min()) + 1  # the earliest env ends exactly at the last step, the others run on
+    runs = [beh.evaluate_policy(env, policy, 3, max_steps=horizon, seed=7, return_rollout=True) for _ in range(3)]
+    assert bool(runs[0][1]["next", "done"][:, -1].any()) and not bool(runs[0][1]["next", "done"][:, -1].all())
+    fresh = beh.evaluate_policy(make_gym_env("Hopper-v5", num_envs=3), policy, 3, max_steps=horizon, seed=7)
+    for rets, td in runs[1:]:
+        torch.testing.assert_close(td["observation"][:, 0], runs[0][1]["observation"][:, 0])
+        torch.testing.assert_close(rets, runs[0][0])
+    torch.testing.assert_close(fresh, runs[0][0])

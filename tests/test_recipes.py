@@ -25,6 +25,7 @@ TINY = [
     "eval.episodes=2",
     "eval.max_steps=40",
     "algo.frames_per_batch=64",
+    "eval.at_start=false",
 ]
 ALGO_TINY = {"sac": ["algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32"], "ppo": ["algo.epochs=2"], "moc": ["algo.epochs=2"]}
 
@@ -142,6 +143,20 @@ def test_trim_csv_logs(tmp_path):
     assert train_mod._trim_csv_logs(tmp_path, 128) == 1
     assert f.read_text() == "64,1.0\n128,2.0\n"
     assert train_mod._trim_csv_logs(tmp_path, 128) == 0
+
+
+def test_evaluation_at_start(hopper_file, cache, tmp_path):
+    """eval.at_start: the untrained agent is evaluated first; a resumed run does not do it again."""
+    cfg = _cfg("ppo", hopper_file, tmp_path, ["eval.at_start=true"])
+    summary = train(cfg, progress=False)
+    evals = json.loads((Path(summary["run_dir"]) / "evals.json").read_text())
+    assert [(e["frames"], e["updates"]) for e in evals][:1] == [(0, 0)]
+    assert [e["frames"] for e in evals] == [0, 128, 256]
+    assert summary["initial"] == evals[0] and summary["final"] == evals[-1]
+    more = train(_cfg("ppo", hopper_file, tmp_path, ["eval.at_start=true", "train.total_frames=384"]), progress=False)
+    assert [e["frames"] for e in json.loads((Path(more["run_dir"]) / "evals.json").read_text())] == [0, 128, 256, 384]
+    assert more["initial"] == evals[0]
+    assert train(_cfg("ppo", hopper_file, tmp_path / "off"), progress=False)["initial"] is None
 
 
 def test_ablation_no_cvae_acts_in_real_actions(hopper_file, cache, tmp_path):

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import torch
+from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 
@@ -81,9 +82,11 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
         raise ValueError(f"evaluate_policy: env has batch size {tuple(env.batch_size)}, expected [{episodes}]")
     if seed is not None:
         env.set_seed(seed)
+    mask = _full_reset_mask(env)
+    td0 = env.reset(mask) if mask is not None else env.reset()
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     with set_exploration_type(mode):
-        td = env.rollout(max_steps, policy, break_when_any_done=False, auto_cast_to_device=True)
+        td = env.rollout(max_steps, policy, tensordict=td0, auto_reset=False, break_when_any_done=False, auto_cast_to_device=True)
     reward = td.get(("next", "reward")).reshape(episodes, -1)
     done = td.get(("next", "done")).reshape(episodes, -1)
     alive = first_episode_mask(done)
@@ -346,6 +349,31 @@ def train_behaviour(
     bar.close()
     collector.shutdown()
     return records
+
+
+def _full_reset_mask(env):
+    """The ``reset()`` input that resets every env of ``env`` (after ``set_seed``: to its seeded state), or None.
+
+    A plain ``reset()`` of a TorchRL-wrapped gym vector env does not reset the
+    envs whose episode ended during the previous rollout: TorchRL's
+    ``VecGymEnvTransform`` hands them the observation of their automatic reset
+    instead, so an evaluation would depend on the one before it. An explicit
+    all-True ``"_reset"`` mask makes it a full reset; the transform only
+    accepts one once the env has stepped (it compares the mask with the
+    ``done`` it remembers from the last step), hence the check; before the
+    first step a plain ``reset()`` is a full one (None is returned).
+    """
+    from torchrl.envs import Compose, TransformedEnv
+
+    stale, inner = False, env
+    while isinstance(inner, TransformedEnv):
+        transforms = inner.transform if isinstance(inner.transform, Compose) else [inner.transform]
+        stale |= any(type(t).__name__ == "VecGymEnvTransform" and t._memo.get("done") is not None for t in transforms)
+        inner = inner.base_env
+    if not stale:
+        return None
+    reset = torch.ones(env.full_done_spec["done"].shape, dtype=torch.bool, device=env.device)
+    return TensorDict({"_reset": reset}, batch_size=env.batch_size, device=env.device)
 
 
 def train_behaviour_sac(env_id: str, out_dir: str | Path, **kwargs) -> list[dict]:

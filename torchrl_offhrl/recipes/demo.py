@@ -33,6 +33,10 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
         (f"{algo} agent, real {s['env_id']}", final["return_mean"], final["return_std"], int(cfg["eval"]["episodes"]),
          final["normalized_d4rl"], final["normalized_dataset"]),
     ]
+    first = s.get("initial")
+    if first is not None:  # the untrained agent: with the CVAE, about the decoder's mean action
+        rows.insert(1, (f"{algo} agent before training", first["return_mean"], first["return_std"], int(cfg["eval"]["episodes"]),
+                        first["normalized_d4rl"], first["normalized_dataset"]))
     lines = [
         "",
         "=" * 80,
@@ -45,7 +49,8 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
         lines.append(f"{name:36s} {m:9.1f} {sd:8.1f} {n:9d} {_fmt(d4rl):>11s} {_fmt(own):>11s}")
     other = s["total_s"] - s["data_s"] - s["models_s"] - s["update_time_s"]
     lines += [
-        "(data score: normalised with the dataset's own random/expert reference returns; n/a without an expert policy)",
+        "(data score: normalised with the dataset's own random/expert reference returns; n/a without an expert policy;",
+        " before training, the agent's mean latent action is about the CVAE decoder's mean action: behaviour cloning)",
         "",
         f"time: {s['total_s'] / 60:.1f} min in total: data {s['data_s']:.0f} s, ensemble + CVAE {s['models_s']:.0f} s, "
         f"{algo} updates {s['update_time_s']:.0f} s for {s['frames']:,} model frames, env calibration + collection + "

@@ -290,6 +290,10 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     t_train = time.time()
     frames_at_start, updates_at_start = frames, updates
     train_time = 0.0
+    if remaining > 0 and not records and cfg["eval"].get("at_start", True):
+        # the untrained agent: the starting point of the learning curve (with the CVAE: about the decoder's mean action)
+        records.append(evaluate())
+        checkpoint()
     if remaining > 0:
         collector = Collector(
             env,
@@ -352,6 +356,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         "frames": frames,
         "updates": updates,
         "final": final,
+        "initial": records[0] if records[0]["frames"] == 0 else None,
         "behaviour_return_mean": float(behaviour.mean()),
         "behaviour_return_std": float(behaviour.std()) if behaviour.numel() > 1 else 0.0,
         "behaviour_episodes": int(behaviour.numel()),
