@@ -54,8 +54,7 @@ def main():
     for algorithm, width in (("sac", 256), ("crossq", 256), ("sac", 512), ("crossq", 512)):
         torch.manual_seed(0)
         actor = make_behaviour_actor(obs_dim, act_dim, -torch.ones(act_dim), torch.ones(act_dim)).to(dev)
-        learner = BehaviourLearner(actor, obs_dim, act_dim, spec, algorithm, critic_hidden=(width, width))
-        learner.loss.to(dev)
+        learner = BehaviourLearner(actor, obs_dim, act_dim, spec, algorithm, critic_hidden=(width, width), device=dev)
         for _ in range(20):  # warm-up
             learner.update(rb.sample())
         if dev.type == "cuda":

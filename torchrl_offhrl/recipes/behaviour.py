@@ -103,6 +103,13 @@ ALGORITHMS = {
 _KEEP = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated"))
 
 
+def _algorithm(name: str) -> dict:
+    """The defaults of a behaviour-training algorithm (a clear error for an unknown name)."""
+    if name not in ALGORITHMS:
+        raise ValueError(f"train_behaviour: algorithm must be one of {sorted(ALGORITHMS)}, got {name!r}.")
+    return ALGORITHMS[name]
+
+
 class _CrossQCritic(nn.Module):
     """CrossQ's critic: batch renormalisation on the input and after each hidden layer, no target copy."""
 
@@ -124,29 +131,28 @@ class _CrossQCritic(nn.Module):
 class BehaviourLearner:
     """The losses, optimisers and update rule of :func:`train_behaviour` (SAC or CrossQ), for one actor.
 
+    The actor must already be on ``device``, where the critics are built.
     ``update(batch)`` does one critic update (and, every ``policy_delay``
     updates, one actor and temperature update; SAC: every update, plus the
     Polyak step of its target critics). ``state_dict`` / ``load_state_dict``
     cover the networks, the temperature and the optimisers.
     """
 
-    def __init__(self, actor, obs_dim: int, act_dim: int, action_spec, algorithm: str = "sac", critic_hidden=(256, 256), lr: float | None = None, gamma: float = 0.99, tau: float = 0.005):
+    def __init__(self, actor, obs_dim: int, act_dim: int, action_spec, algorithm: str = "sac", critic_hidden=(256, 256), lr: float | None = None, gamma: float = 0.99, tau: float = 0.005, device=None):
         from torchrl.modules import MLP, ValueOperator
         from torchrl.objectives import CrossQLoss, SACLoss, SoftUpdate
 
-        if algorithm not in ALGORITHMS:
-            raise ValueError(f"train_behaviour: algorithm must be one of {sorted(ALGORITHMS)}, got {algorithm!r}.")
+        algo = _algorithm(algorithm)
         self.algorithm = algorithm
-        algo = ALGORITHMS[algorithm]
         self.policy_delay = algo["policy_delay"]
         lr = algo["lr"] if lr is None else lr
         if algorithm == "sac":
             qnet = MLP(in_features=obs_dim + act_dim, out_features=1, num_cells=list(critic_hidden), activation_class=nn.ReLU)
-            qvalue = ValueOperator(qnet, in_keys=["observation", "action"])
+            qvalue = ValueOperator(qnet, in_keys=["observation", "action"]).to(device)
             self.loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True, action_spec=action_spec)
             self.target_updater = SoftUpdate(self.loss, tau=tau)
         else:
-            qvalue = ValueOperator(_CrossQCritic(obs_dim + act_dim, critic_hidden), in_keys=["observation", "action"])
+            qvalue = ValueOperator(_CrossQCritic(obs_dim + act_dim, critic_hidden), in_keys=["observation", "action"]).to(device)
             self.loss = CrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", action_spec=action_spec)
             self.target_updater = None
         self.loss.make_value_estimator(gamma=gamma)
@@ -252,8 +258,7 @@ def train_behaviour(
     from torchrl.data import LazyTensorStorage, ReplayBuffer
     from tqdm.auto import tqdm
 
-    if algorithm not in ALGORITHMS:
-        raise ValueError(f"train_behaviour: algorithm must be one of {sorted(ALGORITHMS)}, got {algorithm!r}.")
+    _algorithm(algorithm)  # fail before touching out_dir
     hidden = tuple(hidden)
     critic_hidden = hidden if critic_hidden is None else tuple(critic_hidden)
     out = Path(out_dir)
