@@ -145,18 +145,19 @@ def test_trim_csv_logs(tmp_path):
     assert train_mod._trim_csv_logs(tmp_path, 128) == 0
 
 
-def test_evaluation_at_start(hopper_file, cache, tmp_path):
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_evaluation_at_start(algo, hopper_file, cache, tmp_path):
     """eval.at_start: the untrained agent is evaluated first; a resumed run does not do it again."""
-    cfg = _cfg("ppo", hopper_file, tmp_path, ["eval.at_start=true"])
+    cfg = _cfg(algo, hopper_file, tmp_path, ["eval.at_start=true"])
     summary = train(cfg, progress=False)
     evals = json.loads((Path(summary["run_dir"]) / "evals.json").read_text())
     assert [(e["frames"], e["updates"]) for e in evals][:1] == [(0, 0)]
     assert [e["frames"] for e in evals] == [0, 128, 256]
     assert summary["initial"] == evals[0] and summary["final"] == evals[-1]
-    more = train(_cfg("ppo", hopper_file, tmp_path, ["eval.at_start=true", "train.total_frames=384"]), progress=False)
+    more = train(_cfg(algo, hopper_file, tmp_path, ["eval.at_start=true", "train.total_frames=384"]), progress=False)
     assert [e["frames"] for e in json.loads((Path(more["run_dir"]) / "evals.json").read_text())] == [0, 128, 256, 384]
     assert more["initial"] == evals[0]
-    assert train(_cfg("ppo", hopper_file, tmp_path / "off"), progress=False)["initial"] is None
+    assert train(_cfg(algo, hopper_file, tmp_path / "off"), progress=False)["initial"] is None
 
 
 def test_ablation_no_cvae_acts_in_real_actions(hopper_file, cache, tmp_path):

@@ -271,7 +271,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         # checkpoint that names it; the previous one is deleted only after that
         nonlocal replay_name
         new_replay = None
-        if rb is not None:
+        if rb is not None and len(rb):  # an empty buffer (the evaluation before training) has nothing to save
             new_replay = f"replay-{frames}"
             shutil.rmtree(run_dir / new_replay, ignore_errors=True)
             rb.dumps(run_dir / new_replay)
