@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -193,15 +195,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run a command; a user error (missing file or policy, bad name or value) prints one message and returns 2."""
-    import logging
-
     from .data import DatasetError, PolicyNotFoundError
 
     args = build_parser().parse_args(argv)
     # TorchRL's INFO lines (spec inference, spec checks) are noise on a command line; torchrl sets
     # its logger's level when imported (RL_LOGGING_LEVEL), so import it first, unless the user chose
-    import os
-
     import torchrl  # noqa: F401
 
     if "RL_LOGGING_LEVEL" not in os.environ:

@@ -353,16 +353,18 @@ def train_behaviour(
             bar.write(f"[{steps}] stochastic {rec['stochastic']['mean']:.1f} ± {rec['stochastic']['std']:.1f}  deterministic {rec['deterministic']['mean']:.1f}  ({rec['wall_s']} s)")
     bar.close()
     collector.shutdown()
+    eval_env.close()
     return records
 
 
 def _full_reset_mask(env):
     """The ``reset()`` input that resets every env of ``env`` (after ``set_seed``: to its seeded state), or None.
 
-    A plain ``reset()`` of a TorchRL-wrapped gym vector env does not reset the
-    envs whose episode ended during the previous rollout: TorchRL's
-    ``VecGymEnvTransform`` hands them the observation of their automatic reset
-    instead, so an evaluation would depend on the one before it. An explicit
+    When some (not all) envs of a TorchRL-wrapped gym vector env ended their
+    episode at the last step of the previous rollout, a plain ``reset()`` is a
+    partial one: TorchRL's ``VecGymEnvTransform`` hands those envs the
+    observation of their automatic reset instead of resetting them, so an
+    evaluation would depend on the one before it. An explicit
     all-True ``"_reset"`` mask makes it a full reset; the transform only
     accepts one once the env has stepped (it compares the mask with the
     ``done`` it remembers from the last step), hence the check; before the
