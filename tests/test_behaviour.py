@@ -58,8 +58,29 @@ def test_refuses_a_different_run(tmp_path):
         beh.train_behaviour("Hopper-v5", tmp_path, algorithm="sac", total_steps=200, **TINY)
     with pytest.raises(ValueError, match="hidden"):
         beh.train_behaviour("Hopper-v5", tmp_path, algorithm="crossq", total_steps=200, **{**TINY, "hidden": (16,)})
+    with pytest.raises(ValueError, match=r"'lr': \(0.001, 0.0005\)"):
+        beh.train_behaviour("Hopper-v5", tmp_path, algorithm="crossq", total_steps=200, lr=5e-4, **TINY)
+    with pytest.raises(ValueError, match=r"'batch_size': \(16, 32\)"):
+        beh.train_behaviour("Hopper-v5", tmp_path, algorithm="crossq", total_steps=200, **{**TINY, "batch_size": 32})
+    # passing the algorithm's default lr explicitly is the same run
+    assert len(beh.train_behaviour("Hopper-v5", tmp_path, algorithm="crossq", total_steps=200, lr=1e-3, **TINY)) == 2
     with pytest.raises(ValueError, match="algorithm must be one of"):
         beh.train_behaviour("Hopper-v5", tmp_path / "x", algorithm="td3", total_steps=100, **TINY)
+
+
+def test_states_saved_before_the_settings_were_recorded_still_resume(tmp_path):
+    """Runs saved by older versions hold no training settings: they resume, checked on the rest."""
+    beh.train_behaviour("Hopper-v5", tmp_path, total_steps=100, **TINY)
+    path = tmp_path / "state" / "state.pt"
+    state = torch.load(path, weights_only=False)
+    state["identity"] = {k: state["identity"][k] for k in ("env_id", "algorithm", "hidden", "critic_hidden", "seed")}
+    torch.save(state, path)
+    assert [r["steps"] for r in beh.train_behaviour("Hopper-v5", tmp_path, total_steps=200, lr=1e-4, **TINY)] == [100, 200]
+    # the optimisers' saved lr is the one in use, and now recorded
+    assert torch.load(path, weights_only=False)["identity"]["lr"] == 3e-4
+    assert json.loads((tmp_path / "evals.json").read_text())["lr"] == 3e-4
+    with pytest.raises(ValueError, match="seed"):
+        beh.train_behaviour("Hopper-v5", tmp_path, total_steps=300, seed=5, **TINY)
 
 
 def test_state_swap_survives_a_crash(tmp_path):

@@ -217,6 +217,7 @@ def train_behaviour(
     frames_per_batch: int = 50,
     seed: int = 0,
     progress: bool = True,
+    device=None,
 ) -> list[dict]:
     """Train a behaviour policy online in ``env_id``; save the actor at every evaluation; resume if interrupted.
 
@@ -236,6 +237,9 @@ def train_behaviour(
         lr: learning rate of every optimiser (default: the algorithm's).
         eval_max_steps: step limit of the evaluation episodes (the env's
             1000; smaller only for quick tests).
+        device: where the networks, the updates and the replay buffer live
+            (default CPU; e.g. ``"cuda"``). The MuJoCo env steps on the CPU;
+            the saved actors are CPU tensors whatever the device.
 
     Writes, atomically:
 
@@ -247,8 +251,12 @@ def train_behaviour(
       optimisers, temperature, replay buffer, counters, RNG), refreshed at
       every evaluation. Calling again with the same ``out_dir`` continues
       from there (with a larger ``total_steps`` it trains further); a call
-      whose ``env_id``, ``algorithm``, widths or ``seed`` differ from the
-      saved run's is refused (other arguments are taken from the call).
+      whose ``env_id``, ``algorithm``, widths, ``seed`` or training
+      settings (``lr``, ``batch_size``, ``gamma``, ``tau``,
+      ``frames_per_batch``, ``init_random_steps``) differ from the saved
+      run's is refused (a state saved before the settings were recorded is
+      checked on the others, and keeps its optimisers' lr). ``device`` may
+      change between calls.
       The environment restarts from a reset, which at most cuts one
       episode short.
 
@@ -263,15 +271,28 @@ def train_behaviour(
     critic_hidden = hidden if critic_hidden is None else tuple(critic_hidden)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    identity = {"env_id": env_id, "algorithm": algorithm, "hidden": list(hidden), "critic_hidden": list(critic_hidden), "seed": seed}
+    identity = {
+        "env_id": env_id,
+        "algorithm": algorithm,
+        "hidden": list(hidden),
+        "critic_hidden": list(critic_hidden),
+        "seed": seed,
+        "lr": _algorithm(algorithm)["lr"] if lr is None else lr,
+        "batch_size": batch_size,
+        "gamma": gamma,
+        "tau": tau,
+        "frames_per_batch": frames_per_batch,
+        "init_random_steps": init_random_steps,
+    }
+    dev = torch.device("cpu" if device is None else device)
 
     state = None
     state_dir = _latest_state(out)
     if state_dir is not None:  # a saved run: check it is this one, and whether anything is left to do
         state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=False)
         saved = state["identity"]
-        if saved != identity:
-            diff = {k: (saved.get(k), v) for k, v in identity.items() if saved.get(k) != v}
+        diff = {k: (saved[k], v) for k, v in identity.items() if k in saved and saved[k] != v}
+        if diff:
             raise ValueError(
                 f"{out}: holds a {saved['algorithm']} run on {saved['env_id']} that differs from this call "
                 f"in {diff} (saved, asked). Use another --out folder, or the saved settings to continue it."
@@ -288,22 +309,26 @@ def train_behaviour(
     act_dim = spec.shape[-1]
     low = spec.space.low.reshape(-1, act_dim)[0]
     high = spec.space.high.reshape(-1, act_dim)[0]
-    actor = make_behaviour_actor(obs_dim, act_dim, low, high, hidden)
-    learner = BehaviourLearner(actor, obs_dim, act_dim, spec, algorithm, critic_hidden, lr=lr, gamma=gamma, tau=tau)
-    rb = ReplayBuffer(storage=LazyTensorStorage(total_steps), batch_size=batch_size)
+    actor = make_behaviour_actor(obs_dim, act_dim, low, high, hidden).to(dev)
+    learner = BehaviourLearner(actor, obs_dim, act_dim, spec.to(dev), algorithm, critic_hidden, lr=lr, gamma=gamma, tau=tau, device=dev)
+    rb = ReplayBuffer(storage=LazyTensorStorage(total_steps, device=dev), batch_size=batch_size)
 
     records: list[dict] = []
     steps = 0
     wall0 = 0.0
     if state is not None:
         learner.load_state_dict(state["learner"])
+        if "lr" not in state["identity"]:  # an older state: its optimisers (now loaded) hold the lr in use
+            identity["lr"] = learner.opt_q.param_groups[0]["lr"]
         if state["capacity"] == total_steps:
             rb.loads(state_dir / "replay")
         else:  # a longer run than the saved one: copy the saved transitions into the larger buffer
-            saved_rb = ReplayBuffer(storage=LazyTensorStorage(state["capacity"]), batch_size=batch_size)
+            saved_rb = ReplayBuffer(storage=LazyTensorStorage(state["capacity"], device=dev), batch_size=batch_size)
             saved_rb.loads(state_dir / "replay")
             rb.extend(saved_rb.storage[: len(saved_rb)])
         torch.set_rng_state(state["rng"])
+        if dev.type == "cuda" and state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"], dev)
         records, steps, wall0 = state["records"], state["steps"], state["wall_s"]
 
     collector = Collector(
@@ -313,6 +338,9 @@ def train_behaviour(
         total_frames=total_steps - steps,
         init_random_frames=max(0, init_random_steps - steps),
         split_trajs=False,
+        env_device="cpu",
+        policy_device=dev,
+        storing_device=dev,
         auto_register_policy_transforms=False,  # the envs are built with the transforms they need
     )
     t0 = time.time() - wall0
@@ -333,7 +361,7 @@ def train_behaviour(
                 rec[tag] = {"mean": float(rets.mean()), "std": float(rets.std())}
             records.append(rec)
             with atomic_write(out / f"actor_{steps}.pt") as tmp:
-                torch.save(actor.state_dict(), tmp)
+                torch.save({k: v.cpu() for k, v in actor.state_dict().items()}, tmp)
             with atomic_write(out / "evals.json") as tmp:
                 Path(tmp).write_text(json.dumps({**identity, "evals": records}, indent=1))
             _save_state(
@@ -343,6 +371,7 @@ def train_behaviour(
                     "identity": identity,
                     "learner": learner.state_dict(),
                     "rng": torch.get_rng_state(),
+                    "cuda_rng": torch.cuda.get_rng_state(dev) if dev.type == "cuda" else None,
                     "records": records,
                     "steps": steps,
                     "capacity": total_steps,
