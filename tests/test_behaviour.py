@@ -103,8 +103,10 @@ def test_state_swap_survives_a_crash(tmp_path):
 def test_ship_a_crossq_run(tmp_path):
     run = tmp_path / "run"
     beh.train_behaviour("Hopper-v5", run, algorithm="crossq", total_steps=100, critic_hidden=(16,), **TINY)
-    pt = ship_policy(run, "hopper-medium", "medium", steps=100, dest=tmp_path / "pol", max_steps=30)
+    pt = ship_policy(run, "hopper-medium", "medium", steps=100, dest=tmp_path / "pol", max_steps=30, note="resumed once")
     _actor, card = load_policy(pt)
+    assert card["note"] == "resumed once"
+    assert card["train_wall_s"] == json.loads((run / "evals.json").read_text())["evals"][0]["wall_s"] > 0
     assert card["algorithm"] == "CrossQ (torchrl CrossQLoss)"
     assert "--algorithm crossq --critic-hidden 16 --steps 100" in card["command"]
     assert card["hidden"] == [8]

@@ -112,6 +112,7 @@ def ship_policy(
     dest: str | os.PathLike | None = None,
     progress: bool = False,
     max_steps: int = 1000,
+    note: str | None = None,
 ) -> Path:
     """Pick a checkpoint of a behaviour run, re-evaluate it and write it as ``<name>.pt`` + ``<name>.json``.
 
@@ -138,6 +139,8 @@ def ship_policy(
         progress: print what is chosen and the evaluation result.
         max_steps: step limit of each evaluation episode (1000, the limit
             of the MuJoCo envs; smaller only for quick tests).
+        note: free text stored in the card as ``note`` (e.g. how the run
+            was resumed, or why this checkpoint).
 
     Returns:
         The path of the ``.pt`` file. Both files are written atomically
@@ -240,6 +243,7 @@ def ship_policy(
     card.update(
         {
             "train_steps": int(record["steps"]),
+            "train_wall_s": record.get("wall_s"),
             "seed": info.get("seed"),
             "selection": how,
             "eval": evaluation,
@@ -248,6 +252,8 @@ def ship_policy(
             "source": {"run_dir": str(run), "checkpoint": ckpt.name},
         }
     )
+    if note:
+        card["note"] = note
     out = Path(dest).expanduser() if dest is not None else POLICY_DIR
     pt = out / f"{name}.pt"
     # the card is renamed into place last: list_policies only lists complete pairs

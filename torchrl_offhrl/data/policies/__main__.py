@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--dest", default=None, help=f"output folder (default {POLICY_DIR})")
     s.add_argument("--max-steps", type=int, default=1000,
                    help="step limit of the evaluation episodes (1000; smaller only for quick checks)")
+    s.add_argument("--note", help="free text stored in the card (e.g. how the run was resumed)")
     a = p.parse_args(argv)
 
     if a.cmd == "list":
@@ -50,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         records = json.loads((Path(a.run_dir) / "evals.json").read_text())["evals"]
         target = a.fraction * max(r["stochastic"]["mean"] for r in records)
     ship_policy(a.run_dir, a.name, a.level, steps=a.steps, target=target, episodes=a.episodes,
-                seed=a.seed, dest=a.dest, progress=True, max_steps=a.max_steps)
+                seed=a.seed, dest=a.dest, progress=True, max_steps=a.max_steps, note=a.note)
     return 0
 
 
