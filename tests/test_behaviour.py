@@ -24,6 +24,7 @@ def test_train_resume_and_extend(tmp_path, algorithm):
     assert [r["steps"] for r in records] == [100, 200]
     info = json.loads((out / "evals.json").read_text())
     assert info["algorithm"] == algorithm and info["env_id"] == "Hopper-v5" and info["hidden"] == [8]
+    assert (out / "curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # the learning curve, refreshed at each evaluation
     state = torch.load(out / "state" / "state.pt", weights_only=False)
     assert state["steps"] == 200 and state["capacity"] == 200
     # the first batch (50 steps) is below init_random_steps=60: no updates; then one per step
@@ -137,3 +138,33 @@ def test_evaluations_do_not_depend_on_the_previous_one():
         torch.testing.assert_close(td["observation"][:, 0], runs[0][1]["observation"][:, 0])
         torch.testing.assert_close(rets, runs[0][0])
     torch.testing.assert_close(fresh, runs[0][0])
+
+
+def test_behaviour_curve_draws_the_records_and_the_d4rl_levels(tmp_path):
+    from torchrl_offhrl.data.policies.__main__ import main
+    from torchrl_offhrl.recipes.report import behaviour_figure
+
+    records = [{"steps": 10_000 * (i + 1), "stochastic": {"mean": m, "std": 10.0 * i}, "deterministic": {"mean": m + 50.0, "std": 0.0}}
+               for i, m in enumerate([100.0, 900.0, 2800.0])]
+    run = {"env_id": "Hopper-v5", "algorithm": "sac", "seed": 3, "evals": records}
+    fig = behaviour_figure(run)
+    ax = fig.axes[0]
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    assert list(lines["stochastic (as collected)"].get_ydata()) == [100.0, 900.0, 2800.0]
+    assert list(lines["deterministic"].get_xdata()) == [10_000, 20_000, 30_000]
+    # level lines at the D4RL returns: -20.272305 + s / 100 * (3234.3 + 20.272305), by hand
+    levels = sorted(ln.get_ydata()[0] for ln in ax.get_lines() if ln.get_linestyle() == ":")
+    assert levels == pytest.approx([956.099387, 1607.013848, 2746.114154], abs=1e-5)
+    assert ax.get_title() == "sac Hopper-v5 seed 3"
+    # an env without D4RL references: no level lines
+    fig = behaviour_figure({**run, "env_id": "Pendulum-v1"})
+    assert not [ln for ln in fig.axes[0].get_lines() if ln.get_linestyle() == ":"]
+
+    (tmp_path / "evals.json").write_text(json.dumps(run))
+    assert main(["plot", str(tmp_path)]) == 0
+    assert (tmp_path / "curve.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(FileNotFoundError, match="no evals.json"):
+        main(["plot", str(tmp_path / "missing")])
+    (tmp_path / "evals.json").write_text(json.dumps({**run, "evals": []}))
+    with pytest.raises(ValueError, match="no evaluation records yet"):
+        main(["plot", str(tmp_path)])

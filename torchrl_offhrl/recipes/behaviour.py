@@ -22,6 +22,7 @@ from torch import nn
 from ..data.collect import make_gym_env
 from ..modules.options import mlp
 from ..utils import atomic_write
+from .report import plot_behaviour_run
 
 __all__ = ["ALGORITHMS", "BehaviourLearner", "evaluate_policy", "first_episode_mask", "make_behaviour_actor", "pick_checkpoint", "train_behaviour", "train_behaviour_sac"]
 
@@ -247,6 +248,8 @@ def train_behaviour(
     * ``out_dir/evals.json``: env id, algorithm, seed, widths and one record
       per evaluation (steps, stochastic and deterministic return mean/std
       over ``eval_episodes`` fresh episodes, wall time);
+    * ``out_dir/curve.png``: the learning curve so far, with the D4RL medium
+      band and expert target (:func:`~torchrl_offhrl.recipes.report.plot_behaviour_run`);
     * ``out_dir/state/``: everything needed to continue (networks,
       optimisers, temperature, replay buffer, counters, RNG), refreshed at
       every evaluation. Calling again with the same ``out_dir`` continues
@@ -364,6 +367,7 @@ def train_behaviour(
                 torch.save({k: v.cpu() for k, v in actor.state_dict().items()}, tmp)
             with atomic_write(out / "evals.json") as tmp:
                 Path(tmp).write_text(json.dumps({**identity, "evals": records}, indent=1))
+            plot_behaviour_run(out)
             _save_state(
                 out,
                 rb,

@@ -1,6 +1,7 @@
 """Command line of the shipped behaviour policies.
 
     python -m torchrl_offhrl.data.policies list
+    python -m torchrl_offhrl.data.policies plot outputs/behaviour/hopper
     python -m torchrl_offhrl.data.policies ship outputs/behaviour/hopper hopper-expert --level expert
     python -m torchrl_offhrl.data.policies ship outputs/behaviour/hopper hopper-medium --level medium --fraction 0.33
 """
@@ -19,6 +20,9 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     sub.add_parser("list", help="the shipped policies and their evaluated returns")
+    c = sub.add_parser("plot", help="draw a behaviour run's learning curve (run_dir/curve.png), with the D4RL level lines")
+    c.add_argument("run_dir", help="--out folder of scripts/train_behaviour.py")
+    c.add_argument("--path", default=None, help="where to write the PNG (default run_dir/curve.png)")
     s = sub.add_parser("ship", help="re-evaluate a checkpoint of a behaviour run and ship it")
     s.add_argument("run_dir", help="--out folder of scripts/train_behaviour.py")
     s.add_argument("name", help="policy name, e.g. hopper-medium")
@@ -43,6 +47,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:24s} {card.get('env_id', '?'):16s} steps={card.get('train_steps')} "
                   f"stochastic={ev.get('stochastic', {}).get('mean', float('nan')):.1f} "
                   f"normalized={ev.get('normalized_d4rl')}")
+        return 0
+    if a.cmd == "plot":
+        from ...recipes.report import plot_behaviour_run
+
+        print(plot_behaviour_run(a.run_dir, a.path))
         return 0
     target = a.target
     if a.fraction is not None:
