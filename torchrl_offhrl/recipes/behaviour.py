@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -270,6 +271,10 @@ def train_behaviour(
     from tqdm.auto import tqdm
 
     _algorithm(algorithm)  # fail before touching out_dir
+    dev = torch.device("cpu" if device is None else device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={device!r}, but this torch build ({torch.__version__}) sees no CUDA GPU: "
+                         "install a CUDA build of torch, or leave device unset to train on the CPU")
     hidden = tuple(hidden)
     critic_hidden = hidden if critic_hidden is None else tuple(critic_hidden)
     out = Path(out_dir)
@@ -287,7 +292,6 @@ def train_behaviour(
         "frames_per_batch": frames_per_batch,
         "init_random_steps": init_random_steps,
     }
-    dev = torch.device("cpu" if device is None else device)
 
     state = None
     state_dir = _latest_state(out)
@@ -310,8 +314,8 @@ def train_behaviour(
     obs_dim = env.observation_spec["observation"].shape[-1]
     spec = env.action_spec
     act_dim = spec.shape[-1]
-    low = spec.space.low.reshape(-1, act_dim)[0]
-    high = spec.space.high.reshape(-1, act_dim)[0]
+    low = spec.space.low.reshape(-1, act_dim)[0].to(dev)  # the actor's tanh bounds live with it
+    high = spec.space.high.reshape(-1, act_dim)[0].to(dev)
     actor = make_behaviour_actor(obs_dim, act_dim, low, high, hidden).to(dev)
     learner = BehaviourLearner(actor, obs_dim, act_dim, spec.to(dev), algorithm, critic_hidden, lr=lr, gamma=gamma, tau=tau, device=dev)
     rb = ReplayBuffer(storage=LazyTensorStorage(total_steps, device=dev), batch_size=batch_size)
@@ -326,7 +330,7 @@ def train_behaviour(
         if state["capacity"] == total_steps:
             rb.loads(state_dir / "replay")
         else:  # a longer run than the saved one: copy the saved transitions into the larger buffer
-            saved_rb = ReplayBuffer(storage=LazyTensorStorage(state["capacity"], device=dev), batch_size=batch_size)
+            saved_rb = ReplayBuffer(storage=LazyTensorStorage(state["capacity"]), batch_size=batch_size)  # on the CPU: one buffer on the device
             saved_rb.loads(state_dir / "replay")
             rb.extend(saved_rb.storage[: len(saved_rb)])
         torch.set_rng_state(state["rng"])
@@ -367,7 +371,6 @@ def train_behaviour(
                 torch.save({k: v.cpu() for k, v in actor.state_dict().items()}, tmp)
             with atomic_write(out / "evals.json") as tmp:
                 Path(tmp).write_text(json.dumps({**identity, "evals": records}, indent=1))
-            plot_behaviour_run(out)
             _save_state(
                 out,
                 rb,
@@ -382,6 +385,10 @@ def train_behaviour(
                     "wall_s": time.time() - t0,
                 },
             )
+            try:  # a figure is a convenience: never lose a run to it
+                plot_behaviour_run(out)
+            except Exception as err:  # noqa: BLE001
+                warnings.warn(f"{out}: could not draw curve.png ({err!r}); training goes on", stacklevel=2)
             bar.set_postfix(ret=f"{rec['stochastic']['mean']:.0f}")
             bar.write(f"[{steps}] stochastic {rec['stochastic']['mean']:.1f} ± {rec['stochastic']['std']:.1f}  deterministic {rec['deterministic']['mean']:.1f}  ({rec['wall_s']} s)")
     bar.close()

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["aggregate", "load_run", "plot_behaviour_run", "plot_curve", "plot_option_usage"]
+__all__ = ["BEHAVIOUR_LEVELS", "aggregate", "behaviour_figure", "load_run", "plot_behaviour_run", "plot_curve", "plot_option_usage"]
 
 
 def _plt():
@@ -112,20 +112,25 @@ def plot_behaviour_run(run_dir, path=None):
     path = d / "curve.png" if path is None else Path(path)
     with atomic_write(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
-    _plt().close(fig)
     return path
 
 
 def behaviour_figure(run: dict):
-    """The matplotlib figure of :func:`plot_behaviour_run` for the contents of an ``evals.json``."""
+    """The matplotlib figure of :func:`plot_behaviour_run` for the contents of an ``evals.json``.
+
+    A plain :class:`~matplotlib.figure.Figure` (not pyplot's): drawing it
+    leaves the caller's matplotlib backend and open figures alone.
+    """
+    from matplotlib.figure import Figure
+
     from ..scores import D4RL_REF, _key
 
     records = run["evals"]
     steps = [r["steps"] for r in records]
     mean = torch.tensor([r["stochastic"]["mean"] for r in records])
     std = torch.tensor([r["stochastic"]["std"] for r in records])
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
     ax.plot(steps, mean, marker="o", ms=2.5, label="stochastic (as collected)")
     ax.fill_between(steps, mean - std, mean + std, alpha=0.25)
     ax.plot(steps, [r["deterministic"]["mean"] for r in records], lw=1, alpha=0.8, label="deterministic")

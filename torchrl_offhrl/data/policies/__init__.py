@@ -142,6 +142,12 @@ def ship_policy(
         note: free text stored in the card as ``note`` (e.g. how the run
             was resumed, or why this checkpoint).
 
+    The card also records ``train_wall_s``: the run's wall time from its
+    start to this checkpoint, evaluations included, summed over resumed
+    sessions (time lost after the last saved state of an interrupted
+    session is not counted; sessions may have used different devices or
+    thread counts).
+
     Returns:
         The path of the ``.pt`` file. Both files are written atomically
         (temporary name, then rename; the ``.json`` last).

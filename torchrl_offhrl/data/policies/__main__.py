@@ -51,7 +51,11 @@ def main(argv: list[str] | None = None) -> int:
     if a.cmd == "plot":
         from ...recipes.report import plot_behaviour_run
 
-        print(plot_behaviour_run(a.run_dir, a.path))
+        try:
+            print(plot_behaviour_run(a.run_dir, a.path))
+        except (FileNotFoundError, ValueError) as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 1
         return 0
     target = a.target
     if a.fraction is not None:
