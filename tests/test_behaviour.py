@@ -39,6 +39,11 @@ def test_train_resume_and_extend(tmp_path, algorithm):
     # asking for what is already done trains nothing
     again = beh.train_behaviour("Hopper-v5", out, algorithm=algorithm, total_steps=200, **TINY)
     assert again == records
+    if algorithm == "sac":  # the Polyak tau of SAC's target critics belongs to the run
+        with pytest.raises(ValueError, match=r"'tau': \(0\.005, 0\.01\)"):
+            beh.train_behaviour("Hopper-v5", out, algorithm=algorithm, total_steps=300, tau=0.01, **TINY)
+    else:  # CrossQ has no target critics: tau plays no part, so it is not checked
+        assert beh.train_behaviour("Hopper-v5", out, algorithm=algorithm, total_steps=200, tau=0.01, **TINY) == records
 
     # a longer run continues: earlier records kept, buffer grown with the old transitions first
     more = beh.train_behaviour("Hopper-v5", out, algorithm=algorithm, total_steps=300, **TINY)

@@ -99,8 +99,8 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
 #: Defaults of each algorithm of :func:`train_behaviour` (the published ones,
 #: except CrossQ's critic width: 256 instead of 2048, for CPU budgets).
 ALGORITHMS = {
-    "sac": {"lr": 3e-4, "betas": (0.9, 0.999), "policy_delay": 1, "loss": "SAC (torchrl SACLoss)"},
-    "crossq": {"lr": 1e-3, "betas": (0.5, 0.999), "policy_delay": 3, "loss": "CrossQ (torchrl CrossQLoss)"},
+    "sac": {"lr": 3e-4, "betas": (0.9, 0.999), "policy_delay": 1, "target_critics": True, "loss": "SAC (torchrl SACLoss)"},
+    "crossq": {"lr": 1e-3, "betas": (0.5, 0.999), "policy_delay": 3, "target_critics": False, "loss": "CrossQ (torchrl CrossQLoss)"},
 }
 _KEEP = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated"))
 
@@ -256,9 +256,9 @@ def train_behaviour(
       every evaluation. Calling again with the same ``out_dir`` continues
       from there (with a larger ``total_steps`` it trains further); a call
       whose ``env_id``, ``algorithm``, widths, ``seed`` or training
-      settings (``lr``, ``batch_size``, ``gamma``, ``tau``,
-      ``frames_per_batch``, ``init_random_steps``) differ from the saved
-      run's is refused (a state saved before the settings were recorded is
+      settings (``lr``, ``batch_size``, ``gamma``, ``tau`` (SAC only:
+      CrossQ has no target critics), ``frames_per_batch``,
+      ``init_random_steps``) differ from the saved run's is refused (a state saved before the settings were recorded is
       checked on the others, and keeps its optimisers' lr). ``device`` may
       change between calls.
       The environment restarts from a reset, which at most cuts one
@@ -298,7 +298,8 @@ def train_behaviour(
     if state_dir is not None:  # a saved run: check it is this one, and whether anything is left to do
         state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=False)
         saved = state["identity"]
-        diff = {k: (saved[k], v) for k, v in identity.items() if k in saved and saved[k] != v}
+        unused = set() if _algorithm(algorithm)["target_critics"] else {"tau"}  # CrossQ has no target critics
+        diff = {k: (saved[k], v) for k, v in identity.items() if k in saved and k not in unused and saved[k] != v}
         if diff:
             raise ValueError(
                 f"{out}: holds a {saved['algorithm']} run on {saved['env_id']} that differs from this call "
