@@ -218,6 +218,12 @@ def test_concatenate_renumbers_episodes():
     c = OfflineDataset.concatenate([a, b])
     assert len(c) == 15 and c.num_episodes == 5
     assert c.data["episode"].tolist() == sum([[i] * 3 for i in range(5)], [])
+    assert c.metadata["unfinished_episodes"] == [] and c.episode_returns(complete_only=True).numel() == 5
+    # unfinished episodes follow the renumbering (ids given as the parts' own episode values)
+    a.metadata["unfinished_episodes"], b.metadata["unfinished_episodes"] = [1], [0, 2]
+    c = OfflineDataset.concatenate([a, b])
+    assert c.metadata["unfinished_episodes"] == [1, 2, 4]
+    torch.testing.assert_close(c.episode_returns(complete_only=True), c.episode_returns()[[0, 3]])
 
 
 def test_collect_is_deterministic_and_consistent():
@@ -234,7 +240,11 @@ def test_collect_is_deterministic_and_consistent():
     # every episode ends with done, and only there
     done = a.data["next", "done"].squeeze(-1)
     assert done[-1] and torch.equal(done[:-1], ~same_ep)
-    assert a.metadata["returns"]["episodes"] == a.num_episodes
+    # each stream's last episode is unfinished unless it ended at the last step (no 1000-step limit within 150 steps)
+    ends = [149, 299]
+    cut = [int(a.data["episode"][i]) for i in ends if not a.data["next", "terminated"][i]]
+    assert a.metadata["unfinished_episodes"] == cut
+    assert a.metadata["returns"]["episodes"] == a.num_episodes - len(cut) == a.episode_returns(complete_only=True).numel()
     c = collect_dataset("Hopper-v5", 300, num_envs=2, seed=4, progress=False)
     assert not torch.equal(a.data["action"], c.data["action"])
 

@@ -152,7 +152,8 @@ def test_unknown_policy_name_error(monkeypatch, tmp_path):
         load_policy("halfcheetah-expert")
     msg = str(err.value)
     assert "'halfcheetah-expert'" in msg and "['hopper-medium']" in msg
-    assert "python scripts/train_behaviour.py HalfCheetah-v5 --steps 300000 --out" in msg
+    # steps enough for HalfCheetah's expert (the shipped one came at 1.26M)
+    assert "python scripts/train_behaviour.py HalfCheetah-v5 --steps 1500000 --out outputs/behaviour/halfcheetah" in msg
     assert "python -m torchrl_offhrl.data.policies ship" in msg and "--level expert" in msg
     with pytest.raises(FileNotFoundError, match="missing"):
         load_policy(tmp_path / "absent.pt")
@@ -210,16 +211,24 @@ def test_actions_are_sampled_from_the_policy(shipped, medium_a):
 def test_return_statistics_match_stored_rewards(medium_a):
     rew = medium_a.data["next", "reward"].squeeze(-1).double().tolist()
     done = medium_a.data["next", "done"].squeeze(-1).tolist()
-    returns, acc = [], 0.0
-    for r, d in zip(rew, done):
+    term = medium_a.data["next", "terminated"].squeeze(-1).tolist()
+    # 2 streams of 150 steps, far below Hopper's 1000-step limit: an episode is
+    # complete iff it ends with terminated; the others were cut by the budget
+    returns, cut, acc = [], 0, 0.0
+    for r, d, t in zip(rew, done, term):
         acc += r
         if d:
-            returns.append(acc)
+            if t:
+                returns.append(acc)
+            else:
+                cut += 1
             acc = 0.0
-    assert done[-1]
+    assert done[-1] and 1 <= cut <= 2
     rets = torch.tensor(returns, dtype=torch.float64)
     st = medium_a.metadata["returns"]
-    assert st["episodes"] == len(returns) == medium_a.num_episodes
+    assert st["episodes"] == len(returns) == medium_a.num_episodes - cut
+    assert st["unfinished"] == cut == len(medium_a.metadata["unfinished_episodes"]) and st["complete"]
+    torch.testing.assert_close(medium_a.episode_returns(complete_only=True), rets)
     assert st["mean"] == pytest.approx(float(rets.mean()), rel=1e-9)
     assert st["std"] == pytest.approx(float(rets.std()), rel=1e-9)
     assert (st["min"], st["max"]) == pytest.approx((float(rets.min()), float(rets.max())))
@@ -289,7 +298,13 @@ def test_medium_expert_is_the_concatenation(shipped, medium_a, tmp_path):
     meta = again.metadata
     assert meta["level"] == "medium-expert" and set(meta["policy_card"]) == {"medium", "expert"}
     assert meta["parts"]["medium"]["returns"] == medium_a.metadata["returns"]
-    assert meta["returns"]["episodes"] == both.num_episodes
+    # the parts' unfinished episodes, the expert's renumbered after the medium's
+    shift = medium_a.num_episodes
+    assert meta["unfinished_episodes"] == medium_a.metadata["unfinished_episodes"] + [e + shift for e in expert.metadata["unfinished_episodes"]]
+    assert meta["returns"]["episodes"] == medium_a.metadata["returns"]["episodes"] + expert.metadata["returns"]["episodes"]
+    assert meta["returns"]["episodes"] + meta["returns"]["unfinished"] == both.num_episodes
+    torch.testing.assert_close(again.episode_returns(complete_only=True), torch.cat(
+        [medium_a.episode_returns(complete_only=True), expert.episode_returns(complete_only=True)]))
 
 
 # ------------------------------------------------------------ named + cache

@@ -80,7 +80,11 @@ def cmd_collect(args) -> int:
     ds = named_dataset(name, num_transitions=args.num_transitions, seed=args.seed, num_envs=args.num_envs)
     print(ds)
     r = ds.metadata.get("returns", {})
-    print(f"{len(ds)} transitions, {r.get('episodes')} episodes, return {r.get('mean', float('nan')):.1f} ± {r.get('std', float('nan')):.1f}; "
+    if not r.get("complete", True):
+        eps = f"{r.get('episodes')} episodes (none finished within the budget)"
+    else:
+        eps = f"{r.get('episodes')} complete episodes" + (f" (+{r['unfinished']} cut short by the budget, left out)" if r.get("unfinished") else "")
+    print(f"{len(ds)} transitions, {eps}, return {r.get('mean', float('nan')):.1f} ± {r.get('std', float('nan')):.1f}; "
           f"cached at {dataset_path(name, args.num_transitions, args.seed, args.num_envs)} ({time.time() - t0:.0f} s)")
     if args.out:
         save_dataset(ds, args.out)

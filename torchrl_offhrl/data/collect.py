@@ -58,7 +58,10 @@ def collect_dataset(
         progress: show a tqdm bar.
 
     Each environment's stream is cut into episodes at ``done``; the last,
-    unfinished episode of each stream ends with ``truncated=True``.
+    unfinished episode of each stream ends with ``truncated=True`` and its
+    ``episode`` value is listed in ``metadata["unfinished_episodes"]``.
+    ``metadata["returns"]`` (mean/std/min/max/episodes) covers the complete
+    episodes only (see :meth:`OfflineDataset.episode_returns`).
     """
     from torchrl.collectors import Collector
     from tqdm.auto import tqdm
@@ -92,6 +95,7 @@ def collect_dataset(
     data = data[:, :steps_per_env]
     trunc = data.get(("next", "truncated")).clone()
     term = data.get(("next", "terminated"))
+    cut = ~(term[:, -1] | trunc[:, -1]).squeeze(-1)  # streams whose last episode the budget cut short
     trunc[:, -1] |= ~term[:, -1]
     data.set(("next", "truncated"), trunc)
     data = data.reshape(-1)
@@ -109,19 +113,32 @@ def collect_dataset(
     }
     meta.update(metadata or {})
     ds = OfflineDataset(data, meta, (low, high))
+    last = (torch.arange(1, num_envs + 1) * steps_per_env - 1)[cut]  # flat index of each cut stream's last step
+    ds.metadata["unfinished_episodes"] = ds.data.get("episode")[last].tolist()
     ds.metadata["returns"] = _return_stats(ds)
     return ds
 
 
 def _return_stats(ds: OfflineDataset) -> dict:
-    """Mean/std/min/max and count of the episode returns (unfinished episodes included)."""
-    rets = ds.episode_returns()
+    """Mean/std/min/max and count of the returns of the complete episodes.
+
+    The episodes a collection budget cut short (``unfinished``, at most one
+    per env) are left out: their partial returns would drag the mean down.
+    When no episode finished at all, the stats cover the unfinished ones and
+    ``complete`` is false.
+    """
+    rets = ds.episode_returns(complete_only=True)
+    complete = rets.numel() > 0
+    if not complete:
+        rets = ds.episode_returns()
     return {
         "mean": float(rets.mean()),
         "std": float(rets.std()) if rets.numel() > 1 else 0.0,
         "min": float(rets.min()),
         "max": float(rets.max()),
         "episodes": int(rets.numel()),
+        "unfinished": len(ds.metadata.get("unfinished_episodes") or []),
+        "complete": complete,
     }
 
 

@@ -188,13 +188,24 @@ class OfflineDataset:
         """The first observation of every episode, ``[num_episodes, obs_dim]``."""
         return self.data.get("observation")[self.episode_starts()]
 
-    def episode_returns(self) -> torch.Tensor:
-        """Undiscounted return of every episode in the data, in order."""
+    def episode_returns(self, complete_only: bool = False) -> torch.Tensor:
+        """Undiscounted return of every episode in the data, in order.
+
+        With ``complete_only``, the episodes listed in
+        ``metadata["unfinished_episodes"]`` (their ``episode`` values: the
+        episodes a collection budget cut short, see
+        :func:`~torchrl_offhrl.data.collect_dataset`) are left out; data
+        without that entry (e.g. a D4RL file) counts every episode as
+        complete.
+        """
         ep = self.data.get("episode")
-        _, inverse = torch.unique_consecutive(ep, return_inverse=True)
+        ids, inverse = torch.unique_consecutive(ep, return_inverse=True)
         rewards = self.data.get(("next", "reward")).squeeze(-1).double()
-        out = torch.zeros(int(inverse.max()) + 1, dtype=torch.float64, device=rewards.device)
+        out = torch.zeros(ids.numel(), dtype=torch.float64, device=rewards.device)
         out.index_add_(0, inverse, rewards)
+        unfinished = self.metadata.get("unfinished_episodes") or []
+        if complete_only and unfinished:
+            out = out[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
         return out
 
     def to(self, device) -> "OfflineDataset":
@@ -267,21 +278,29 @@ class OfflineDataset:
 
     @staticmethod
     def concatenate(datasets: Sequence["OfflineDataset"], metadata: dict | None = None) -> "OfflineDataset":
-        """Concatenate datasets (e.g. medium + expert), renumbering episodes."""
+        """Concatenate datasets (e.g. medium + expert), renumbering episodes.
+
+        ``metadata["unfinished_episodes"]`` of the result lists the parts'
+        unfinished episodes under their new numbers.
+        """
         parts = []
         offset = 0
+        unfinished: list[int] = []
         for ds in datasets:
             td = ds.data.clone()
             # a part's last transition always ends its episode, also after save/load
             trunc = td.get(("next", "truncated"))
             trunc[-1] |= ~td.get(("next", "terminated"))[-1]  # "done" is rebuilt by OfflineDataset
-            _, inv = torch.unique_consecutive(td.get("episode"), return_inverse=True)
+            ids, inv = torch.unique_consecutive(td.get("episode"), return_inverse=True)
             td.set("episode", inv + offset)
+            cut = ds.metadata.get("unfinished_episodes") or []  # renumbered like the episodes
+            unfinished += (torch.isin(ids, torch.as_tensor(cut, dtype=ids.dtype)).nonzero().squeeze(-1) + offset).tolist()
             offset += int(inv.max()) + 1
             parts.append(td)
         low = torch.stack([d.action_low for d in datasets]).min(0).values
         high = torch.stack([d.action_high for d in datasets]).max(0).values
         meta = dict(metadata or datasets[0].metadata)
+        meta["unfinished_episodes"] = unfinished
         return OfflineDataset(torch.cat(parts, 0), meta, (low, high))
 
 

@@ -167,7 +167,8 @@ def generate_dataset(
         OfflineDataset whose metadata holds ``env_id``, ``level``,
         ``dataset`` (``"<env>-<level>"``), ``policy`` and ``policy_card``,
         ``seed``, ``versions``, ``returns`` (mean/std/min/max/episodes of
-        the episodes in the data, unfinished ones included), ``ref_min_return``,
+        the complete episodes in the data, and the count of ``unfinished``
+        ones: those the budget cut short, listed in ``unfinished_episodes``), ``ref_min_return``,
         ``ref_max_return``, ``ref_note`` and ``score`` (the mean return
         normalised with D4RL's constants and with the references).
 

@@ -341,7 +341,9 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         records[-1] = evaluate(final=True)
         checkpoint()
     elapsed = time.time() - t_train
-    behaviour = data.episode_returns()
+    behaviour = data.episode_returns(complete_only=True)  # episodes cut short by the collection budget left out
+    if behaviour.numel() == 0:
+        behaviour = data.episode_returns()
     plot_curve([records], run_dir / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})", behaviour=float(behaviour.mean()))
     final = records[-1]
     summary = {

@@ -321,6 +321,12 @@ def _resolve(name_or_path: str | os.PathLike) -> Path:
     raise PolicyNotFoundError(missing_policy_message(text))
 
 
+#: Env steps of SAC that reach every level (the expert's >= 85 D4RL
+#: normalised included), from the runs behind the shipped policies: Hopper's
+#: expert came at 200k steps, HalfCheetah's at 1.26M.
+_RUN_STEPS = {"hopper": 300_000, "halfcheetah": 1_500_000}
+
+
 def missing_policy_message(name: str) -> str:
     """The error text for a policy name that is not shipped: what exists and how to make it."""
     from ..generate import resolve_env
@@ -338,7 +344,7 @@ def missing_policy_message(name: str) -> str:
         f"no shipped behaviour policy named {name!r}. Shipped policies: "
         f"{available if available else 'none yet'} (in {POLICY_DIR}). To make it, train a SAC "
         f"run and ship a checkpoint of it:\n"
-        f"    python scripts/train_behaviour.py {env_id} --steps 300000 --out {out}\n"
+        f"    python scripts/train_behaviour.py {env_id} --steps {_RUN_STEPS.get(short, 300_000)} --out {out}\n"
         f"    python -m torchrl_offhrl.data.policies ship {out} {short}-{level} --level {level} {pick}".rstrip()
         + "\nor pass a policy yourself (policy=<path to a .pt with its .json card, or an actor>)."
     )
