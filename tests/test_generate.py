@@ -180,6 +180,28 @@ def test_load_shipped_policies():
         env.close()
 
 
+@pytest.mark.parametrize("name", pol.list_policies())
+def test_shipped_cards_meet_the_d4rl_levels_and_match_their_weights(name):
+    """The card's stochastic return is what its weights give (re-run with the
+    card's seeds), and it lies in D4RL's band for its level (medium 30-50,
+    expert >= 85), normalised with D4RL's constants (not the card's own field)."""
+    from torchrl_offhrl.data import make_gym_env
+    from torchrl_offhrl.scores import normalized_score
+
+    actor, card = load_policy(name)
+    ev = card["eval"]
+    score = normalized_score(card["env_id"], ev["stochastic"]["mean"])
+    assert (30 <= score <= 50) if card["level"] == "medium" else score >= 85, (name, score)
+    env = make_gym_env(card["env_id"], num_envs=ev["episodes"])
+    try:
+        rets = pol.card_returns(actor, env, ev["seed"], ev["max_steps"])
+    finally:
+        env.close()
+    # same torch/mujoco builds give the same numbers; the tolerance allows for others
+    assert float(rets.mean()) == pytest.approx(ev["stochastic"]["mean"], rel=0.02)
+    assert float(rets.std()) == pytest.approx(ev["stochastic"]["std"], rel=0.25, abs=5.0)
+
+
 # -------------------------------------------------------------- generation
 def test_same_seed_same_tensors_other_seed_differs(shipped, medium_a):
     again = generate_dataset("hopper", "medium", 300, seed=3, num_envs=2, progress=False,

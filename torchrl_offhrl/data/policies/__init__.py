@@ -100,6 +100,19 @@ def load_policy(name_or_path: str | os.PathLike) -> tuple[torch.nn.Module, dict[
     return actor, card
 
 
+def card_returns(actor, env, seed: int, max_steps: int = 1000, deterministic: bool = False) -> torch.Tensor:
+    """The returns of a policy card's evaluation: one episode per env of ``env``, seeded as :func:`ship_policy` does.
+
+    Calling it with the card's ``eval`` settings (``episodes`` envs,
+    ``seed``, ``max_steps``) reproduces the card's figures for its weights.
+    """
+    from ...recipes.behaviour import evaluate_policy
+
+    with torch.random.fork_rng(), _one_thread():
+        torch.manual_seed(seed)
+        return evaluate_policy(env, actor, env.batch_size[0], max_steps=max_steps, deterministic=deterministic, seed=seed)
+
+
 def ship_policy(
     run_dir: str | os.PathLike,
     name: str,
@@ -152,7 +165,7 @@ def ship_policy(
         The path of the ``.pt`` file. Both files are written atomically
         (temporary name, then rename; the ``.json`` last).
     """
-    from ...recipes.behaviour import ALGORITHMS, evaluate_policy, pick_checkpoint
+    from ...recipes.behaviour import ALGORITHMS, pick_checkpoint
     from ...scores import normalized_score
     from ..collect import _versions, make_gym_env
 
@@ -215,14 +228,12 @@ def ship_policy(
         actor.load_state_dict(torch.load(ckpt, map_location="cpu", weights_only=True))
         actor.eval()
         evaluation: dict[str, Any] = {"episodes": episodes, "seed": seed, "max_steps": max_steps}
-        with torch.random.fork_rng(), _one_thread():
-            torch.manual_seed(seed)
-            for det in (False, True):
-                rets = evaluate_policy(env, actor, episodes, max_steps=max_steps, deterministic=det, seed=seed)
-                evaluation["deterministic" if det else "stochastic"] = {
-                    "mean": float(rets.mean()),
-                    "std": float(rets.std()),
-                }
+        for det in (False, True):
+            rets = card_returns(actor, env, seed, max_steps, deterministic=det)
+            evaluation["deterministic" if det else "stochastic"] = {
+                "mean": float(rets.mean()),
+                "std": float(rets.std()),
+            }
     finally:
         env.close()
     evaluation["normalized_d4rl"] = normalized_score(env_id, evaluation["stochastic"]["mean"])
