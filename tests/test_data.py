@@ -224,6 +224,14 @@ def test_concatenate_renumbers_episodes():
     c = OfflineDataset.concatenate([a, b])
     assert c.metadata["unfinished_episodes"] == [1, 2, 4]
     torch.testing.assert_close(c.episode_returns(complete_only=True), c.episode_returns()[[0, 3]])
+    st, rets = c.return_stats(), c.episode_returns()[[0, 3]]
+    assert (st["episodes"], st["unfinished"], st["complete"]) == (2, 3, True)
+    assert st["mean"] == pytest.approx(float(rets.mean())) and st["std"] == pytest.approx(float(rets.std()))
+    # nothing finished: the stats fall back to the unfinished episodes and say so
+    b.metadata["unfinished_episodes"] = [0, 1, 2]
+    st = b.return_stats()
+    assert (st["episodes"], st["unfinished"], st["complete"]) == (3, 3, False)
+    assert st["mean"] == pytest.approx(float(b.episode_returns().mean()))
 
 
 def test_collect_is_deterministic_and_consistent():

@@ -61,7 +61,7 @@ def collect_dataset(
     unfinished episode of each stream ends with ``truncated=True`` and its
     ``episode`` value is listed in ``metadata["unfinished_episodes"]``.
     ``metadata["returns"]`` (mean/std/min/max/episodes) covers the complete
-    episodes only (see :meth:`OfflineDataset.episode_returns`).
+    episodes only (see :meth:`OfflineDataset.return_stats`).
     """
     from torchrl.collectors import Collector
     from tqdm.auto import tqdm
@@ -115,31 +115,8 @@ def collect_dataset(
     ds = OfflineDataset(data, meta, (low, high))
     last = (torch.arange(1, num_envs + 1) * steps_per_env - 1)[cut]  # flat index of each cut stream's last step
     ds.metadata["unfinished_episodes"] = ds.data.get("episode")[last].tolist()
-    ds.metadata["returns"] = _return_stats(ds)
+    ds.metadata["returns"] = ds.return_stats()
     return ds
-
-
-def _return_stats(ds: OfflineDataset) -> dict:
-    """Mean/std/min/max and count of the returns of the complete episodes.
-
-    The episodes a collection budget cut short (``unfinished``, at most one
-    per env) are left out: their partial returns would drag the mean down.
-    When no episode finished at all, the stats cover the unfinished ones and
-    ``complete`` is false.
-    """
-    rets = ds.episode_returns(complete_only=True)
-    complete = rets.numel() > 0
-    if not complete:
-        rets = ds.episode_returns()
-    return {
-        "mean": float(rets.mean()),
-        "std": float(rets.std()) if rets.numel() > 1 else 0.0,
-        "min": float(rets.min()),
-        "max": float(rets.max()),
-        "episodes": int(rets.numel()),
-        "unfinished": len(ds.metadata.get("unfinished_episodes") or []),
-        "complete": complete,
-    }
 
 
 def _versions() -> dict:

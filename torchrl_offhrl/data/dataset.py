@@ -208,6 +208,28 @@ class OfflineDataset:
             out = out[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
         return out
 
+    def return_stats(self) -> dict:
+        """Mean/std/min/max and count of the returns of the complete episodes.
+
+        The episodes a collection budget cut short (``unfinished``, listed in
+        ``metadata["unfinished_episodes"]``) are left out: their partial
+        returns would drag the mean down. When no episode finished at all,
+        the stats cover the unfinished ones and ``complete`` is false.
+        """
+        rets = self.episode_returns(complete_only=True)
+        complete = rets.numel() > 0
+        if not complete:
+            rets = self.episode_returns()
+        return {
+            "mean": float(rets.mean()),
+            "std": float(rets.std()) if rets.numel() > 1 else 0.0,
+            "min": float(rets.min()),
+            "max": float(rets.max()),
+            "episodes": int(rets.numel()),
+            "unfinished": len(self.metadata.get("unfinished_episodes") or []),
+            "complete": complete,
+        }
+
     def to(self, device) -> "OfflineDataset":
         out = OfflineDataset(
             self.data.to(device), self.metadata, (self.action_low.to(device), self.action_high.to(device))

@@ -30,7 +30,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 
 from ..utils import cache_dir
-from .collect import _return_stats, collect_dataset, make_gym_env
+from .collect import collect_dataset, make_gym_env
 from .dataset import DatasetError, OfflineDataset
 from .io import load_dataset, save_dataset
 from .policies import (
@@ -264,7 +264,7 @@ def _combine(parts: list[OfflineDataset], seed: int) -> OfflineDataset:
         }
     )
     ds = OfflineDataset.concatenate(parts, meta)
-    ds.metadata["returns"] = _return_stats(ds)
+    ds.metadata["returns"] = ds.return_stats()
     return ds
 
 

@@ -341,10 +341,8 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         records[-1] = evaluate(final=True)
         checkpoint()
     elapsed = time.time() - t_train
-    behaviour = data.episode_returns(complete_only=True)  # episodes cut short by the collection budget left out
-    if behaviour.numel() == 0:
-        behaviour = data.episode_returns()
-    plot_curve([records], run_dir / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})", behaviour=float(behaviour.mean()))
+    behaviour = data.return_stats()  # episodes cut short by the collection budget left out
+    plot_curve([records], run_dir / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})", behaviour=behaviour["mean"])
     final = records[-1]
     summary = {
         "algo": algo["name"],
@@ -359,11 +357,11 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         "updates": updates,
         "final": final,
         "initial": records[0] if records[0]["frames"] == 0 else None,
-        "behaviour_return_mean": float(behaviour.mean()),
-        "behaviour_return_std": float(behaviour.std()) if behaviour.numel() > 1 else 0.0,
-        "behaviour_episodes": int(behaviour.numel()),
-        "behaviour_normalized_d4rl": normalized_score(env_cfg["env_id"], float(behaviour.mean())),
-        "behaviour_normalized_dataset": normalized_score(env_cfg["env_id"], float(behaviour.mean()), ref=ref) if ref else None,
+        "behaviour_return_mean": behaviour["mean"],
+        "behaviour_return_std": behaviour["std"],
+        "behaviour_episodes": behaviour["episodes"],
+        "behaviour_normalized_d4rl": normalized_score(env_cfg["env_id"], behaviour["mean"]),
+        "behaviour_normalized_dataset": normalized_score(env_cfg["env_id"], behaviour["mean"], ref=ref) if ref else None,
         "dataset_transitions": len(data),
         "dataset_policy": str(data.metadata.get("policy", "?")),
         "dataset_level": level,
