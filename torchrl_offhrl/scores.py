@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["D4RL_REF", "normalized_score"]
+__all__ = ["D4RL_REF", "d4rl_reference", "normalized_score", "return_for_score"]
 
 #: D4RL reference returns (the same for v0/v1/v2 and every dataset type).
 D4RL_REF: dict[str, tuple[float, float]] = {
@@ -18,6 +18,18 @@ def _key(env_id: str) -> str | None:
         if token in D4RL_REF:
             return token
     return None
+
+
+def d4rl_reference(env_id: str) -> tuple[float, float] | None:
+    """D4RL's ``(REF_MIN, REF_MAX)`` returns for an env or dataset id; ``None`` when it has none.
+
+    Examples:
+        >>> d4rl_reference("Hopper-v5")
+        (-20.272305, 3234.3)
+        >>> d4rl_reference("Toy-v0") is None
+        True
+    """
+    return D4RL_REF.get(_key(env_id) or "")
 
 
 def normalized_score(env_id: str, ret: float, ref: tuple[float, float] | None = None) -> float | None:
@@ -39,8 +51,25 @@ def normalized_score(env_id: str, ret: float, ref: tuple[float, float] | None = 
         True
     """
     if ref is None:
-        ref = D4RL_REF.get(_key(env_id) or "")
+        ref = d4rl_reference(env_id)
         if ref is None:
             return None
     lo, hi = ref
     return 100.0 * (ret - lo) / (hi - lo)
+
+
+def return_for_score(env_id: str, score: float, ref: tuple[float, float] | None = None) -> float | None:
+    """The return whose normalised score is ``score`` (the inverse of :func:`normalized_score`).
+
+    Examples:
+        >>> round(return_for_score("HalfCheetah-v5", 85.0), 1)  # D4RL's expert bar
+        10272.7
+        >>> round(return_for_score("Hopper-v5", 100.0), 6)
+        3234.3
+    """
+    if ref is None:
+        ref = d4rl_reference(env_id)
+        if ref is None:
+            return None
+    lo, hi = ref
+    return lo + score / 100.0 * (hi - lo)

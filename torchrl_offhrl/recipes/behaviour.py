@@ -258,9 +258,10 @@ def train_behaviour(
       whose ``env_id``, ``algorithm``, widths, ``seed`` or training
       settings (``lr``, ``batch_size``, ``gamma``, ``tau`` (SAC only:
       CrossQ has no target critics), ``frames_per_batch``,
-      ``init_random_steps``) differ from the saved run's is refused (a state saved before the settings were recorded is
-      checked on the others, and keeps its optimisers' lr). ``device`` may
-      change between calls.
+      ``init_random_steps``) differ from the saved run's is refused (a
+      state saved before the settings were recorded is checked on the
+      others, and keeps its optimisers' lr). ``device`` may change between
+      calls.
       The environment restarts from a reset, which at most cuts one
       episode short.
 

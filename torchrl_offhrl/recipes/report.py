@@ -123,7 +123,7 @@ def behaviour_figure(run: dict):
     """
     from matplotlib.figure import Figure
 
-    from ..scores import D4RL_REF, _key
+    from ..scores import d4rl_reference, normalized_score, return_for_score
 
     records = run["evals"]
     steps = [r["steps"] for r in records]
@@ -134,13 +134,12 @@ def behaviour_figure(run: dict):
     ax.plot(steps, mean, marker="o", ms=2.5, label="stochastic (as collected)")
     ax.fill_between(steps, mean - std, mean + std, alpha=0.25)
     ax.plot(steps, [r["deterministic"]["mean"] for r in records], lw=1, alpha=0.8, label="deterministic")
-    ref = D4RL_REF.get(_key(run.get("env_id", "")) or "")
-    if ref is not None:
-        lo, hi = ref
+    env_id = run.get("env_id", "")
+    if d4rl_reference(env_id) is not None:
         for (name, scores), color in zip(BEHAVIOUR_LEVELS.items(), ("tab:green", "tab:red")):
             for i, sc in enumerate(scores):
-                ax.axhline(lo + sc / 100.0 * (hi - lo), color=color, ls=":", lw=1, label=name if i == 0 else None)
-        ax.secondary_yaxis("right", functions=(lambda r: 100.0 * (r - lo) / (hi - lo), lambda s: lo + s / 100.0 * (hi - lo))).set_ylabel("D4RL score")
+                ax.axhline(return_for_score(env_id, sc), color=color, ls=":", lw=1, label=name if i == 0 else None)
+        ax.secondary_yaxis("right", functions=(lambda r: normalized_score(env_id, r), lambda s: return_for_score(env_id, s))).set_ylabel("D4RL score")
     ax.set_xlabel("env steps")
     ax.set_ylabel(f"return ({len(records)} evaluations)")
     ax.set_title(f"{run.get('algorithm', 'sac')} {run.get('env_id', '?')} seed {run.get('seed', '?')}")
