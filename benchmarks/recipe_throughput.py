@@ -30,12 +30,11 @@ def main():
     from omegaconf import OmegaConf
     from torchrl.collectors import Collector
 
-    from torchrl_offhrl.cli import compose
+    from torchrl_offhrl.agents import make_agent
     from torchrl_offhrl.data import collect_dataset
     from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
-    from torchrl_offhrl.recipes.agents import make_agent
+    from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.pipeline import make_model_env
-    from torchrl_offhrl.recipes.train import _update
 
     dev = torch.device(a.device)
     torch.manual_seed(0)
@@ -51,41 +50,36 @@ def main():
         pcfg = {"seed": 0, "device": str(dev), "env": {"quantile": 0.99, "penalty": 20.0, "threshold": threshold}}
         env = make_model_env(pcfg, ens, cvae, data, batch_size=a.num_envs)
         threshold = env.base_env.threshold
-        acfg = cfg["algo"]
-        agent = make_agent(algo, env, acfg, obs_loc=stats.obs_mean.to(dev), obs_scale=stats.obs_std.to(dev))
-        agent.loss.to(dev)
+        acfg = {**cfg["algo"], "init_random_frames": 0}
+        if "buffer_size" in acfg:
+            acfg["buffer_size"] = 100_000
+        agent = make_agent(algo, env, acfg, obs_loc=stats.obs_mean.to(dev), obs_scale=stats.obs_std.to(dev), device=dev)
         for t in agent.env_transforms():
             env.append_transform(t)
-        fpb = acfg["frames_per_batch"] if agent.on_policy else max(acfg["frames_per_batch"], a.num_envs)
-        fpb = max(a.num_envs, fpb // a.num_envs * a.num_envs)
-        rb = None
-        if not agent.on_policy:
-            from torchrl.data import LazyTensorStorage, ReplayBuffer
-
-            rb = ReplayBuffer(storage=LazyTensorStorage(100_000, device=dev), batch_size=acfg["batch_size"])
+        fpb = max(a.num_envs, agent.frames_per_batch // a.num_envs * a.num_envs)
         collector = Collector(env, agent.policy, frames_per_batch=fpb, total_frames=fpb + a.frames, device=dev, auto_register_policy_transforms=False)
         t_collect = t_update = 0.0
         updates = frames = 0
         it = iter(collector)
         batch = next(it)  # warm-up
-        _update(agent, batch, acfg, rb, 10**9, 0)
+        agent.update(batch)
         t0 = time.perf_counter()
         t_last = t0
         for batch in it:
             t1 = time.perf_counter()
             t_collect += t1 - t_last
-            m = _update(agent, batch, acfg, rb, 10**9, 0)
+            m = agent.update(batch)
             if dev.type == "cuda":
                 torch.cuda.synchronize()
             t_last = time.perf_counter()
             t_update += t_last - t1
-            updates += m["_updates"]
+            updates += m["updates"]
             frames += batch.numel()
         total = time.perf_counter() - t0
         collector.shutdown()
         rows.append((algo, fpb, frames, frames / t_collect, updates / t_update, frames / total, updates / frames))
     print(f"\ndevice: {dev}, {a.num_envs} model envs, {torch.get_num_threads()} torch threads")
-    print(f"| recipe | frames/batch | frames | collection frames/s | updates/s | end-to-end frames/s | updates per frame |")
+    print("| recipe | frames/batch | frames | collection frames/s | updates/s | end-to-end frames/s | updates per frame |")
     print("|---|---|---|---|---|---|---|")
     for algo, fpb, frames, cf, us, ef, upf in rows:
         print(f"| {algo} | {fpb} | {frames} | {cf:,.0f} | {us:,.1f} | {ef:,.0f} | {upf:.3f} |")

@@ -1,8 +1,9 @@
 """The model pipeline end to end: dataset -> ensemble + CVAE -> composed env -> rollout.
 
-    python examples/model_pipeline.py                       # embedded default (Hopper-v5)
-    python examples/model_pipeline.py dataset.path=my.hdf5  # your own D4RL-style file
-    python examples/model_pipeline.py env.fraction=1.08 env.penalty=20
+    python examples/model_pipeline.py                       # embedded default (Hopper-v5, random data)
+    python examples/model_pipeline.py dataset=my.hdf5       # your own D4RL-style file
+    python examples/model_pipeline.py dataset=medium model_env.pessimism.fraction=1.08
+    python examples/model_pipeline.py env=halfcheetah num_transitions=20000
 
 Steps: collect (or load) a dataset, fit the dynamics ensemble and the CVAE
 (cached), compose ``TransformedEnv(PessimisticModelEnv, LatentActionTransform)``,
@@ -20,10 +21,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs.utils import check_env_specs
 
+from torchrl_offhrl.recipes.config import model_config, model_env_config, resolve_dataset
 from torchrl_offhrl.recipes.pipeline import (
     GaussianLatentPolicy,
     fit_or_load_models,
-    get_dataset,
     make_model_env,
     make_real_env,
 )
@@ -61,10 +62,11 @@ def main(cfg: DictConfig) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
 
-    data = get_dataset(cfg)
+    data = resolve_dataset(cfg.dataset, cfg.env.name, cfg.env.env_id, cfg.num_transitions, cfg.dataset_seed)
     print(data)
     t_data = time.time()
-    ensemble, cvae, info = fit_or_load_models(cfg, data)
+    mcfg = model_config(cfg)  # the same settings (and so the same cached models) as `offhrl train`
+    ensemble, cvae, info = fit_or_load_models(mcfg, data)
     t_fit = time.time()
     for name in ("ensemble", "cvae"):
         hist = info.get(f"{name}_history")
@@ -76,10 +78,11 @@ def main(cfg: DictConfig) -> None:
         else:
             print(f"{name}: loaded from {info['model_dir']}")
 
-    env = make_model_env(cfg, ensemble, cvae, data, batch_size=cfg.rollout.batch_size)
+    mcfg["env"], _ = model_env_config(OmegaConf.to_container(cfg, resolve=True), data.metadata.get("level"))
+    env = make_model_env(mcfg, ensemble, cvae, data, batch_size=cfg.rollout.batch_size)
     threshold = env.base_env.threshold  # calibrated once, reused
-    check_env_specs(make_model_env(cfg, ensemble, cvae, data, batch_size=None, threshold=threshold))
-    check_env_specs(make_model_env(cfg, ensemble, cvae, data, batch_size=4, threshold=threshold))
+    check_env_specs(make_model_env(mcfg, ensemble, cvae, data, batch_size=None, threshold=threshold))
+    check_env_specs(make_model_env(mcfg, ensemble, cvae, data, batch_size=4, threshold=threshold))
     print("check_env_specs: passed (unbatched and batched)")
     base = env.base_env
     print("\n== calibration ==")
@@ -94,7 +97,7 @@ def main(cfg: DictConfig) -> None:
     model_returns, ends = episode_returns(td)
     n_tr = td.numel()
 
-    real = make_real_env(cfg.env_id, cvae, num_envs=cfg.rollout.real_envs, latent_bound=cfg.env.latent_bound)
+    real = make_real_env(cfg.env.env_id, cvae, num_envs=cfg.rollout.real_envs, latent_bound=mcfg["env"]["latent_bound"])
     real.set_seed(cfg.seed + 1)
     with torch.no_grad():  # finished episodes auto-reset; only completed ones are counted
         rtd = real.rollout(cfg.rollout.real_steps, policy, break_when_any_done=False)
@@ -114,7 +117,7 @@ def main(cfg: DictConfig) -> None:
           f"{ends['terminated']}, horizon {ends['truncated']}")
     print(f"\n{'':34s} {'mean':>9s} {'std':>9s} {'episodes':>9s} {'D4RL-norm':>10s}")
     for name, m, s, n in rows:
-        ns = normalized_score(cfg.env_id, m)
+        ns = normalized_score(cfg.env.env_id, m)
         print(f"{name:34s} {m:9.1f} {s:9.1f} {n:9d} {ns if ns is None else round(ns, 1)!s:>10s}")
     summary = {
         "config": OmegaConf.to_container(cfg, resolve=True),

@@ -5,7 +5,8 @@ import pytest
 import torch
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-import torchrl_offhrl.recipes.behaviour as beh
+import torchrl_offhrl.data.policies.training as beh
+from torchrl_offhrl.rollouts import evaluate_policy
 from torchrl_offhrl.data import load_policy, ship_policy
 
 TINY = {"init_random_steps": 60, "eval_every": 100, "eval_episodes": 2, "eval_max_steps": 30, "batch_size": 16, "hidden": (8,), "frames_per_batch": 50, "progress": False}
@@ -91,17 +92,17 @@ def test_states_saved_before_the_settings_were_recorded_still_resume(tmp_path):
 
 def test_state_swap_survives_a_crash(tmp_path):
     """A crash while the new state is written leaves the previous one usable."""
-    assert beh._latest_state(tmp_path) is None
+    assert beh.latest_state(tmp_path) is None
     rb = ReplayBuffer(storage=LazyTensorStorage(4), batch_size=2)
     rb.extend(torch.arange(3.0).unsqueeze(-1))
-    beh._save_state(tmp_path, rb, {"steps": 3})
-    assert beh._latest_state(tmp_path) == tmp_path / "state"
+    beh.save_state(tmp_path, rb, {"steps": 3})
+    assert beh.latest_state(tmp_path) == tmp_path / "state"
     # crash mid-swap: the current state was moved aside, the new one never renamed in
     (tmp_path / "state").rename(tmp_path / "state.old")
     (tmp_path / "state.tmp").mkdir()  # incomplete: no state.pt
-    assert beh._latest_state(tmp_path) == tmp_path / "state.old"
-    beh._save_state(tmp_path, rb, {"steps": 4})
-    assert beh._latest_state(tmp_path) == tmp_path / "state"
+    assert beh.latest_state(tmp_path) == tmp_path / "state.old"
+    beh.save_state(tmp_path, rb, {"steps": 4})
+    assert beh.latest_state(tmp_path) == tmp_path / "state"
     assert torch.load(tmp_path / "state" / "state.pt")["steps"] == 4
     assert not (tmp_path / "state.old").exists() and not (tmp_path / "state.tmp").exists()
 
@@ -132,13 +133,13 @@ def test_evaluations_do_not_depend_on_the_previous_one():
     # full torque on every joint: Hopper falls within a few dozen steps
     policy = TensorDictModule(lambda obs: torch.ones(*obs.shape[:-1], 3), in_keys=["observation"], out_keys=["action"])
     env = make_gym_env("Hopper-v5", num_envs=3)
-    _, probe = beh.evaluate_policy(env, policy, 3, max_steps=120, seed=7, return_rollout=True)
+    _, probe = evaluate_policy(env, policy, 3, max_steps=120, seed=7, return_rollout=True)
     first_done = probe["next", "done"].flatten(1).float().argmax(1)  # step of each env's first done
     assert bool(probe["next", "done"].any(1).all()) and len(set(first_done.tolist())) > 1
     horizon = int(first_done.min()) + 1  # the earliest env ends exactly at the last step, the others run on
-    runs = [beh.evaluate_policy(env, policy, 3, max_steps=horizon, seed=7, return_rollout=True) for _ in range(3)]
+    runs = [evaluate_policy(env, policy, 3, max_steps=horizon, seed=7, return_rollout=True) for _ in range(3)]
     assert bool(runs[0][1]["next", "done"][:, -1].any()) and not bool(runs[0][1]["next", "done"][:, -1].all())
-    fresh = beh.evaluate_policy(make_gym_env("Hopper-v5", num_envs=3), policy, 3, max_steps=horizon, seed=7)
+    fresh = evaluate_policy(make_gym_env("Hopper-v5", num_envs=3), policy, 3, max_steps=horizon, seed=7)
     for rets, td in runs[1:]:
         torch.testing.assert_close(td["observation"][:, 0], runs[0][1]["observation"][:, 0])
         torch.testing.assert_close(rets, runs[0][0])
@@ -147,7 +148,7 @@ def test_evaluations_do_not_depend_on_the_previous_one():
 
 def test_behaviour_curve_draws_the_records_and_the_d4rl_levels(tmp_path, capsys):
     from torchrl_offhrl.data.policies.__main__ import main
-    from torchrl_offhrl.recipes.report import behaviour_figure
+    from torchrl_offhrl.data.policies.plots import behaviour_figure
 
     records = [{"steps": 10_000 * (i + 1), "stochastic": {"mean": m, "std": 10.0 * i}, "deterministic": {"mean": m + 50.0, "std": 0.0}}
                for i, m in enumerate([100.0, 900.0, 2800.0])]

@@ -284,3 +284,154 @@ def test_atomic_write_gives_default_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert (tmp_path / "f.txt").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+# ------------------------------------------------ TensorDict-like access and replay buffers
+def _numbered_dataset(n=12):
+    """Row i has observation i, action -i and reward 10 i: a row's values name its index."""
+    from tensordict import TensorDict
+
+    idx = torch.arange(n, dtype=torch.float32)[:, None]
+    td = TensorDict({
+        "observation": idx.clone(), "action": -idx,
+        "next": {"observation": idx + 1, "reward": 10 * idx,
+                 "terminated": torch.zeros(n, 1, dtype=torch.bool),
+                 "truncated": (torch.arange(n) % 4 == 3)[:, None]}},
+        batch_size=[n])
+    return OfflineDataset(td, metadata={"env_id": "Numbered-v0", "seed": 5, "returns": {"mean": 1.0}})
+
+
+def _sorted_rows(td):
+    """The transitions of ``td`` as sorted tuples of all their leaf values (a multiset of rows)."""
+    keys = sorted(td.keys(True, True), key=str)
+    flat = torch.cat([td[k].reshape(td.shape[0], -1).double().cpu() for k in keys], -1)
+    return sorted(map(tuple, flat.tolist()))
+
+
+def test_dataset_keys_and_indexing_match_the_tensordict():
+    from tensordict import TensorDictBase
+
+    ds = _numbered_dataset()
+    td = ds.data
+    assert list(ds.keys(True)) == list(td.keys(True))
+    assert list(ds.keys()) == list(td.keys())
+    assert list(ds.keys(True, True)) == list(td.keys(include_nested=True, leaves_only=True))
+    assert list(ds.keys(include_nested=True, sort=True)) == list(td.keys(True, sort=True))
+    assert ("next", "done") in ds.keys(True) and "episode" in ds.keys()
+    assert "observation" in ds and ("next", "reward") in ds and "nope" not in ds and ("next", "nope") not in ds
+    # keys return the stored tensors themselves
+    assert ds["next", "reward"] is td.get(("next", "reward"))
+    assert ds["observation"] is td.get("observation")
+    assert ds["next", "reward"].squeeze(-1).tolist() == [10.0 * i for i in range(12)]
+    # a mask picks exactly its rows, every key consistent
+    mask = torch.tensor([1, 0, 0, 1, 1, 0, 0, 0, 1, 0, 1, 0], dtype=torch.bool)
+    sub = ds[mask]
+    assert isinstance(sub, TensorDictBase) and sub.batch_size == torch.Size([5])
+    assert sub["observation"].squeeze(-1).tolist() == [0.0, 3.0, 4.0, 8.0, 10.0]
+    assert sub["action"].squeeze(-1).tolist() == [-0.0, -3.0, -4.0, -8.0, -10.0]
+    assert sub["next", "reward"].squeeze(-1).tolist() == [0.0, 30.0, 40.0, 80.0, 100.0]
+    assert sub["next", "done"].squeeze(-1).tolist() == [False, True, False, False, False]
+    assert sub["episode"].tolist() == [0, 0, 1, 2, 2]
+    # int, slice, index tensor
+    row = ds[7]
+    assert row.batch_size == torch.Size([]) and row["observation"].item() == 7.0 and row["next", "reward"].item() == 70.0
+    assert ds[2:5]["observation"].squeeze(-1).tolist() == [2.0, 3.0, 4.0]
+    assert ds[torch.tensor([9, 1, 9])]["next", "observation"].squeeze(-1).tolist() == [10.0, 2.0, 10.0]
+    assert len(ds) == 12 and ds.batch_size == torch.Size([12]) == td.batch_size
+    assert ds.device == torch.device("cpu")
+
+
+_DEVICES = [
+    "cpu",
+    pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")),
+]
+
+
+@pytest.mark.parametrize("device", _DEVICES)
+def test_dataset_to_device_keeps_metadata_and_values(device):
+    ds = _numbered_dataset()
+    ds.stats()
+    moved = ds.to(device)
+    assert isinstance(moved, OfflineDataset) and moved is not ds and moved.data is not ds.data
+    assert moved.device.type == device and moved["observation"].device.type == device
+    assert moved.metadata == ds.metadata and moved.metadata is not ds.metadata
+    assert list(moved.keys(True)) == list(ds.keys(True))
+    for key in ds.keys(True, True):
+        assert torch.equal(moved[key].cpu(), ds[key]), key
+    assert moved.action_low.device.type == device and torch.equal(moved.action_low.cpu(), ds.action_low)
+    assert torch.equal(moved.action_high.cpu(), ds.action_high)
+    assert moved.stats().obs_mean.device.type == device
+    torch.testing.assert_close(moved.stats().obs_mean.cpu(), ds.stats().obs_mean)
+    assert moved.num_episodes == ds.num_episodes == 3
+    # the original is unchanged, and edits of the copy do not reach it
+    moved.data.set("observation", torch.zeros_like(moved["observation"]))
+    moved.metadata["seed"] = 99
+    assert ds.device == torch.device("cpu") and ds["observation"].squeeze(-1).tolist() == list(map(float, range(12)))
+    assert ds.metadata["seed"] == 5
+
+
+def test_to_replay_buffer_samples_rows_of_the_dataset():
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+    ds = make_toy_dataset(num_episodes=10, episode_length=30)  # 300 transitions, unique rows
+    rb = ds.to_replay_buffer()
+    assert isinstance(rb, ReplayBuffer) and isinstance(rb.storage, LazyTensorStorage)
+    assert len(rb) == len(ds) == 300 and rb.storage.max_size == 300
+    # the storage holds the dataset, row for row
+    stored = rb.storage[:300]
+    for key in ds.keys(True, True):
+        assert torch.equal(stored[key], ds[key]), key
+    torch.manual_seed(0)
+    batch, info = rb.sample(return_info=True)
+    assert batch.batch_size == torch.Size([256]) and batch.device == torch.device("cpu")
+    assert sorted(batch.keys(True), key=str) == sorted(ds.keys(True), key=str)
+    idx = info["index"]
+    for key in ds.keys(True, True):
+        assert torch.equal(batch[key], ds[key][idx]), key
+    # the buffer is a copy: editing the dataset afterwards leaves it alone
+    ds.data.get("observation").zero_()
+    assert not torch.equal(rb.storage[:300]["observation"], ds["observation"])
+
+
+def test_to_replay_buffer_without_replacement_covers_the_dataset_once():
+    from torchrl.data import SamplerWithoutReplacement
+
+    ds = make_toy_dataset(num_episodes=3, episode_length=20)
+    rb = ds.to_replay_buffer(batch_size=len(ds), sampler=SamplerWithoutReplacement())
+    batch = rb.sample()
+    assert batch.batch_size == torch.Size([60])
+    assert _sorted_rows(batch) == _sorted_rows(ds.data)
+    assert len(set(_sorted_rows(ds.data))) == 60  # rows are distinct, so this is a permutation
+    # batch_size=None leaves the size to sample(); a transform applies to every batch
+    rb = ds.to_replay_buffer(batch_size=None, transform=lambda td: td.exclude("episode"))
+    part = rb.sample(7)
+    assert part.batch_size == torch.Size([7]) and "episode" not in part.keys()
+    assert set(_sorted_rows(part)) <= set(_sorted_rows(ds.data.exclude("episode")))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_to_replay_buffer_on_cuda():
+    ds = make_toy_dataset(num_episodes=2, episode_length=10)
+    rb = ds.to_replay_buffer(batch_size=8, device="cuda")
+    batch, info = rb.sample(return_info=True)
+    assert batch.device.type == "cuda" and batch["observation"].device.type == "cuda"
+    assert torch.equal(batch["observation"].cpu(), ds["observation"][info["index"].cpu()])
+    on_gpu = ds.to("cuda").to_replay_buffer(batch_size=8)  # device=None: where the data lives
+    assert on_gpu.sample()["action"].device.type == "cuda"
+
+
+def test_to_replay_buffer_rejects_bad_input():
+    ds = make_toy_dataset(num_episodes=4, episode_length=10)  # 40 transitions
+    for bad in (0, -3):
+        with pytest.raises(ValueError, match=rf"batch_size must be positive, got {bad}; pass the number"):
+            ds.to_replay_buffer(batch_size=bad)
+    with pytest.raises(ValueError, match=r"batch_size=41 is larger than the dataset \(40 transitions.*pass batch_size <= 40"):
+        ds.to_replay_buffer(batch_size=41)
+    with pytest.raises(ValueError, match=r"batch_size=256 is larger than the dataset"):
+        ds.to_replay_buffer()  # the default is too large for this dataset
+    for bad in (2.5, True, "8"):
+        with pytest.raises(TypeError, match=r"batch_size must be an int in \[1, 40\]"):
+            ds.to_replay_buffer(batch_size=bad)
+    with pytest.raises(TypeError, match="sampler must be a torchrl.data.replay_buffers.Sampler"):
+        ds.to_replay_buffer(batch_size=8, sampler="random")
+    assert len(ds.to_replay_buffer(batch_size=40)) == 40  # the whole dataset is a valid batch

@@ -26,7 +26,9 @@ from torchrl_offhrl.data import (
     ship_policy,
 )
 from torchrl_offhrl.data.generate import dataset_path
-from torchrl_offhrl.recipes.behaviour import evaluate_policy, make_behaviour_actor
+from torchrl_offhrl.data.policies.training import make_behaviour_actor
+from torchrl_offhrl.rollouts import evaluate_policy
+from torchrl_offhrl.utils import one_thread
 
 HOPPER = ("Hopper-v5", 11, 3)
 EVAL_STEPS = 40  # evaluation episodes capped for speed (real shipping uses 1000)
@@ -108,7 +110,7 @@ def test_ship_policy_card_and_reevaluation(shipped):
 
     env = make_gym_env("Hopper-v5", num_envs=10)
     for det, tag in ((False, "stochastic"), (True, "deterministic")):
-        with torch.random.fork_rng(), pol._one_thread():
+        with torch.random.fork_rng(), one_thread():
             torch.manual_seed(ev["seed"])
             rets = evaluate_policy(env, actor, 10, max_steps=EVAL_STEPS, deterministic=det, seed=ev["seed"])
         assert float(rets.mean()) == pytest.approx(ev[tag]["mean"], rel=1e-5), tag
@@ -284,7 +286,7 @@ def test_random_level_and_reference_returns(shipped, monkeypatch, tmp_path):
     env = make_gym_env("Hopper-v5", num_envs=2)
     expert, _ = load_policy("hopper-expert")
     for policy, key in ((None, "ref_min_return"), (expert, "ref_max_return")):
-        with torch.random.fork_rng(), pol._one_thread():
+        with torch.random.fork_rng(), one_thread():
             torch.manual_seed(meta["ref_seed"])
             rets = evaluate_policy(env, policy, 2, deterministic=False, seed=meta["ref_seed"])
         assert meta[key] == pytest.approx(float(rets.mean()), rel=1e-5), key

@@ -9,9 +9,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from torchrl_offhrl.recipes import rundir
 from torchrl_offhrl.recipes import train as train_mod
+from torchrl_offhrl.recipes.config import pessimism_for
 from torchrl_offhrl.recipes.report import aggregate
-from torchrl_offhrl.recipes.train import pessimism_for, train
+from torchrl_offhrl.recipes.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -88,23 +90,30 @@ def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
 
 def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, monkeypatch):
     cfg = _cfg("moc", hopper_file, tmp_path)
-    real_update = train_mod._update
+    real_make_agent = train_mod.make_agent
     calls = {"n": 0}
 
-    def crash_on_fourth(*a, **k):
-        calls["n"] += 1
-        if calls["n"] == 4:  # after the checkpoint at 128 frames and the logged update at 192
-            raise KeyboardInterrupt
-        return real_update(*a, **k)
+    def crashing_agent(*a, **k):
+        agent = real_make_agent(*a, **k)
+        real_update = agent.update
 
-    monkeypatch.setattr(train_mod, "_update", crash_on_fourth)
+        def crash_on_fourth(batch):
+            calls["n"] += 1
+            if calls["n"] == 4:  # after the checkpoint at 128 frames and the logged update at 192
+                raise KeyboardInterrupt
+            return real_update(batch)
+
+        agent.update = crash_on_fourth
+        return agent
+
+    monkeypatch.setattr(train_mod, "make_agent", crashing_agent)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, progress=False)
     run = next(tmp_path.glob("moc-*"))
     first = json.loads((run / "evals.json").read_text())
     assert [e["frames"] for e in first] == [128]
     saved = torch.load(run / "checkpoint.pt", weights_only=True)["agent"]["loss"]
-    monkeypatch.setattr(train_mod, "_update", real_update)
+    monkeypatch.setattr(train_mod, "make_agent", real_make_agent)
 
     loaded = {}
     real_load = train_mod.make_agent
@@ -140,9 +149,9 @@ def test_trim_csv_logs(tmp_path):
     (tmp_path / "scalars" / "train").mkdir(parents=True)
     f = tmp_path / "scalars" / "train" / "loss.csv"
     f.write_text("64,1.0\n128,2.0\n192,3.0\n")
-    assert train_mod._trim_csv_logs(tmp_path, 128) == 1
+    assert rundir.trim_csv_logs(tmp_path, 128) == 1
     assert f.read_text() == "64,1.0\n128,2.0\n"
-    assert train_mod._trim_csv_logs(tmp_path, 128) == 0
+    assert rundir.trim_csv_logs(tmp_path, 128) == 0
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
@@ -220,7 +229,7 @@ def test_offline_train_script_cli(hopper_file, cache, tmp_path):
 def test_option_usage_hand_computed():
     from tensordict import TensorDict
 
-    from torchrl_offhrl.recipes.train import option_usage
+    from torchrl_offhrl.agents.moc import option_usage
 
     td = TensorDict(
         {
@@ -266,7 +275,7 @@ def test_sac_target_entropy_is_per_env():
     """The default target entropy is -(latent action dim), not -(envs x dim)."""
     from torchrl_offhrl.data import make_toy_dataset
     from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
-    from torchrl_offhrl.recipes.agents import make_agent
+    from torchrl_offhrl.agents import make_agent
     from torchrl_offhrl.recipes.pipeline import make_model_env
 
     d = make_toy_dataset(num_episodes=4, episode_length=10)

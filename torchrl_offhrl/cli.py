@@ -12,7 +12,6 @@ import logging
 import os
 import sys
 import time
-from pathlib import Path
 
 EPILOG = """examples:
   offhrl demo                                         # the embedded demo (short budget, < 10 min on 2 CPUs)
@@ -23,36 +22,6 @@ EPILOG = """examples:
   offhrl evaluate outputs/runs/moc-hopper-medium-seed0 --episodes 10
   offhrl aggregate outputs/runs/moc-hopper-medium-seed* --out outputs/report
 """
-
-
-def _config_dir() -> Path:
-    """The hydra configs, shipped inside the package (``configs/`` in a checkout links to them)."""
-    path = Path(__file__).resolve().parent / "configs"
-    if not (path / "offline_train.yaml").is_file():
-        raise FileNotFoundError(f"the package's configs are missing from {path}; reinstall torchrl_offhrl")
-    return path
-
-
-def compose(config_name: str, overrides: list[str], command: str | None = None):
-    """The hydra config ``config_name`` with ``overrides`` (``key=value`` strings).
-
-    A malformed override, an unknown config group option or key raises
-    ``ValueError`` with hydra's explanation.
-    """
-    from hydra import compose as hcompose
-    from hydra import initialize_config_dir
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    bad = [o for o in overrides if "=" not in o]
-    if bad:
-        raise SystemExit(f"error: overrides must look like key=value, got {bad}; see `offhrl {command or 'train'} --help`")
-    try:
-        with initialize_config_dir(config_dir=str(_config_dir()), version_base=None):
-            return hcompose(config_name, overrides=overrides)
-    except (HydraException, OmegaConfBaseException) as err:
-        raise ValueError(f"{err} (configs in {_config_dir()}; an override is key=value, a config group option "
-                         f"is e.g. algo=sac|ppo|moc, env=hopper|halfcheetah)") from err
 
 
 def cmd_policies(args) -> int:
@@ -96,8 +65,8 @@ def cmd_collect(args) -> int:
 
 
 def cmd_fit(args) -> int:
+    from .recipes.config import compose, model_config, resolve_dataset
     from .recipes.pipeline import fit_or_load_models
-    from .recipes.train import model_config, resolve_dataset
 
     cfg = compose("offline_train", args.overrides, "fit")
     data = resolve_dataset(cfg.dataset, cfg.env.name, cfg.env.env_id, cfg.num_transitions, cfg.dataset_seed)
@@ -111,14 +80,16 @@ def cmd_fit(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from .recipes.train import format_summary, train
+    from .recipes.config import compose
+    from .recipes.report import format_summary
+    from .recipes.train import train
 
     print("\n" + format_summary(train(compose("offline_train", args.overrides, "train"))))
     return 0
 
 
 def cmd_evaluate(args) -> int:
-    from .recipes.train import evaluate_run
+    from .recipes.evaluation import evaluate_run
 
     res = evaluate_run(args.run_dir, episodes=args.episodes, seed=args.seed, frames_dir=args.frames, deterministic=not args.stochastic)
     print(json.dumps(res, indent=2))

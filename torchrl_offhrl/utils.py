@@ -6,7 +6,7 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_write", "cache_dir"]
+__all__ = ["atomic_write", "cache_dir", "one_thread", "to_plain"]
 
 
 @contextmanager
@@ -45,3 +45,33 @@ def cache_dir() -> Path:
     path = Path(root).expanduser()
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+@contextmanager
+def one_thread():
+    """Run small-batch policy inference on one torch thread (restored afterwards).
+
+    A batch of 8 observations gains nothing from intra-op threads, and on a
+    busy 2-core machine two threads made collection 5-8 times slower. One
+    thread also makes the numbers independent of the caller's setting.
+    """
+    import torch
+
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(prev)
+
+
+def to_plain(cfg) -> dict:
+    """A plain ``dict`` of a config: an OmegaConf/hydra config resolved and converted, any other mapping copied."""
+    try:
+        from omegaconf import OmegaConf
+
+        if OmegaConf.is_config(cfg):
+            return OmegaConf.to_container(cfg, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    return dict(cfg)

@@ -109,7 +109,7 @@ def collect_dataset(
         "num_envs": num_envs,
         "policy": "uniform-random" if policy is None else type(policy).__name__,
         "collection_seconds": round(time.time() - t0, 2),
-        "versions": _versions(),
+        "versions": package_versions(),
     }
     meta.update(metadata or {})
     ds = OfflineDataset(data, meta, (low, high))
@@ -119,7 +119,7 @@ def collect_dataset(
     return ds
 
 
-def _versions() -> dict:
+def package_versions() -> dict:
     out = {}
     for pkg in ("torch", "torchrl", "tensordict", "gymnasium", "mujoco"):
         try:

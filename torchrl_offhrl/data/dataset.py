@@ -13,6 +13,9 @@ transition whose ``("next", "done")`` is set.
 from __future__ import annotations
 
 import dataclasses
+import logging
+import operator
+import os
 from typing import Any, Sequence
 
 import torch
@@ -51,6 +54,11 @@ class NormalizationStats:
         return NormalizationStats(
             **{f.name: getattr(self, f.name).to(device) for f in dataclasses.fields(self)}
         )
+
+
+def _drop_storage_init_log(record: logging.LogRecord) -> bool:
+    """Logging filter: leave out TorchRL's "Initialized LazyTensorStorage ..." line."""
+    return not str(record.msg).startswith("Initialized LazyTensorStorage")
 
 
 class OfflineDataset:
@@ -151,7 +159,46 @@ class OfflineDataset:
         return self.data.shape[0]
 
     def __getitem__(self, index):
+        """Index the transitions like the wrapped ``TensorDict``.
+
+        An int, slice, index tensor or boolean mask returns the selected
+        transitions as a ``TensorDict`` (an int gives ``batch_size=[]``); a
+        key (``"observation"``, ``("next", "reward")``) returns the stored
+        tensor, not a copy.
+        """
         return self.data[index]
+
+    def __contains__(self, key) -> bool:
+        """Whether ``key`` (a string or a nested tuple) is an entry of the data."""
+        return key in self.data.keys(include_nested=True)
+
+    def keys(
+        self,
+        include_nested: bool = False,
+        leaves_only: bool = False,
+        is_leaf=None,
+        *,
+        sort: bool = False,
+    ):
+        """The keys of the wrapped ``TensorDict``; same arguments as :meth:`TensorDict.keys`."""
+        return self.data.keys(include_nested, leaves_only, is_leaf, sort=sort)
+
+    @property
+    def batch_size(self) -> torch.Size:
+        """``torch.Size([N])``, the batch size of the wrapped ``TensorDict``."""
+        return self.data.batch_size
+
+    @property
+    def device(self) -> torch.device | None:
+        """Where the transitions live.
+
+        The wrapped ``TensorDict``'s device, or, when it has none, the device
+        all its tensors share (``None`` if they are spread over several).
+        """
+        if self.data.device is not None:
+            return self.data.device
+        devices = {v.device for v in self.data.values(include_nested=True, leaves_only=True)}
+        return devices.pop() if len(devices) == 1 else None
 
     def __repr__(self) -> str:
         env = self.metadata.get("env_id", "?")
@@ -231,10 +278,117 @@ class OfflineDataset:
         }
 
     def to(self, device) -> "OfflineDataset":
+        """A new dataset with the transitions and action bounds on ``device``.
+
+        The metadata is copied and ``self`` is left as it is; tensors already
+        on ``device`` are shared, not copied (as with :meth:`torch.Tensor.to`).
+        """
+        data = self.data.to(device)
+        if data is self.data:  # same device: a new container, so that edits of one do not reach the other
+            data = data.copy()
         out = OfflineDataset(
-            self.data.to(device), self.metadata, (self.action_low.to(device), self.action_high.to(device))
+            data, self.metadata, (self.action_low.to(device), self.action_high.to(device))
         )
+        if self._stats is not None:
+            out._stats = self._stats.to(device)
         return out
+
+    # ---------------------------------------------------------- replay buffer
+    def to_replay_buffer(
+        self,
+        batch_size: int | None = 256,
+        device=None,
+        sampler=None,
+        transform=None,
+    ):
+        """A TorchRL ``ReplayBuffer`` already filled with every transition.
+
+        The buffer holds a copy of the data in a ``LazyTensorStorage`` of
+        capacity ``len(self)``; ``rb.sample()`` returns a ``TensorDict`` of
+        ``batch_size`` transitions with the dataset's keys.
+
+        Args:
+            batch_size (int or None): transitions per ``rb.sample()``, in
+                ``[1, len(self)]``. ``None`` leaves it to each
+                ``rb.sample(batch_size)`` call. Defaults to ``256``.
+            device (torch.device or str, optional): where the storage keeps
+                the data and returns samples. Defaults to :attr:`device`
+                (the CPU when the data has no single device).
+            sampler (torchrl.data.replay_buffers.Sampler, optional): how to
+                draw indices; defaults to uniform sampling with replacement
+                (``RandomSampler``). ``SamplerWithoutReplacement`` gives epochs.
+            transform (Transform or callable, optional): applied to every
+                sampled batch, as in ``ReplayBuffer``.
+
+        Returns:
+            torchrl.data.ReplayBuffer: holding ``len(self)`` transitions.
+
+        Raises:
+            ValueError: ``batch_size`` is not in ``[1, len(self)]``.
+            TypeError: ``batch_size`` is not an int, or ``sampler`` is not a
+                TorchRL ``Sampler``.
+            DatasetError: the dataset holds no transitions.
+
+        Examples:
+            >>> from torchrl_offhrl.data import make_toy_dataset
+            >>> ds = make_toy_dataset(num_episodes=4, episode_length=10)
+            >>> rb = ds.to_replay_buffer(batch_size=8)
+            >>> len(rb)
+            40
+            >>> batch = rb.sample()
+            >>> batch.batch_size
+            torch.Size([8])
+            >>> sorted(batch.keys(True), key=str) == sorted(ds.keys(True), key=str)
+            True
+        """
+        from torchrl.data import LazyTensorStorage, ReplayBuffer
+        from torchrl.data.replay_buffers.samplers import Sampler
+
+        n = len(self)
+        source = self.metadata.get("source", "<in-memory>")
+        if n == 0:
+            raise DatasetError(f"{source}: the dataset holds no transitions; a replay buffer needs at least one.")
+        if batch_size is not None:
+            try:
+                if isinstance(batch_size, bool):
+                    raise TypeError
+                batch_size = operator.index(batch_size)  # int, numpy or 0-dim integer tensor
+            except TypeError:
+                raise TypeError(
+                    f"batch_size must be an int in [1, {n}] (or None to give it to rb.sample), "
+                    f"got {batch_size!r} of type {type(batch_size).__name__}."
+                ) from None
+            if batch_size <= 0:
+                raise ValueError(
+                    f"batch_size must be positive, got {batch_size}; pass the number of transitions "
+                    f"per sample, e.g. batch_size=256 (at most {n}, the size of this dataset)."
+                )
+            if batch_size > n:
+                raise ValueError(
+                    f"batch_size={batch_size} is larger than the dataset ({n} transitions from {source}); "
+                    f"pass batch_size <= {n}, or use a larger dataset."
+                )
+        if sampler is not None and not (isinstance(sampler, Sampler) or callable(sampler)):
+            raise TypeError(
+                f"sampler must be a torchrl.data.replay_buffers.Sampler (e.g. RandomSampler() or "
+                f"SamplerWithoutReplacement()), got {type(sampler).__name__}."
+            )
+        if device is None:
+            device = self.device or torch.device("cpu")
+        storage = LazyTensorStorage(n, device=device)
+        rb = ReplayBuffer(storage=storage, sampler=sampler, batch_size=batch_size, transform=transform)
+        # the storage logs its creation at INFO on stdout, noise here as it is filled at once
+        # (shown still when the user sets TorchRL's level with RL_LOGGING_LEVEL)
+        logger = logging.getLogger("torchrl")
+        quiet = "RL_LOGGING_LEVEL" not in os.environ
+        if quiet:
+            logger.addFilter(_drop_storage_init_log)
+        try:
+            rb.extend(self.data)
+        finally:
+            if quiet:
+                logger.removeFilter(_drop_storage_init_log)
+        return rb
 
     # ------------------------------------------------------------- statistics
     def stats(self, eps: float = 1e-6) -> NormalizationStats:

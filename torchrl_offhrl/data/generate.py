@@ -29,13 +29,15 @@ import numpy as np
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from ..utils import cache_dir
+from ..registry import ENV_IDS, LEVELS, resolve_env
+from ..rollouts import evaluate_policy
+from ..scores import normalized_score
+from ..utils import cache_dir, one_thread
 from .collect import collect_dataset, make_gym_env
 from .dataset import DatasetError, OfflineDataset
 from .io import load_dataset, save_dataset
 from .policies import (
     PolicyNotFoundError,
-    _one_thread,
     list_policies,
     load_policy,
     missing_policy_message,
@@ -53,10 +55,6 @@ __all__ = [
     "resolve_env",
 ]
 
-#: Short dataset names of the envs and their Gymnasium ids.
-ENV_IDS: dict[str, str] = {"hopper": "Hopper-v5", "halfcheetah": "HalfCheetah-v5"}
-#: Dataset levels of D4RL's protocol.
-LEVELS = ("random", "medium", "expert", "medium-expert")
 #: Offset between a dataset's seed and the seed of its reference evaluations.
 REF_SEED_OFFSET = 100_003
 
@@ -74,27 +72,6 @@ _NAME = re.compile(
 )
 
 
-def resolve_env(env_id_or_short: str) -> tuple[str, str]:
-    """``(env_id, short)`` for a short name (``"hopper"``) or a full Gymnasium id (``"Hopper-v5"``).
-
-    Examples:
-        >>> resolve_env("hopper")
-        ('Hopper-v5', 'hopper')
-        >>> resolve_env("HalfCheetah-v5")
-        ('HalfCheetah-v5', 'halfcheetah')
-    """
-    key = env_id_or_short.lower()
-    if key in ENV_IDS:
-        return ENV_IDS[key], key
-    m = re.match(r"^(?:.*/)?([A-Za-z0-9_]+)-v\d+$", env_id_or_short)
-    if m:
-        return env_id_or_short, m.group(1).lower()
-    raise ValueError(
-        f"{env_id_or_short!r}: not a known short name {sorted(ENV_IDS)} nor a Gymnasium id "
-        f"like 'Hopper-v5'."
-    )
-
-
 class SampledPolicy(TensorDictModuleBase):
     """Runs a stochastic actor under ``ExplorationType.RANDOM``, whatever the caller set.
 
@@ -106,7 +83,7 @@ class SampledPolicy(TensorDictModuleBase):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
-        >>> from torchrl_offhrl.recipes.behaviour import make_behaviour_actor
+        >>> from torchrl_offhrl.data.policies.training import make_behaviour_actor
         >>> actor = make_behaviour_actor(3, 2, -torch.ones(2), torch.ones(2), hidden=(8,))
         >>> td = TensorDict(observation=torch.zeros(5, 3), batch_size=[5])
         >>> with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -179,7 +156,7 @@ def generate_dataset(
     env_id, short = resolve_env(env_id_or_short)
     if level not in LEVELS:
         raise ValueError(f"generate_dataset: level must be one of {LEVELS}, got {level!r}.")
-    with _one_thread():
+    with one_thread():
         return _generate(env_id, short, level, num_transitions, seed, num_envs, progress, policy, ref_episodes)
 
 
@@ -270,8 +247,6 @@ def _combine(parts: list[OfflineDataset], seed: int) -> OfflineDataset:
 
 def _reference_returns(env_id: str, short: str, expert, episodes: int, seed: int) -> dict:
     """Mean returns of uniform random actions and of the (sampled) expert policy, measured now."""
-    from ..recipes.behaviour import evaluate_policy
-
     ref_seed = seed + REF_SEED_OFFSET
     out: dict[str, Any] = {"ref_min_return": None, "ref_max_return": None, "ref_episodes": episodes,
                            "ref_seed": ref_seed, "ref_policy": None, "ref_note": None}
@@ -306,8 +281,6 @@ def _reference_returns(env_id: str, short: str, expert, episodes: int, seed: int
 
 
 def _finish_metadata(ds, env_id, short, level, seed, num_transitions, refs) -> None:
-    from ..scores import normalized_score
-
     mean = ds.metadata["returns"]["mean"]
     own = None
     lo, hi = refs["ref_min_return"], refs["ref_max_return"]

@@ -15,16 +15,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..utils import to_plain
+from .config import compose
+from .report import fmt_number
+from .train import train
+
 __all__ = ["run_demo"]
 
 
 def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
     """Run the demo with optional hydra ``overrides``; returns the training summary plus the printed table."""
-    from ..cli import compose
-    from .pipeline import _plain
-    from .train import _fmt, train
-
-    cfg = _plain(compose("demo", list(overrides or []), "demo"))
+    cfg = to_plain(compose("demo", list(overrides or []), "demo"))
     s = train(cfg, progress=progress)
     final, algo = s["final"], s["algo"].upper()
     rows = [
@@ -46,7 +47,7 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
         f"{'':36s} {'return':>9s} {'± std':>8s} {'episodes':>9s} {'D4RL score':>11s} {'data score':>11s}",
     ]
     for name, m, sd, n, d4rl, own in rows:
-        lines.append(f"{name:36s} {m:9.1f} {sd:8.1f} {n:9d} {_fmt(d4rl):>11s} {_fmt(own):>11s}")
+        lines.append(f"{name:36s} {m:9.1f} {sd:8.1f} {n:9d} {fmt_number(d4rl):>11s} {fmt_number(own):>11s}")
     other = s["total_s"] - s["data_s"] - s["models_s"] - s["update_time_s"]
     lines += [
         "(data score: normalised with the dataset's own random/expert reference returns; n/a without an expert policy;",
@@ -55,8 +56,7 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
         f"time: {s['total_s'] / 60:.1f} min in total: data {s['data_s']:.0f} s, ensemble + CVAE {s['models_s']:.0f} s, "
         f"{algo} updates {s['update_time_s']:.0f} s for {s['frames']:,} model frames, env calibration + collection + "
         f"real-env evaluation {other:.0f} s",
-        f"plots: {s['run_dir']}/learning_curve.png" + (f", {s['run_dir']}/option_usage.png" if s["algo"] == "moc" else "")
-        + f"; logs: {s['run_dir']}/logs",
+        f"plots: {', '.join(s['plots'])}; logs: {s['run_dir']}/logs",
         "",
         f"This is a short-budget run ({s['dataset_transitions']:,} transitions, small models fitted for "
         f"{cfg['ensemble']['fit']['max_steps']} steps, {s['frames']:,} {algo} frames) that shows the pipeline end to end;",

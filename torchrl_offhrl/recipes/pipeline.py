@@ -14,21 +14,14 @@ from typing import Any
 import torch
 from torchrl.envs import TransformedEnv
 
-from ..data import (
-    OfflineDataset,
-    collect_dataset,
-    load_dataset,
-    make_gym_env,
-    save_dataset,
-)
+from ..data import OfflineDataset, make_gym_env
 from ..envs import LatentActionTransform, PessimisticModelEnv
 from ..models import ConditionalVAE, DynamicsEnsemble
-from ..utils import cache_dir
+from ..utils import cache_dir, to_plain
 
 __all__ = [
     "GaussianLatentPolicy",
     "fit_or_load_models",
-    "get_dataset",
     "make_model_env",
     "make_real_env",
 ]
@@ -36,50 +29,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-def _plain(cfg) -> dict:
-    try:
-        from omegaconf import OmegaConf
-
-        if OmegaConf.is_config(cfg):
-            return OmegaConf.to_container(cfg, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
-    return dict(cfg)
-
-
 def _digest(obj: Any) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
-def get_dataset(cfg: Mapping, progress: bool = True) -> OfflineDataset:
-    """Load ``cfg.dataset.path`` or collect (and cache) a dataset in ``cfg.env_id``.
-
-    A collected dataset is cached under ``cache_dir()/datasets`` keyed by env,
-    policy, size and seed; asking again loads the file.
-    """
-    dcfg = cfg["dataset"]
-    if dcfg.get("path"):
-        return load_dataset(dcfg["path"], env_id=cfg.get("env_id"))
-    if dcfg.get("policy", "random") != "random":
-        raise ValueError(
-            f"dataset.policy={dcfg['policy']!r}: only 'random' collection is available; give "
-            f"dataset.path=<file> to use your own data."
-        )
-    name = f"{cfg['env_id']}-random-{dcfg['num_transitions']}-seed{cfg['seed']}.hdf5"
-    path = cache_dir() / "datasets" / name
-    if path.is_file():
-        log.info("loading cached dataset %s", path)
-        return load_dataset(path)
-    print(f"collecting {dcfg['num_transitions']} transitions of {cfg['env_id']} (uniform-random policy) -> {path}")
-    ds = collect_dataset(
-        cfg["env_id"],
-        dcfg["num_transitions"],
-        num_envs=dcfg.get("num_envs", 8),
-        seed=cfg["seed"],
-        progress=progress,
-    )
-    save_dataset(ds, path)
-    return load_dataset(path)
 
 
 def fit_or_load_models(
@@ -92,7 +43,7 @@ def fit_or_load_models(
     models are fitted again. Returns ``(ensemble, cvae, info)``.
     """
     device = torch.device(cfg.get("device", "cpu"))
-    ecfg, ccfg = _plain(cfg["ensemble"]), _plain(cfg["cvae"])
+    ecfg, ccfg = to_plain(cfg["ensemble"]), to_plain(cfg["cvae"])
     ident = {
         "source": data.metadata.get("source"),
         "n": len(data),

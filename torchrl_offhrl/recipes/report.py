@@ -17,7 +17,9 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["BEHAVIOUR_LEVELS", "aggregate", "behaviour_figure", "load_run", "plot_behaviour_run", "plot_curve", "plot_option_usage"]
+from ..scores import normalized_score
+
+__all__ = ["aggregate", "fmt_number", "format_summary", "load_run", "plot_curve", "run_summary"]
 
 
 def _plt():
@@ -64,88 +66,6 @@ def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str
         fig.savefig(path, dpi=110)
         plt.close(fig)
     return path
-
-
-def plot_option_usage(usage: torch.Tensor, path, title: str = "option usage"):
-    """``usage [T, n]``: fraction of running episodes in which each option is active at each step."""
-    plt = _plt()
-    t, n = usage.shape
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    ax.stackplot(range(t), usage.T.numpy(), labels=[f"option {i}" for i in range(n)], alpha=0.85)
-    ax.set_xlim(0, max(t - 1, 1))
-    ax.set_ylim(0, 1)
-    ax.set_xlabel("time step in episode")
-    ax.set_ylabel("fraction of episodes")
-    ax.set_title(title)
-    ax.legend(loc="upper right", fontsize=8, ncol=min(n, 4))
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-#: D4RL normalised scores drawn on behaviour curves: the medium band and the expert target.
-BEHAVIOUR_LEVELS = {"medium band (30-50)": (30.0, 50.0), "expert target (85)": (85.0,)}
-
-
-def plot_behaviour_run(run_dir, path=None):
-    """Learning curve of a behaviour run (``scripts/train_behaviour.py --out run_dir``).
-
-    Stochastic return (mean, shaded ± std over the evaluation episodes) and
-    deterministic return against env steps, read from ``run_dir/evals.json``.
-    For an env with D4RL reference returns, a right axis gives the
-    normalised score and dotted lines mark the medium band (30-50) and the
-    expert target (85), so the checkpoints that qualify for a level are read
-    off the figure. Written atomically to ``path`` (default
-    ``run_dir/curve.png``); returns the path.
-    """
-    from ..utils import atomic_write
-
-    d = Path(run_dir)
-    evals_path = d / "evals.json"
-    if not evals_path.is_file():
-        raise FileNotFoundError(f"{d} has no evals.json: not an --out folder of scripts/train_behaviour.py")
-    run = json.loads(evals_path.read_text())
-    if not run.get("evals"):
-        raise ValueError(f"{evals_path}: no evaluation records yet (the first comes after --eval-every steps)")
-    fig = behaviour_figure(run)
-    path = d / "curve.png" if path is None else Path(path)
-    with atomic_write(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    return path
-
-
-def behaviour_figure(run: dict):
-    """The matplotlib figure of :func:`plot_behaviour_run` for the contents of an ``evals.json``.
-
-    A plain :class:`~matplotlib.figure.Figure` (not pyplot's): drawing it
-    leaves the caller's matplotlib backend and open figures alone.
-    """
-    from matplotlib.figure import Figure
-
-    from ..scores import d4rl_reference, normalized_score, return_for_score
-
-    records = run["evals"]
-    steps = [r["steps"] for r in records]
-    mean = torch.tensor([r["stochastic"]["mean"] for r in records])
-    std = torch.tensor([r["stochastic"]["std"] for r in records])
-    fig = Figure(figsize=(7, 4))
-    ax = fig.add_subplot()
-    ax.plot(steps, mean, marker="o", ms=2.5, label="stochastic (as collected)")
-    ax.fill_between(steps, mean - std, mean + std, alpha=0.25)
-    ax.plot(steps, [r["deterministic"]["mean"] for r in records], lw=1, alpha=0.8, label="deterministic")
-    env_id = run.get("env_id", "")
-    if d4rl_reference(env_id) is not None:
-        for (name, scores), color in zip(BEHAVIOUR_LEVELS.items(), ("tab:green", "tab:red")):
-            for i, sc in enumerate(scores):
-                ax.axhline(return_for_score(env_id, sc), color=color, ls=":", lw=1, label=name if i == 0 else None)
-        ax.secondary_yaxis("right", functions=(lambda r: normalized_score(env_id, r), lambda s: return_for_score(env_id, s))).set_ylabel("D4RL score")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel(f"return ({len(records)} evaluations)")
-    ax.set_title(f"{run.get('algorithm', 'sac')} {run.get('env_id', '?')} seed {run.get('seed', '?')}")
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    return fig
 
 
 def load_run(run_dir) -> dict:
@@ -218,3 +138,52 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
     fig.savefig(out / "curves.png", dpi=110)
     plt.close(fig)
     return table
+
+
+def fmt_number(x, spec: str = ".1f") -> str:
+    """``x`` formatted with ``spec``, or ``"n/a"`` for None."""
+    return "n/a" if x is None else format(x, spec)
+
+
+def format_summary(summary) -> str:
+    """The one-paragraph result of a run, as printed by ``offhrl train`` and ``examples/offline_train.py``."""
+    f = summary["final"]
+    return (
+        f"{summary['algo']} on {summary['env_id']} ({summary['dataset']}), {summary['frames']} frames: real return "
+        f"{f['return_mean']:.1f} ± {f['return_std']:.1f}, D4RL-normalised {fmt_number(f['normalized_d4rl'])} "
+        f"(behaviour data: {fmt_number(summary['behaviour_normalized_d4rl'])}); outputs in {summary['run_dir']}"
+    )
+
+
+def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimism, threshold, frames: int, updates: int,
+                frames_per_s, updates_per_s, timing: dict, models, run_dir, evaluation_files=()) -> dict:
+    """The ``summary.json`` of a training run: the final (and initial) evaluation, the behaviour data's score, sizes and timings."""
+    env_id, level = cfg["env"]["env_id"], data.metadata.get("level")
+    return {
+        "algo": cfg["algo"]["name"],
+        "env_id": env_id,
+        "dataset": str(cfg["dataset"]),
+        "level": level,
+        "seed": cfg["seed"],
+        "ablation": cfg.get("ablation", {}),
+        "pessimism": pessimism,
+        "threshold": threshold,
+        "frames": frames,
+        "updates": updates,
+        "final": records[-1],
+        "initial": records[0] if records[0]["frames"] == 0 else None,
+        "behaviour_return_mean": behaviour["mean"],
+        "behaviour_return_std": behaviour["std"],
+        "behaviour_episodes": behaviour["episodes"],
+        "behaviour_normalized_d4rl": normalized_score(env_id, behaviour["mean"]),
+        "behaviour_normalized_dataset": normalized_score(env_id, behaviour["mean"], ref=ref) if ref else None,
+        "dataset_transitions": len(data),
+        "dataset_policy": str(data.metadata.get("policy", "?")),
+        "dataset_level": level,
+        "frames_per_s": frames_per_s,
+        "updates_per_s": updates_per_s,
+        **{k: round(v, 1) for k, v in timing.items()},
+        "models": models,
+        "run_dir": str(run_dir),
+        "plots": [str(Path(run_dir) / "learning_curve.png")] + [str(Path(run_dir) / f) for f in evaluation_files if f.endswith(".png")],
+    }

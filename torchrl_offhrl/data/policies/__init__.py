@@ -6,7 +6,7 @@ stopped at about a third of the expert's return. This folder holds such
 policies as pairs of files:
 
 * ``<name>.pt``: the state dict of the actor built by
-  :func:`torchrl_offhrl.recipes.behaviour.make_behaviour_actor`;
+  :func:`torchrl_offhrl.data.policies.training.make_behaviour_actor`;
 * ``<name>.json``: its card (env id, level, training and evaluation facts,
   the command that reproduces it, package versions, actor dimensions).
 
@@ -20,13 +20,17 @@ from __future__ import annotations
 import json
 import os
 import shlex
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from ...utils import atomic_write
+from ...registry import resolve_env
+from ...rollouts import evaluate_policy
+from ...scores import normalized_score
+from ...utils import atomic_write, one_thread
+from ..collect import make_gym_env, package_versions
+from .training import ALGORITHMS, make_behaviour_actor, pick_checkpoint
 
 __all__ = ["POLICY_DIR", "PolicyNotFoundError", "list_policies", "load_policy", "ship_policy"]
 
@@ -68,7 +72,7 @@ def load_policy(name_or_path: str | os.PathLike) -> tuple[torch.nn.Module, dict[
 
     Returns:
         ``(actor, card)``: the tanh-Gaussian actor of
-        :func:`~torchrl_offhrl.recipes.behaviour.make_behaviour_actor` in eval
+        :func:`~torchrl_offhrl.data.policies.training.make_behaviour_actor` in eval
         mode (it samples under ``ExplorationType.RANDOM`` and returns its mean
         under ``DETERMINISTIC``), and the card as a dict.
 
@@ -106,9 +110,7 @@ def card_returns(actor, env, seed: int, max_steps: int = 1000, deterministic: bo
     Calling it with the card's ``eval`` settings (``episodes`` envs,
     ``seed``, ``max_steps``) reproduces the card's figures for its weights.
     """
-    from ...recipes.behaviour import evaluate_policy
-
-    with torch.random.fork_rng(), _one_thread():
+    with torch.random.fork_rng(), one_thread():
         torch.manual_seed(seed)
         return evaluate_policy(env, actor, env.batch_size[0], max_steps=max_steps, deterministic=deterministic, seed=seed)
 
@@ -131,7 +133,7 @@ def ship_policy(
 
     Args:
         run_dir: the ``--out`` folder of ``scripts/train_behaviour.py``
-            (:func:`~torchrl_offhrl.recipes.behaviour.train_behaviour`):
+            (:func:`~torchrl_offhrl.data.policies.training.train_behaviour`):
             ``actor_<steps>.pt`` files and ``evals.json``.
         name: the policy name, ``<env>-<level>`` by convention
             (``"hopper-medium"``).
@@ -165,9 +167,6 @@ def ship_policy(
         The path of the ``.pt`` file. Both files are written atomically
         (temporary name, then rename; the ``.json`` last).
     """
-    from ...recipes.behaviour import ALGORITHMS, pick_checkpoint
-    from ...scores import normalized_score
-    from ..collect import _versions, make_gym_env
 
     if level not in _LEVELS:
         raise ValueError(f"ship_policy: level must be one of {_LEVELS}, got {level!r}.")
@@ -265,7 +264,7 @@ def ship_policy(
             "selection": how,
             "eval": evaluation,
             "command": command,
-            "versions": _versions(),
+            "versions": package_versions(),
             "source": {"run_dir": str(run), "checkpoint": ckpt.name},
         }
     )
@@ -288,25 +287,7 @@ def ship_policy(
 
 
 # ------------------------------------------------------------------ helpers
-@contextmanager
-def _one_thread():
-    """Run small-batch policy inference on one torch thread (restored afterwards).
-
-    A batch of 8 observations gains nothing from intra-op threads, and on a
-    busy 2-core machine two threads made collection 5-8 times slower. One
-    thread also makes the numbers independent of the caller's setting.
-    """
-    prev = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(prev)
-
-
 def _build_actor(card: dict) -> torch.nn.Module:
-    from ...recipes.behaviour import make_behaviour_actor
-
     return make_behaviour_actor(
         int(card["obs_dim"]),
         int(card["act_dim"]),
@@ -340,8 +321,6 @@ _RUN_STEPS = {"hopper": 300_000, "halfcheetah": 1_500_000}
 
 def missing_policy_message(name: str) -> str:
     """The error text for a policy name that is not shipped: what exists and how to make it."""
-    from ..generate import resolve_env
-
     available = list_policies()
     short, _, level = name.partition("-")
     try:

@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"normalized={ev.get('normalized_d4rl')}")
         return 0
     if a.cmd == "plot":
-        from ...recipes.report import plot_behaviour_run
+        from .plots import plot_behaviour_run
 
         try:
             print(plot_behaviour_run(a.run_dir, a.path))

@@ -1,4 +1,4 @@
-"""Online SAC / CrossQ in the real Gymnasium env, to make D4RL-style behaviour policies.
+"""Online SAC / CrossQ in the real Gymnasium env, to make D4RL-style behaviour policies (the data layer: generation ships what this trains).
 
 D4RL's protocol: "expert" is a fully trained SAC policy, "medium" a checkpoint
 of the same run stopped at about a third of the expert's return. This module
@@ -16,16 +16,16 @@ import warnings
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 
-from ..data.collect import make_gym_env
-from ..modules.options import mlp
-from ..utils import atomic_write
-from .report import plot_behaviour_run
+from ...nets import mlp, tanh_gaussian_actor
+from ...rollouts import evaluate_policy
+from ...utils import atomic_write
+from ..collect import make_gym_env
+from .plots import plot_behaviour_run
 
-__all__ = ["ALGORITHMS", "BehaviourLearner", "evaluate_policy", "first_episode_mask", "make_behaviour_actor", "pick_checkpoint", "train_behaviour", "train_behaviour_sac"]
+__all__ = ["ALGORITHMS", "BehaviourLearner", "make_sac_loss", "latest_state", "make_behaviour_actor", "pick_checkpoint", "train_behaviour", "train_behaviour_sac"]
 
 
 def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256)):
@@ -38,62 +38,11 @@ def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256
     Examples:
         >>> import torch
         >>> actor = make_behaviour_actor(3, 2, -torch.ones(2), torch.ones(2), hidden=(8,))
-        >>> from tensordict import TensorDict
-        >>> actor(TensorDict(observation=torch.zeros(4, 3), batch_size=[4]))["action"].shape
+        >>>         >>> actor(TensorDict(observation=torch.zeros(4, 3), batch_size=[4]))["action"].shape
         torch.Size([4, 2])
     """
-    from torchrl.modules import ProbabilisticActor, TanhNormal
-
     net = nn.Sequential(mlp(obs_dim, 2 * act_dim, hidden, activation="relu"), NormalParamExtractor())
-    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
-    return ProbabilisticActor(
-        module,
-        in_keys=["loc", "scale"],
-        out_keys=["action"],
-        distribution_class=TanhNormal,
-        distribution_kwargs={"low": torch.as_tensor(low, dtype=torch.float32), "high": torch.as_tensor(high, dtype=torch.float32)},
-        return_log_prob=True,
-    )
-
-
-def first_episode_mask(done: torch.Tensor) -> torch.Tensor:
-    """``[E, T]`` bool: the steps of each env's first episode (up to and including its first ``done``).
-
-    Examples:
-        >>> first_episode_mask(torch.tensor([[False, True, False], [False, False, False]]))
-        tensor([[ True,  True, False],
-                [ True,  True,  True]])
-    """
-    done = done.int()
-    return torch.cumsum(done, dim=1) - done == 0
-
-
-@torch.no_grad()
-def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, deterministic: bool = True, seed: int | None = None, return_rollout: bool = False):
-    """Returns of the first episode of each of ``env``'s parallel envs.
-
-    ``env`` is a batched TorchRL env with ``batch_size=[episodes]`` (e.g.
-    :func:`~torchrl_offhrl.data.make_gym_env` with ``num_envs=episodes``),
-    possibly auto-resetting: only rewards up to each env's first ``done``
-    count. Returns a float tensor ``[episodes]`` (and the ``[episodes, T]``
-    rollout when ``return_rollout``).
-    """
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
-
-    if env.batch_size.numel() != episodes:
-        raise ValueError(f"evaluate_policy: env has batch size {tuple(env.batch_size)}, expected [{episodes}]")
-    if seed is not None:
-        env.set_seed(seed)
-    mask = _full_reset_mask(env)
-    td0 = env.reset(mask) if mask is not None else env.reset()
-    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    with set_exploration_type(mode):
-        td = env.rollout(max_steps, policy, tensordict=td0, auto_reset=False, break_when_any_done=False, auto_cast_to_device=True)
-    reward = td.get(("next", "reward")).reshape(episodes, -1)
-    done = td.get(("next", "done")).reshape(episodes, -1)
-    alive = first_episode_mask(done)
-    returns = (reward * alive).sum(1).cpu()
-    return (returns, td) if return_rollout else returns
+    return tanh_gaussian_actor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]), low, high)
 
 
 #: Defaults of each algorithm of :func:`train_behaviour` (the published ones,
@@ -130,6 +79,26 @@ class _CrossQCritic(nn.Module):
         return self.net(torch.cat([observation, action], -1))
 
 
+def make_sac_loss(actor, qvalue, action_spec, gamma: float = 0.99, tau: float = 0.005, alpha_init: float = 1.0, action_key: str = "action"):
+    """TorchRL's :class:`~torchrl.objectives.SACLoss` as this project uses it, and its Polyak target updater.
+
+    Two Q networks, squared-error critic loss, target critics (not a target
+    actor) updated with ``tau``, the default target entropy
+    ``-(action elements)`` of ``action_spec`` (one env's, unbatched). Shared
+    by the behaviour-policy trainer and the offline SAC agent
+    (:mod:`torchrl_offhrl.agents.sac`). Returns ``(loss, target_updater)``.
+    """
+    from torchrl.objectives import SACLoss, SoftUpdate
+
+    loss = SACLoss(
+        actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True,
+        alpha_init=alpha_init, action_spec=action_spec,
+    )
+    loss.set_keys(action=action_key)
+    loss.make_value_estimator(gamma=gamma)
+    return loss, SoftUpdate(loss, tau=tau)
+
+
 class BehaviourLearner:
     """The losses, optimisers and update rule of :func:`train_behaviour` (SAC or CrossQ), for one actor.
 
@@ -142,7 +111,7 @@ class BehaviourLearner:
 
     def __init__(self, actor, obs_dim: int, act_dim: int, action_spec, algorithm: str = "sac", critic_hidden=(256, 256), lr: float | None = None, gamma: float = 0.99, tau: float = 0.005, device=None):
         from torchrl.modules import MLP, ValueOperator
-        from torchrl.objectives import CrossQLoss, SACLoss, SoftUpdate
+        from torchrl.objectives import CrossQLoss
 
         algo = _algorithm(algorithm)
         self.algorithm = algorithm
@@ -151,13 +120,12 @@ class BehaviourLearner:
         if algorithm == "sac":
             qnet = MLP(in_features=obs_dim + act_dim, out_features=1, num_cells=list(critic_hidden), activation_class=nn.ReLU)
             qvalue = ValueOperator(qnet, in_keys=["observation", "action"]).to(device)
-            self.loss = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True, action_spec=action_spec)
-            self.target_updater = SoftUpdate(self.loss, tau=tau)
+            self.loss, self.target_updater = make_sac_loss(actor, qvalue, action_spec, gamma=gamma, tau=tau)
         else:
             qvalue = ValueOperator(_CrossQCritic(obs_dim + act_dim, critic_hidden), in_keys=["observation", "action"]).to(device)
             self.loss = CrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", action_spec=action_spec)
             self.target_updater = None
-        self.loss.make_value_estimator(gamma=gamma)
+            self.loss.make_value_estimator(gamma=gamma)
         adam = lambda params: torch.optim.Adam(params, lr=lr, betas=algo["betas"])
         self.opt_actor = adam(self.loss.actor_network_params.flatten_keys().values())
         self.opt_q = adam(self.loss.qvalue_network_params.flatten_keys().values())
@@ -250,7 +218,7 @@ def train_behaviour(
       per evaluation (steps, stochastic and deterministic return mean/std
       over ``eval_episodes`` fresh episodes, wall time);
     * ``out_dir/curve.png``: the learning curve so far, with the D4RL medium
-      band and expert target (:func:`~torchrl_offhrl.recipes.report.plot_behaviour_run`);
+      band and expert target (:func:`~torchrl_offhrl.data.policies.plots.plot_behaviour_run`);
     * ``out_dir/state/``: everything needed to continue (networks,
       optimisers, temperature, replay buffer, counters, RNG), refreshed at
       every evaluation. Calling again with the same ``out_dir`` continues
@@ -295,7 +263,7 @@ def train_behaviour(
     }
 
     state = None
-    state_dir = _latest_state(out)
+    state_dir = latest_state(out)
     if state_dir is not None:  # a saved run: check it is this one, and whether anything is left to do
         state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=False)
         saved = state["identity"]
@@ -373,7 +341,7 @@ def train_behaviour(
                 torch.save({k: v.cpu() for k, v in actor.state_dict().items()}, tmp)
             with atomic_write(out / "evals.json") as tmp:
                 Path(tmp).write_text(json.dumps({**identity, "evals": records}, indent=1))
-            _save_state(
+            save_state(
                 out,
                 rb,
                 {
@@ -399,38 +367,12 @@ def train_behaviour(
     return records
 
 
-def _full_reset_mask(env):
-    """The ``reset()`` input that resets every env of ``env`` (after ``set_seed``: to its seeded state), or None.
-
-    When some (not all) envs of a TorchRL-wrapped gym vector env ended their
-    episode at the last step of the previous rollout, a plain ``reset()`` is a
-    partial one: TorchRL's ``VecGymEnvTransform`` hands those envs the
-    observation of their automatic reset instead of resetting them, so an
-    evaluation would depend on the one before it. An explicit
-    all-True ``"_reset"`` mask makes it a full reset; the transform only
-    accepts one once the env has stepped (it compares the mask with the
-    ``done`` it remembers from the last step), hence the check; before the
-    first step a plain ``reset()`` is a full one (None is returned).
-    """
-    from torchrl.envs import Compose, TransformedEnv
-
-    stale, inner = False, env
-    while isinstance(inner, TransformedEnv):
-        transforms = inner.transform if isinstance(inner.transform, Compose) else [inner.transform]
-        stale |= any(type(t).__name__ == "VecGymEnvTransform" and t._memo.get("done") is not None for t in transforms)
-        inner = inner.base_env
-    if not stale:
-        return None
-    reset = torch.ones(env.full_done_spec["done"].shape, dtype=torch.bool, device=env.device)
-    return TensorDict({"_reset": reset}, batch_size=env.batch_size, device=env.device)
-
-
 def train_behaviour_sac(env_id: str, out_dir: str | Path, **kwargs) -> list[dict]:
     """:func:`train_behaviour` with ``algorithm="sac"``."""
     return train_behaviour(env_id, out_dir, algorithm="sac", **kwargs)
 
 
-def _latest_state(out: Path) -> Path | None:
+def latest_state(out: Path) -> Path | None:
     """The complete saved state of a run, if any (``state/``, or ``state.old/`` after a crash mid-swap)."""
     for name in ("state", "state.old"):
         if (out / name / "state.pt").is_file():
@@ -438,7 +380,7 @@ def _latest_state(out: Path) -> Path | None:
     return None
 
 
-def _save_state(out: Path, rb, state: dict) -> None:
+def save_state(out: Path, rb, state: dict) -> None:
     """Write the resumable state into ``state.tmp/``, then swap it in for ``state/``.
 
     ``state.pt`` is written last, so a folder without it is incomplete; the

@@ -1,0 +1,50 @@
+"""Agents as plug-ins: one file per algorithm, registered by name.
+
+``make_agent("moc", env, **cfg)`` builds the agent registered as ``"moc"``
+for ``env`` from its config (``configs/algo/moc.yaml``), given as keyword
+arguments. An algorithm is added by writing a subclass of
+:class:`~torchrl_offhrl.agents.base.Agent` in its own file, decorating it
+with :func:`register_agent` and importing the file below (or, from your own
+code, just defining it: registration happens at class creation); see
+``CONTRIBUTING.md``.
+
+Examples:
+    >>> from torchrl_offhrl.agents import AGENTS
+    >>> sorted(AGENTS)
+    ['moc', 'ppo', 'sac']
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from ..utils import to_plain
+from .base import Agent, OnPolicyAgent, action_box, scalar_metrics, sum_losses
+from .registry import AGENTS, agent_class, agent_defaults, register_agent
+
+__all__ = ["AGENTS", "Agent", "OnPolicyAgent", "action_box", "agent_class", "agent_defaults", "make_agent", "register_agent", "scalar_metrics", "sum_losses"]
+
+def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_scale=None, action_key: str = "latent_action", device="cpu", **kwargs) -> Agent:
+    """Build the agent registered as ``name`` for ``env`` (specs only: the composed model env or a real env with the same action key).
+
+    Args:
+        name: a key of :data:`AGENTS` (``sac``, ``ppo``, ``moc``, or your own).
+        env: the env the agent acts in.
+        obs_loc, obs_scale: observation normalisation built into the networks (the dataset's statistics).
+        action_key: the key the policy writes: ``"latent_action"`` under the
+            latent transform, ``"action"`` for the "no CVAE" ablation.
+        device: where the networks and updates live.
+        cfg, **kwargs: the algorithm's hyper-parameters (``configs/algo/<name>.yaml``,
+            as a mapping and/or keyword arguments; a ``name`` entry is
+            ignored). An unknown key is an error that lists the accepted ones.
+    """
+    cls = agent_class(name)
+    cfg = {k: v for k, v in {**to_plain(cfg or {}), **kwargs}.items() if k != "name"}
+    accepted = agent_defaults(name)
+    unknown = sorted(set(cfg) - set(accepted))
+    if unknown:
+        raise TypeError(f"algo={name}: unknown hyper-parameter(s) {unknown}; {cls.__name__} accepts {sorted(accepted)}")
+    return cls(env, obs_loc=obs_loc, obs_scale=obs_scale, action_key=action_key, device=device, **cfg).to(device)
+
+
+# the algorithms shipped with the library register themselves on import
+from . import moc, ppo, sac  # noqa: E402,F401

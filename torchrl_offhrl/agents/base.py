@@ -1,0 +1,139 @@
+"""What every agent gives the training loop, and the update rules shared by families of algorithms.
+
+The loop (:func:`torchrl_offhrl.recipes.train`) knows nothing of any
+algorithm: it builds an agent with :func:`~torchrl_offhrl.agents.make_agent`,
+appends :meth:`Agent.env_transforms` to the envs the policy acts in, collects
+batches with :attr:`Agent.policy`, calls :meth:`Agent.update` on each and
+checkpoints :meth:`Agent.state_dict` (and :attr:`Agent.replay_buffer`, if
+any). At each real-env evaluation it merges :meth:`Agent.evaluation_metrics`
+into the record; at the last one it calls :meth:`Agent.save_evaluation`.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+
+__all__ = ["Agent", "OnPolicyAgent", "action_box", "scalar_metrics", "sum_losses"]
+
+
+def sum_losses(out: Mapping) -> torch.Tensor:
+    """The sum of a loss module's ``loss_*`` entries."""
+    return sum(v for k, v in out.items() if k.startswith("loss_"))
+
+
+def scalar_metrics(out: Mapping, prefix: str = "train/") -> dict[str, float]:
+    """Every one-element tensor of a loss output, as floats named ``prefix + key``."""
+    return {prefix + k: float(v.detach()) for k, v in out.items() if isinstance(v, torch.Tensor) and v.numel() == 1}
+
+
+def action_box(env, key: str) -> tuple[int, torch.Tensor, torch.Tensor]:
+    """``(dim, low, high)`` of the action ``key`` of ``env`` (one env's box when the env is batched)."""
+    spec = env.full_action_spec[key] if key in env.full_action_spec.keys(True, True) else env.action_spec
+    dim = spec.shape[-1]
+    low = spec.space.low.reshape(-1, dim)[0].float()
+    high = spec.space.high.reshape(-1, dim)[0].float()
+    return dim, low, high
+
+
+class Agent:
+    """Base class of the agents: a policy, a loss, its optimisers and how they learn from a batch.
+
+    A subclass sets, in its ``__init__``:
+
+    * ``policy``: the exploration policy the collector runs (it writes
+      :attr:`action_key`); under ``ExplorationType.DETERMINISTIC`` it is the
+      evaluation policy;
+    * ``loss``: a TorchRL :class:`~torchrl.objectives.LossModule` (its
+      ``state_dict`` holds every network);
+    * ``optimizer``: one optimiser over every trained parameter (several
+      built per network are merged with TorchRL's ``group_optimizers``:
+      Adam steps each parameter on its own, so this changes nothing);
+
+    and implements :meth:`update`. Optional: :meth:`env_transforms`
+    (transforms the policy needs on every env it acts in, e.g. an
+    ``InitTracker``), :meth:`evaluation_metrics` / :meth:`save_evaluation`
+    (extra numbers and files of a real-env evaluation), ``replay_buffer``
+    (off-policy agents: the loop checkpoints it), ``init_random_frames``
+    (frames the collector fills with uniformly random actions first),
+    ``frames_per_batch`` (the collector's batch).
+
+    ``update(batch)`` returns a dict of float metrics (logged under their
+    names) that includes ``"updates"``: the number of gradient steps taken.
+    """
+
+    name: str = ""
+    policy: nn.Module
+    loss: nn.Module
+    optimizer: torch.optim.Optimizer
+    action_key: str = "action"
+    frames_per_batch: int = 1
+    init_random_frames: int = 0
+    replay_buffer: Any = None
+    #: files :meth:`save_evaluation` writes into the run directory (the loop re-evaluates when one is missing)
+    evaluation_files: tuple[str, ...] = ()
+
+    def env_transforms(self) -> list:
+        """Transforms to append to every env the policy acts in (collection and evaluation)."""
+        return []
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        raise NotImplementedError
+
+    def evaluation_metrics(self, rollout: TensorDictBase, alive: torch.Tensor) -> dict[str, Any]:
+        """Extra JSON-able numbers of a real-env evaluation (``rollout`` is ``[E, T]``, ``alive`` marks each env's first episode)."""
+        return {}
+
+    def save_evaluation(self, rollout: TensorDictBase, alive: torch.Tensor, run_dir: Path, title: str) -> None:
+        """Write :attr:`evaluation_files` for the final evaluation (plots, tensors)."""
+
+    def to(self, device) -> Agent:
+        self.loss.to(device)
+        return self
+
+    def state_dict(self) -> dict:
+        return {"loss": self.loss.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: Mapping) -> None:
+        self.loss.load_state_dict(state["loss"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+
+class OnPolicyAgent(Agent):
+    """On-policy update shared by PPO-style agents: GAE over the batch, then epochs of shuffled minibatches.
+
+    Every ``loss_*`` term is summed and stepped with :attr:`optimizer` in
+    each minibatch; gradients are clipped to ``max_grad_norm`` (``None``: no
+    clipping). The batch's last dimension is time (``[envs, steps]``).
+    """
+
+    def __init__(self, *, frames_per_batch: int, epochs: int, minibatch_size: int, max_grad_norm: float | None):
+        self.frames_per_batch = int(frames_per_batch)
+        self.epochs = int(epochs)
+        self.minibatch_size = int(minibatch_size)
+        self.max_grad_norm = max_grad_norm
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        optim = self.optimizer
+        params = [p for grp in optim.param_groups for p in grp["params"]]
+        with torch.no_grad():
+            self.loss.value_estimator(batch)
+        flat = batch.reshape(-1)
+        acc: dict[str, float] = {}
+        n = 0
+        for _ in range(self.epochs):
+            for idx in torch.randperm(flat.numel()).split(self.minibatch_size):
+                out = self.loss(flat[idx])
+                optim.zero_grad()
+                sum_losses(out).backward()
+                if self.max_grad_norm:
+                    torch.nn.utils.clip_grad_norm_(params, float(self.max_grad_norm))
+                optim.step()
+                for k, v in scalar_metrics(out).items():
+                    acc[k] = acc.get(k, 0.0) + v
+                n += 1
+        return {**{k: v / max(n, 1) for k, v in acc.items()}, "updates": n}

@@ -1,0 +1,41 @@
+"""The registry of agents: ``register_agent`` (a class decorator) and lookups by name."""
+from __future__ import annotations
+
+import inspect
+
+from .base import Agent
+
+__all__ = ["AGENTS", "agent_class", "agent_defaults", "register_agent"]
+
+#: Registered agent classes by name.
+AGENTS: dict[str, type[Agent]] = {}
+
+# arguments every builder takes from the training loop rather than from its config
+_CONTEXT = ("env", "obs_loc", "obs_scale", "action_key", "device")
+
+
+def register_agent(name: str):
+    """Class decorator: make the agent available as ``make_agent(name, ...)`` / ``algo=name``."""
+
+    def deco(cls: type[Agent]) -> type[Agent]:
+        if name in AGENTS and AGENTS[name] is not cls:
+            raise ValueError(f"an agent named {name!r} is already registered ({AGENTS[name].__module__}.{AGENTS[name].__qualname__})")
+        cls.name = name
+        AGENTS[name] = cls
+        return cls
+
+    return deco
+
+
+def agent_defaults(name: str) -> dict:
+    """The hyper-parameters agent ``name`` takes from its config, with their defaults (``inspect.Parameter.empty`` if required)."""
+    sig = inspect.signature(agent_class(name).__init__)
+    return {k: p.default for k, p in sig.parameters.items() if k != "self" and k not in _CONTEXT and p.kind is p.KEYWORD_ONLY}
+
+
+def agent_class(name: str) -> type[Agent]:
+    """The agent class registered as ``name`` (case-insensitive; a clear error listing the registered ones otherwise)."""
+    try:
+        return AGENTS[name.lower()]
+    except KeyError:
+        raise ValueError(f"unknown algorithm {name!r}; registered agents: {sorted(AGENTS)}") from None

@@ -1,0 +1,96 @@
+"""Soft Actor-Critic (TorchRL :class:`~torchrl.objectives.SACLoss`): off-policy, from a replay buffer of collected frames."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.modules import ValueOperator
+from torchrl.objectives import group_optimizers
+
+from ..data.policies.training import make_sac_loss
+from ..nets import NormalizedMLP, tanh_gaussian_actor
+from .base import Agent, action_box, scalar_metrics, sum_losses
+from .registry import register_agent
+
+__all__ = ["SACAgent"]
+
+
+@register_agent("sac")
+class SACAgent(Agent):
+    """SAC with twin target critics (standard defaults, as Stable-Baselines3 which the paper used).
+
+    Each collected batch goes into the replay buffer; once
+    ``init_random_frames`` frames were collected (uniformly random actions),
+    every collected frame buys ``utd_ratio`` gradient steps on minibatches of
+    ``batch_size``, each followed by the Polyak update of the target critics.
+    """
+
+    def __init__(
+        self,
+        env,
+        *,
+        obs_loc=None,
+        obs_scale=None,
+        action_key: str = "latent_action",
+        device="cpu",
+        hidden_sizes: Sequence[int] = (256, 256),
+        lr: float = 3e-4,
+        gamma: float = 0.99,
+        tau: float = 0.005,
+        batch_size: int = 256,
+        buffer_size: int = 1_000_000,
+        init_random_frames: int = 5000,
+        utd_ratio: float = 1.0,
+        frames_per_batch: int = 64,
+        alpha_init: float = 1.0,
+    ):
+        obs_dim = env.observation_spec["observation"].shape[-1]
+        act_dim, low, high = action_box(env, action_key)
+        hidden = list(hidden_sizes)
+        net = nn.Sequential(NormalizedMLP(obs_dim, 0, 2 * act_dim, hidden, "relu", obs_loc, obs_scale), NormalParamExtractor())
+        self.policy = tanh_gaussian_actor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]), low, high, action_key)
+        qnet = NormalizedMLP(obs_dim, act_dim, 1, hidden, "relu", obs_loc, obs_scale)
+        qvalue = ValueOperator(qnet, in_keys=["observation", action_key], out_keys=["state_action_value"])
+        # the unbatched spec: the default target entropy is -(action elements), per env
+        self.loss, self.target_updater = make_sac_loss(
+            self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau, alpha_init=alpha_init, action_key=action_key,
+        )
+        self.optimizer = group_optimizers(
+            torch.optim.Adam(self.loss.actor_network_params.flatten_keys().values(), lr=lr),
+            torch.optim.Adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=lr),
+            torch.optim.Adam([self.loss.log_alpha], lr=lr),
+        )
+        self.action_key = action_key
+        self.frames_per_batch = int(frames_per_batch)
+        self.init_random_frames = int(init_random_frames)
+        self.utd_ratio = float(utd_ratio)
+        self.replay_buffer = ReplayBuffer(storage=LazyTensorStorage(int(buffer_size), device=device), batch_size=int(batch_size))
+        self.frames = 0
+
+    def update(self, batch):
+        self.replay_buffer.extend(batch.reshape(-1))
+        self.frames += batch.numel()
+        acc: dict[str, float] = {}
+        n = 0
+        if self.frames >= self.init_random_frames:
+            for _ in range(max(1, round(batch.numel() * self.utd_ratio))):
+                out = self.loss(self.replay_buffer.sample())
+                self.optimizer.zero_grad()
+                sum_losses(out).backward()
+                self.optimizer.step()
+                self.target_updater.step()
+                for k, v in scalar_metrics(out).items():
+                    acc[k] = acc.get(k, 0.0) + v
+                n += 1
+        return {**{k: v / max(n, 1) for k, v in acc.items()}, "updates": n}
+
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "target_updater": self.target_updater.state_dict(), "frames": self.frames}
+
+    def load_state_dict(self, state) -> None:
+        super().load_state_dict(state)
+        self.target_updater.load_state_dict(state["target_updater"])
+        self.frames = int(state.get("frames", 0))

@@ -1,0 +1,133 @@
+"""Config resolution for the recipes: hydra composition, the dataset a config names, the models' and the P-MDP's settings, run naming.
+
+One schema serves every command: ``configs/offline_train.yaml`` (with its
+``algo/`` and ``env/`` groups); ``demo.yaml`` and ``pipeline.yaml`` start
+from it and change budgets.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+from ..data import OfflineDataset, load_dataset
+from ..data.generate import named_dataset
+from ..registry import LEVELS
+from ..utils import to_plain
+
+__all__ = [
+    "RESUMABLE_KEYS", "compose", "config_dir", "config_fingerprint", "default_run_dir", "model_config", "model_env_config",
+    "pessimism_for", "resolve_dataset",
+]
+
+#: Settings that may change between a run and its resumption; anything else must match the checkpoint.
+RESUMABLE_KEYS = ("train", "eval", "logger", "run_dir", "out_root", "torch_threads", "device")
+
+
+def config_dir() -> Path:
+    """The hydra configs, shipped inside the package (``configs/`` in a checkout links to them)."""
+    path = Path(__file__).resolve().parents[1] / "configs"
+    if not (path / "offline_train.yaml").is_file():
+        raise FileNotFoundError(f"the package's configs are missing from {path}; reinstall torchrl_offhrl")
+    return path
+
+
+def compose(config_name: str, overrides: list[str], command: str | None = None):
+    """The hydra config ``config_name`` with ``overrides`` (``key=value`` strings).
+
+    A malformed override, an unknown config group option or key raises
+    ``ValueError`` with hydra's explanation.
+    """
+    from hydra import compose as hcompose
+    from hydra import initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise SystemExit(f"error: overrides must look like key=value, got {bad}; see `offhrl {command or 'train'} --help`")
+    try:
+        with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+            return hcompose(config_name, overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as err:
+        raise ValueError(f"{err} (configs in {config_dir()}; an override is key=value, a config group option "
+                         f"is e.g. algo=sac|ppo|moc, env=hopper|halfcheetah)") from err
+
+
+def resolve_dataset(spec: str, env_name: str, env_id: str, num_transitions: int | None = None, seed: int = 0) -> OfflineDataset:
+    """A dataset from ``spec``: a file path, a local Minari id, or a level name.
+
+    Level names (``medium``, ``hopper-medium``, ``medium-expert``, ...) are
+    generated with the shipped behaviour policies on first use and cached
+    (:func:`torchrl_offhrl.data.named_dataset`).
+    """
+    spec = str(spec)
+    path = Path(spec).expanduser()
+    if path.exists() or path.suffix in (".hdf5", ".h5"):
+        return load_dataset(path, env_id=env_id)
+    if "/" in spec:  # a Minari id such as mujoco/hopper/medium-v0
+        return load_dataset(spec, env_id=env_id)
+    level = spec[len(env_name) + 1 :] if spec.startswith(env_name + "-") else spec
+    if level not in LEVELS:
+        raise ValueError(
+            f"dataset={spec!r} is neither an existing file, a Minari id, nor a level name "
+            f"({', '.join(LEVELS)}); give a path to an HDF5 file or one of those names."
+        )
+    return named_dataset(f"{env_name}-{level}", num_transitions=num_transitions, seed=seed)
+
+
+def model_config(cfg: Mapping) -> dict:
+    """The part of a recipe config that :func:`~torchrl_offhrl.recipes.fit_or_load_models` reads (and keys its cache on)."""
+    cfg = to_plain(cfg)
+    return {
+        "seed": cfg.get("dataset_seed", 0),
+        "device": str(cfg.get("device", "cpu")),
+        "dataset": {"val_ratio": cfg.get("val_ratio", 0.1)},
+        "ensemble": cfg["ensemble"],
+        "cvae": cfg["cvae"],
+    }
+
+
+def pessimism_for(env_cfg: Mapping, level: str | None, overrides: Mapping | None = None) -> dict:
+    """The P-MDP settings for a dataset level: the paper's table in ``env_cfg['pessimism']``, then overrides."""
+    table = to_plain(env_cfg.get("pessimism", {}))
+    out = dict(table.get("default", {"quantile": 0.99, "penalty": 20.0}))
+    if level and level in table:
+        out = dict(table[level])
+    overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if "quantile" in overrides and "fraction" not in overrides:
+        out.pop("fraction", None)  # asking for a quantile replaces the table's fraction
+    out.update(overrides)
+    if out.get("fraction") is not None:
+        out.pop("quantile", None)
+    return out
+
+
+def model_env_config(cfg: Mapping, level: str | None) -> tuple[dict, dict]:
+    """``(env settings for make_model_env, resolved pessimism)``: ``model_env`` plus the table's (or the ablation's) pessimism."""
+    pess = pessimism_for(cfg["env"], level, cfg.get("model_env", {}).get("pessimism"))
+    if cfg.get("ablation", {}).get("no_pessimism", False):
+        pess = {"threshold": float("inf"), "penalty": 0.0}
+    menv = {k: v for k, v in cfg.get("model_env", {}).items() if k != "pessimism"}
+    return {**menv, **pess}, pess
+
+
+def default_run_dir(cfg: Mapping) -> Path:
+    """``<out_root>/<algo>-<env>-<dataset>[-<ablations>]-seed<seed>``.
+
+    A dataset given as a file or a Minari id is named by its stem plus a short
+    hash of the full path, so two files with the same name never share a run.
+    """
+    spec = str(cfg["dataset"])
+    ds = spec
+    if "/" in spec or Path(spec).suffix:
+        digest = hashlib.sha1(str(Path(spec).expanduser().resolve()).encode()).hexdigest()[:6]
+        ds = f"{Path(spec).stem}-{digest}"
+    abl = "".join(f"-{k}" for k, v in to_plain(cfg.get("ablation", {})).items() if v)
+    return Path(cfg.get("out_root", "outputs/runs")) / f"{cfg['algo']['name']}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
+
+
+def config_fingerprint(cfg: Mapping) -> str:
+    """The config minus :data:`RESUMABLE_KEYS`, as canonical JSON: a checkpoint resumes only under the same fingerprint."""
+    return json.dumps({k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS}, sort_keys=True, default=str)

@@ -1,0 +1,137 @@
+"""Evaluation in the real Gymnasium env: during training (:class:`Evaluator`) and of a saved run (:func:`evaluate_run`, optional frames).
+
+Always deterministic during training, through the same decoder the agent
+trained with, on ``episodes`` parallel envs seeded the same way at every
+evaluation, so the learning curve compares like with like.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from ..agents import make_agent
+from ..models import ConditionalVAE
+from ..rollouts import evaluate_policy, first_episode_mask
+from ..scores import normalized_score
+from .pipeline import make_real_env
+
+__all__ = ["Evaluator", "evaluate_run", "render_episode"]
+
+
+class Evaluator:
+    """Deterministic real-env evaluation of an agent, as one JSON-able record.
+
+    Args:
+        env: the batched real env (``batch_size=[episodes]``) with the agent's
+            transforms appended.
+        env_id: for the D4RL-normalised score.
+        episodes, max_steps, seed: the evaluation protocol (the same seed at
+            every evaluation).
+        ref: ``(random, expert)`` returns of the dataset's own references, or None.
+
+    ``evaluator(agent)`` returns ``return_mean``, ``return_std``,
+    ``normalized_d4rl``, ``normalized_dataset`` and the agent's
+    :meth:`~torchrl_offhrl.agents.Agent.evaluation_metrics`; with
+    ``save_to=run_dir`` it also has the agent write its evaluation files.
+    """
+
+    def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None):
+        self.env, self.env_id, self.episodes, self.max_steps, self.seed, self.ref = env, env_id, episodes, max_steps, seed, ref
+
+    def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
+        rets, td = evaluate_policy(
+            self.env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True,
+        )
+        mean = float(rets.mean())
+        rec = {
+            "return_mean": mean,
+            "return_std": float(rets.std()),
+            "normalized_d4rl": normalized_score(self.env_id, mean),
+            "normalized_dataset": normalized_score(self.env_id, mean, ref=self.ref) if self.ref else None,
+        }
+        alive = first_episode_mask(td["next", "done"].reshape(self.episodes, -1))
+        rec.update(agent.evaluation_metrics(td, alive))
+        if save_to is not None:
+            agent.save_evaluation(td, alive, save_to, title)
+        return rec
+
+
+def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None, deterministic: bool = True) -> dict:
+    """Evaluate a run's checkpoint in the real env: returns, normalised scores, optional PNG frames.
+
+    Rebuilds the agent from ``run_dir/config.json``, loads ``checkpoint.pt``
+    and the run's CVAE from the model cache, and rolls ``episodes`` episodes
+    out in the real Gymnasium env through the same decoder. With
+    ``frames_dir``, the first episode is rendered (``rgb_array``; headless
+    machines need ``MUJOCO_GL=egl`` or ``osmesa``) and saved as PNG frames.
+    """
+    run = Path(run_dir)
+    cfg_path, ckpt_path = run / "config.json", run / "checkpoint.pt"
+    for p in (cfg_path, ckpt_path):
+        if not p.is_file():
+            raise FileNotFoundError(f"{p} is missing: {run} is not a (checkpointed) run directory of `offhrl train`")
+    cfg = json.loads(cfg_path.read_text())
+    env_id = cfg["env"]["env_id"]
+    latent = not cfg.get("ablation", {}).get("no_cvae", False)
+    cvae = None
+    if latent:
+        model_dir = cfg.get("model_dir")
+        if model_dir is None and (run / "summary.json").is_file():
+            model_dir = json.loads((run / "summary.json").read_text()).get("models")
+        if model_dir is None:
+            raise FileNotFoundError(f"{cfg_path} does not say which models the run used (written by an older version); train it again")
+        cvae_path = Path(model_dir) / "cvae.pt"
+        if not cvae_path.is_file():
+            raise FileNotFoundError(f"the run's CVAE {cvae_path} is not in the model cache any more; rerun `offhrl fit` with the run's config")
+        cvae = ConditionalVAE.load(cvae_path)
+    bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
+    env = make_real_env(env_id, cvae, num_envs=episodes, latent_bound=bound)
+    agent = make_agent(cfg["algo"]["name"], env, cfg["algo"], action_key="latent_action" if latent else "action")
+    for t in agent.env_transforms():
+        env.append_transform(t)
+    state = torch.load(ckpt_path, weights_only=True, map_location="cpu")
+    agent.load_state_dict(state["agent"])
+    rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)
+    env.close()
+    res = {
+        "run_dir": str(run),
+        "frames": int(state["frames"]),
+        "episodes": episodes,
+        "deterministic": deterministic,
+        "return_mean": float(rets.mean()),
+        "return_std": float(rets.std()),
+        "normalized_d4rl": normalized_score(env_id, float(rets.mean())),
+        "returns": [round(float(r), 2) for r in rets],
+    }
+    if frames_dir is not None:
+        res["frames_dir"] = str(render_episode(env_id, cvae, bound, agent, Path(frames_dir), int(cfg["eval"]["max_steps"]), seed, deterministic))
+    return res
+
+
+def render_episode(env_id, cvae, bound, agent, out: Path, max_steps: int, seed: int, deterministic: bool) -> Path:
+    import matplotlib.pyplot as plt
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    try:
+        env = make_real_env(env_id, cvae, num_envs=1, latent_bound=bound, render_mode="rgb_array")
+        for t in agent.env_transforms():
+            env.append_transform(t)
+        env.set_seed(seed)
+        base = env.base_env._env  # the gymnasium vector env
+        out.mkdir(parents=True, exist_ok=True)
+        frames = [base.render()]
+        mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+        with torch.no_grad(), set_exploration_type(mode):
+            env.rollout(max_steps, agent.policy, callback=lambda *_: frames.append(base.render()))
+        for t, frame in enumerate(frames):
+            frame = frame[0] if isinstance(frame, (tuple, list)) else frame
+            plt.imsave(out / f"frame_{t:04d}.png", frame)
+        env.close()
+    except Exception as err:  # rendering needs an OpenGL backend
+        raise RuntimeError(
+            f"rendering {env_id} failed ({type(err).__name__}: {err}); on a headless machine set MUJOCO_GL=egl (GPU) "
+            f"or MUJOCO_GL=osmesa (CPU, needs libosmesa) and try again"
+        ) from err
+    return out

@@ -1,0 +1,117 @@
+"""A run directory: the resolved config, the checkpoint an interrupted run resumes from, the evaluation records and the logs.
+
+Layout (``outputs/runs/<algo>-<env>-<dataset>-seed<seed>/``): ``config.json``,
+``checkpoint.pt`` (the agent's state, frame and update counters, evaluation
+records, RNG state, the config fingerprint and, for agents with a replay
+buffer, the name of the ``replay-<frames>/`` folder saved with it),
+``evals.json``, ``logs/`` (TorchRL logger) and whatever the report writes.
+Every file is written atomically; a replay folder is written before the
+checkpoint that names it and the previous one deleted only after.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import torch
+
+from ..utils import atomic_write
+
+__all__ = ["RunDirectory", "trim_csv_logs"]
+
+
+class RunDirectory:
+    """Checkpoints and records of one training run (see the module docstring for the layout).
+
+    Args:
+        path: the run directory (created).
+        fingerprint: the config's :func:`~torchrl_offhrl.recipes.config.config_fingerprint`;
+            a checkpoint written under another one is refused on :meth:`resume`.
+    """
+
+    def __init__(self, path, fingerprint: str):
+        self.path = Path(path)
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.fingerprint = fingerprint
+        self.checkpoint_path = self.path / "checkpoint.pt"
+        self.frames = 0
+        self.updates = 0
+        self.records: list[dict] = []
+        self._replay: str | None = None
+
+    def resume(self, agent, device="cpu") -> bool:
+        """Load the checkpoint into ``agent`` (and its replay buffer) and the counters; False when there is none."""
+        if not self.checkpoint_path.is_file():
+            return False
+        state = torch.load(self.checkpoint_path, weights_only=True, map_location=device)
+        if state.get("fingerprint") not in (None, self.fingerprint):
+            from .config import RESUMABLE_KEYS
+
+            raise ValueError(
+                f"{self.path} holds a checkpoint of a run with a different configuration (only {', '.join(RESUMABLE_KEYS)} "
+                f"may change when resuming); give another run_dir= or out_root=, or delete {self.checkpoint_path} to start over"
+            )
+        agent.load_state_dict(state["agent"])
+        self.frames, self.updates, self.records = int(state["frames"]), int(state["updates"]), list(state["records"])
+        torch.set_rng_state(state["rng"])
+        self._replay = state.get("replay")
+        if agent.replay_buffer is not None and self._replay is not None:
+            if not (self.path / self._replay).is_dir():
+                raise FileNotFoundError(f"the checkpoint's replay buffer {self.path / self._replay} is missing; delete {self.checkpoint_path} to start over")
+            agent.replay_buffer.loads(self.path / self._replay)
+        print(f"resuming {self.path} from its checkpoint at {self.frames} frames")
+        return True
+
+    def write_json(self, name: str, obj) -> Path:
+        with atomic_write(self.path / name) as tmp:
+            Path(tmp).write_text(json.dumps(obj, indent=2, default=str))
+        return self.path / name
+
+    def checkpoint(self, agent) -> None:
+        """Save the agent, its replay buffer (if any and not empty), the counters, the records and the RNG state."""
+        new_replay = None
+        rb = agent.replay_buffer
+        if rb is not None and len(rb):  # an empty buffer (the evaluation before training) has nothing to save
+            new_replay = f"replay-{self.frames}"
+            shutil.rmtree(self.path / new_replay, ignore_errors=True)
+            rb.dumps(self.path / new_replay)
+        state = {
+            "agent": agent.state_dict(), "frames": self.frames, "updates": self.updates, "records": self.records,
+            "rng": torch.get_rng_state(), "replay": new_replay, "fingerprint": self.fingerprint,
+        }
+        with atomic_write(self.checkpoint_path) as tmp:
+            torch.save(state, tmp)
+        with atomic_write(self.path / "evals.json") as tmp:
+            Path(tmp).write_text(json.dumps(self.records, indent=1))
+        if self._replay is not None and self._replay != new_replay:
+            shutil.rmtree(self.path / self._replay, ignore_errors=True)
+        self._replay = new_replay
+
+    def logger(self, backend: str | None, **kwargs):
+        """A TorchRL logger writing under ``logs/`` (None without a backend); CSV rows after the checkpoint are dropped first."""
+        if not backend:
+            return None
+        from torchrl.record.loggers import get_logger
+
+        if self.frames and backend == "csv":
+            trim_csv_logs(self.path / "logs", self.frames)
+        return get_logger(backend, logger_name=str(self.path), experiment_name="logs", **kwargs)
+
+
+def trim_csv_logs(log_dir: Path, max_step: int) -> int:
+    """Drop the rows of TorchRL CSV logs (``step,value`` lines) logged after ``max_step``.
+
+    A resumed run restarts from its checkpoint, so the steps it logged between
+    that checkpoint and the interruption would otherwise appear twice.
+    Returns the number of rows dropped. Each file is rewritten atomically.
+    """
+    dropped = 0
+    for csv in sorted(Path(log_dir).glob("**/*.csv")):
+        lines = csv.read_text().splitlines()
+        keep = [line for line in lines if not line or float(line.split(",", 1)[0]) <= max_step]
+        if len(keep) != len(lines):
+            dropped += len(lines) - len(keep)
+            with atomic_write(csv) as tmp:
+                Path(tmp).write_text("".join(line + "\n" for line in keep))
+    return dropped

@@ -1,0 +1,43 @@
+"""Where training batches come from: today a TorchRL collector on the composed model env.
+
+The loop only iterates over batches and hands them to ``agent.update``; a
+later source (the dataset itself for model-free offline agents, the real env
+for online fine-tuning) is another function here returning an iterable of
+batches.
+"""
+from __future__ import annotations
+
+__all__ = ["model_env_collector", "model_env_metrics"]
+
+
+def model_env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu"):
+    """A :class:`~torchrl.collectors.Collector` of ``frames`` frames of ``agent.policy`` on the model env.
+
+    Batches of ``agent.frames_per_batch`` frames (``[envs, steps]``); the first
+    ``agent.init_random_frames`` frames of the run (those not yet collected
+    before ``frames_done``) use uniformly random actions.
+    """
+    from torchrl.collectors import Collector
+
+    return Collector(
+        env,
+        agent.policy,
+        frames_per_batch=agent.frames_per_batch,
+        total_frames=frames,
+        init_random_frames=0 if frames_done else agent.init_random_frames,
+        split_trajs=False,
+        auto_register_policy_transforms=False,  # the envs are built with the transforms they need
+        device=device,
+    )
+
+
+def model_env_metrics(batch) -> dict[str, float]:
+    """What a model-env batch says about the P-MDP: the mean return of the episodes that ended, the share of penalised steps."""
+    keys = batch.keys(True)
+    out = {}
+    done = batch["next", "done"]
+    if done.any():
+        out["train/model_episode_return"] = float(batch["next", "episode_reward"][done].mean()) if ("next", "episode_reward") in keys else float("nan")
+    out["train/penalized_rate"] = float(batch["next", "penalized"].float().mean()) if ("next", "penalized") in keys else float("nan")
+    return out
+

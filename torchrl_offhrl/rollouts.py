@@ -1,0 +1,76 @@
+"""Rolling a policy out in a batched env and reading episode returns: shared by data generation, behaviour training and the recipes.
+
+Below ``data`` in the layer order: it only needs TorchRL envs.
+"""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+__all__ = ["evaluate_policy", "first_episode_mask", "full_reset_mask"]
+
+
+def first_episode_mask(done: torch.Tensor) -> torch.Tensor:
+    """``[E, T]`` bool: the steps of each env's first episode (up to and including its first ``done``).
+
+    Examples:
+        >>> first_episode_mask(torch.tensor([[False, True, False], [False, False, False]]))
+        tensor([[ True,  True, False],
+                [ True,  True,  True]])
+    """
+    done = done.int()
+    return torch.cumsum(done, dim=1) - done == 0
+
+
+@torch.no_grad()
+def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, deterministic: bool = True, seed: int | None = None, return_rollout: bool = False):
+    """Returns of the first episode of each of ``env``'s parallel envs.
+
+    ``env`` is a batched TorchRL env with ``batch_size=[episodes]`` (e.g.
+    :func:`~torchrl_offhrl.data.make_gym_env` with ``num_envs=episodes``),
+    possibly auto-resetting: only rewards up to each env's first ``done``
+    count. Returns a float tensor ``[episodes]`` (and the ``[episodes, T]``
+    rollout when ``return_rollout``).
+    """
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    if env.batch_size.numel() != episodes:
+        raise ValueError(f"evaluate_policy: env has batch size {tuple(env.batch_size)}, expected [{episodes}]")
+    if seed is not None:
+        env.set_seed(seed)
+    mask = full_reset_mask(env)
+    td0 = env.reset(mask) if mask is not None else env.reset()
+    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    with set_exploration_type(mode):
+        td = env.rollout(max_steps, policy, tensordict=td0, auto_reset=False, break_when_any_done=False, auto_cast_to_device=True)
+    reward = td.get(("next", "reward")).reshape(episodes, -1)
+    done = td.get(("next", "done")).reshape(episodes, -1)
+    alive = first_episode_mask(done)
+    returns = (reward * alive).sum(1).cpu()
+    return (returns, td) if return_rollout else returns
+
+
+def full_reset_mask(env):
+    """The ``reset()`` input that resets every env of ``env`` (after ``set_seed``: to its seeded state), or None.
+
+    When some (not all) envs of a TorchRL-wrapped gym vector env ended their
+    episode at the last step of the previous rollout, a plain ``reset()`` is a
+    partial one: TorchRL's ``VecGymEnvTransform`` hands those envs the
+    observation of their automatic reset instead of resetting them, so an
+    evaluation would depend on the one before it. An explicit
+    all-True ``"_reset"`` mask makes it a full reset; the transform only
+    accepts one once the env has stepped (it compares the mask with the
+    ``done`` it remembers from the last step), hence the check; before the
+    first step a plain ``reset()`` is a full one (None is returned).
+    """
+    from torchrl.envs import Compose, TransformedEnv
+
+    stale, inner = False, env
+    while isinstance(inner, TransformedEnv):
+        transforms = inner.transform if isinstance(inner.transform, Compose) else [inner.transform]
+        stale |= any(type(t).__name__ == "VecGymEnvTransform" and t._memo.get("done") is not None for t in transforms)
+        inner = inner.base_env
+    if not stale:
+        return None
+    reset = torch.ones(env.full_done_spec["done"].shape, dtype=torch.bool, device=env.device)
+    return TensorDict({"_reset": reset}, batch_size=env.batch_size, device=env.device)
