@@ -369,3 +369,189 @@ def test_termination_advantage_normalisation_is_scale_free(normalize):
         assert values[0] == pytest.approx(values[1]) == pytest.approx(0.5 * ((1 / 3) / std + 0.01))
     else:
         assert values == pytest.approx(raw)
+
+
+# ------------------------------------------------- keys, terms, duck typing
+def _assert_same(a, b, keys=None):
+    """Entries equal bit for bit (NaN == NaN)."""
+    for key in keys if keys is not None else a.keys():
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, equal_nan=True, msg=lambda m, key=key: f"{key}: {m}")
+
+
+RENAMED = dict(
+    option="my_option",
+    prev_option=("carry", "prev"),
+    is_init="first_step",
+    option_start="my_start",
+    termination_prob="my_beta_prev",
+    option_log_probs=("logp", "all"),
+    assignment_log_prob=("logp", "assign"),
+    option_logits="my_logits",
+    option_loc=("heads", "loc"),
+    option_scale=("heads", "scale"),
+    termination_probs=("heads", "beta"),
+)
+DEFAULT_NAMES = {name: getattr(OptionCriticActor.default_keys(), name) for name in RENAMED}
+
+
+def test_tensordict_keys_renamed_on_actor_and_loss():
+    """Renamed keys on both sides: the same rollout and bit-identical loss values as with the default keys."""
+    torch.manual_seed(0)
+    heads = OptionHeads(2, 1, 3, hidden=(8,))
+    critic = make_option_critic(2, 3, hidden=(8,))
+    renamed_critic = make_option_critic(2, 3, hidden=(8,), out_key="my_q")
+    renamed_critic.load_state_dict(critic.state_dict())
+    results = []
+    for rename in (False, True):
+        actor = OptionCriticActor(heads)
+        if rename:
+            actor.set_keys(**RENAMED)
+            assert actor.tensor_keys.option == "my_option" and actor.in_keys[1] == ("carry", "prev")
+        torch.manual_seed(1)
+        with torch.no_grad():
+            td = _rollout_env(actor).rollout(8, actor, break_when_any_done=False)
+        loss = OptionCriticLoss(actor, renamed_critic if rename else critic, eta=0.5, xi=0.01, entropy_coef=0.01)
+        if rename:
+            # the loss took the actor's and critic's names; setting them (and the estimator's) explicitly is the same
+            assert loss.tensor_keys.prev_option == ("carry", "prev") and loss.tensor_keys.option_value == "my_q"
+            loss.set_keys(**RENAMED, option_value="my_q", advantage="my_adv", value_target=("gae", "target"))
+        loss.value_estimator(td)
+        torch.manual_seed(2)
+        results.append((td, loss(td.reshape(-1))))
+    (td, out), (td_r, out_r) = results
+    assert "option" not in td_r.keys() and "is_init" not in td_r.keys() and "advantage" not in td_r.keys()
+    for name, new in RENAMED.items():
+        if name in ("option_logits", "option_loc", "option_scale", "termination_probs"):
+            continue  # written by get_option_heads in the loss's copy, not into the rollout
+        _assert_same({name: td[DEFAULT_NAMES[name]]}, {name: td_r[new]})
+    _assert_same({"a": td["advantage"], "t": td["value_target"]}, {"a": td_r["my_adv"], "t": td_r["gae", "target"]})
+    assert (td_r["next", "carry", "prev"] == td_r["my_option"]).all()
+    assert set(out.keys()) == set(out_r.keys())
+    _assert_same(out, out_r)
+
+
+def test_actor_set_keys_validates():
+    actor = OptionCriticActor(OptionHeads(2, 1, 2, hidden=(4,)))
+    with pytest.raises(ValueError, match="not a key"):
+        actor.set_keys(opt="o")
+    with pytest.raises(ValueError, match="distinct"):
+        actor.set_keys(option="prev_option")
+    with pytest.raises(ValueError, match="is_init"):
+        actor.set_keys(is_init=("a", "b")).make_transforms()
+    actor.set_keys(is_init=None)  # back to the default
+    assert actor.tensor_keys.is_init == "is_init"
+
+
+class _ZeroTermination(OptionCriticLoss):
+    def termination_loss(self, td):
+        losses, metrics = super().termination_loss(td)
+        return {"loss_termination": losses["loss_termination"] * 0.0}, metrics
+
+
+class _DeliberationCost(OptionCriticLoss):
+    """Option-Critic's constant deliberation cost on top of the MOC termination term."""
+
+    cost = 0.25
+
+    def termination_loss(self, td):
+        losses, metrics = super().termination_loss(td)
+        k = self.tensor_keys
+        beta = td.get(k.termination_probs).gather(-1, td.get(k.prev_option).long().reshape(-1, 1)).squeeze(-1)
+        cont = ~td.get(k.is_init).reshape(-1).bool()
+        return {"loss_termination": losses["loss_termination"] + self.cost * beta[cont].mean()}, metrics
+
+
+@pytest.mark.parametrize("subclass", [_ZeroTermination, _DeliberationCost])
+def test_overriding_the_termination_term_changes_only_loss_termination(subclass):
+    torch.manual_seed(0)
+    heads = OptionHeads(2, 1, 3, hidden=(8,))
+    critic = make_option_critic(2, 3, hidden=(8,))
+    actor = OptionCriticActor(heads)
+    with torch.no_grad():
+        td = _rollout_env(actor).rollout(10, actor, break_when_any_done=False)
+    outs, grads = [], []
+    for cls in (OptionCriticLoss, subclass):
+        loss = cls(actor, critic, eta=0.7, xi=0.05)
+        loss.value_estimator(td)
+        torch.manual_seed(3)
+        out = loss(td.reshape(-1))
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        outs.append(out)
+        grads.append(loss.actor_network_params["heads", "termination_head", "2", "weight"].grad.clone())
+        heads.zero_grad()
+    base, sub = outs
+    assert list(base.keys()) == list(sub.keys())
+    _assert_same(base, sub, [k for k in base.keys() if k != "loss_termination"])
+    cont = ~td["is_init"].reshape(-1)
+    if subclass is _ZeroTermination:
+        assert base["loss_termination"] != 0 and sub["loss_termination"] == 0
+        assert (grads[0] != 0).any() and (grads[1] == 0).all()  # beta learns from this term only
+    else:
+        with torch.no_grad():
+            beta = heads(td["observation"].reshape(-1, 2))[3].gather(-1, td["prev_option"].reshape(-1, 1)).squeeze(-1)
+        torch.testing.assert_close(sub["loss_termination"], base["loss_termination"] + 0.25 * beta[cont].mean())
+
+
+class _PlainOptionActor(torch.nn.Module):
+    """Not an OptionCriticActor: just the two methods (and num_options) the loss needs."""
+
+    def __init__(self, heads, with_dist=True):
+        super().__init__()
+        self.heads = heads
+        self.num_options = heads.num_options
+        if not with_dist:
+            self.get_dist = None
+
+    def get_option_heads(self, td):
+        logits, loc, scale, beta = self.heads(td["observation"])
+        td.update({"option_logits": logits, "option_loc": loc, "option_scale": scale, "termination_probs": beta})
+        return td
+
+    def get_dist(self, td):
+        from torchrl.modules import TanhNormal
+
+        return TanhNormal(td["option_loc"], td["option_scale"], low=-torch.ones(1), high=torch.ones(1), safe_tanh=True)
+
+
+def test_loss_accepts_a_duck_typed_actor_and_names_a_missing_method():
+    loss, batch, _new, _old = _loss_setup(1.0, old_shift=0.1)
+    heads = loss.actor_network.heads
+    duck = OptionCriticLoss(_PlainOptionActor(heads), _constant_critic([0.0, 0.0, 0.0]), eta=1.0, clip_epsilon=0.2, normalize_advantage=False)
+    _assert_same(loss(batch), duck(batch))
+    with pytest.raises(TypeError, match="get_dist"):
+        OptionCriticLoss(_PlainOptionActor(heads, with_dist=False), _constant_critic([0.0, 0.0, 0.0]))
+    with pytest.raises(TypeError, match="get_option_heads"):
+        OptionCriticLoss(torch.nn.Linear(2, 3), _constant_critic([0.0, 0.0, 0.0]), num_options=3)
+    with pytest.raises(TypeError, match="Module"):
+        OptionCriticLoss(object(), _constant_critic([0.0, 0.0, 0.0]))
+    no_count = _PlainOptionActor(heads)
+    del no_count.num_options
+    with pytest.raises(TypeError, match="num_options"):
+        OptionCriticLoss(no_count, _constant_critic([0.0, 0.0, 0.0]))
+    assert OptionCriticLoss(no_count, _constant_critic([0.0, 0.0, 0.0]), num_options=3).num_options == 3
+
+
+def test_option_gae_renamed_keys_write_the_same_values():
+    from torchrl.objectives.value import ValueEstimatorBase
+
+    torch.manual_seed(0)
+    actor = OptionCriticActor(OptionHeads(2, 1, 3, hidden=(8,)))
+    loss = OptionCriticLoss(actor, make_option_critic(2, 3, hidden=(8,)))
+    with torch.no_grad():
+        td = _rollout_env(actor).rollout(9, actor, break_when_any_done=False)
+    gae = loss.value_estimator
+    assert isinstance(gae, ValueEstimatorBase) and gae.out_keys == ["advantage", "value_target"]
+    ref = gae(td.clone())
+    keys_before = set(td.keys(True))
+    gae.set_keys(advantage="my_adv", value_target=("gae", "target"))
+    assert gae.tensor_keys.advantage == "my_adv" and gae.out_keys == ["my_adv", ("gae", "target")]
+    out = gae(td)
+    assert out is td and "advantage" not in td.keys() and "value_target" not in td.keys()
+    assert set(td.keys(True)) - keys_before == {"my_adv", ("gae", "target"), "gae"}  # no heads or Q written
+    _assert_same({"a": ref["advantage"], "t": ref["value_target"]}, {"a": td["my_adv"], "t": td["gae", "target"]})
+    _assert_same({"t": ref["value_target"]}, {"t": gae.value_estimate(td)})
+    # keys set on the loss are forwarded to its estimator
+    loss.set_keys(advantage="adv2", value_target="target2")
+    assert loss.value_estimator.tensor_keys.advantage == "adv2"
+    loss.value_estimator(td)
+    _assert_same({"a": ref["advantage"], "t": ref["value_target"]}, {"a": td["adv2"], "t": td["target2"]})

@@ -7,20 +7,12 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from ..nets import mlp
 from ._common import FitMixin, buffer
 
 __all__ = ["ConditionalVAE", "CVAEDecoder"]
 
 _LOG_STD_MIN, _LOG_STD_MAX = -4.0, 15.0
-
-
-def _mlp(in_features: int, out_features: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    sizes = [in_features, *hidden_sizes]
-    for a, b in zip(sizes[:-1], sizes[1:]):
-        layers += [nn.Linear(a, b), nn.ReLU()]
-    layers.append(nn.Linear(sizes[-1], out_features))
-    return nn.Sequential(*layers)
 
 
 class CVAEDecoder(nn.Module):
@@ -51,7 +43,7 @@ class CVAEDecoder(nn.Module):
         self.action_dim = action_dim
         self.latent_dim = latent_dim
         self.goal_dim = goal_dim
-        self.net = _mlp(observation_dim + goal_dim + latent_dim, action_dim, hidden_sizes)
+        self.net = mlp(observation_dim + goal_dim + latent_dim, action_dim, hidden_sizes, "relu")
         buffer(self, "obs_mean", None, observation_dim)
         buffer(self, "obs_std", None, observation_dim)
         buffer(self, "goal_mean", None, goal_dim)
@@ -140,7 +132,7 @@ class ConditionalVAE(FitMixin, nn.Module):
         self.kl_weight = kl_weight
         self.loss_type = loss
         self.train_keys = ("observation", "action") + ((goal_key,) if goal_dim else ())
-        self.encoder = _mlp(observation_dim + goal_dim + action_dim, 2 * latent_dim, hidden_sizes)
+        self.encoder = mlp(observation_dim + goal_dim + action_dim, 2 * latent_dim, hidden_sizes, "relu")
         self._decoder = CVAEDecoder(observation_dim, action_dim, latent_dim, hidden_sizes, goal_dim)
 
     @property

@@ -20,53 +20,18 @@ from ``pi_O`` when it terminates or when the episode starts (``is_init`` from
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import asdict, dataclass, fields
 
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from tensordict.utils import NestedKey, unravel_key
 from torch import nn
 
+from ..nets import ObservationNormalizer, activation_class, mlp
+
 __all__ = ["ObservationNormalizer", "OptionCriticActor", "OptionHeads", "OptionValueNet", "make_option_critic"]
-
-_ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}
-
-
-def _activation(name: str) -> type[nn.Module]:
-    try:
-        return _ACTIVATIONS[name]
-    except KeyError:
-        raise ValueError(f"activation {name!r} is not one of {sorted(_ACTIVATIONS)}") from None
-
-
-def mlp(in_dim: int, out_dim: int, hidden: Sequence[int], activation: str = "tanh") -> nn.Sequential:
-    """A plain MLP; the last layer has no activation."""
-    act = _activation(activation)
-    layers, d = [], in_dim
-    for h in hidden:
-        layers += [nn.Linear(d, h), act()]
-        d = h
-    layers.append(nn.Linear(d, out_dim))
-    return nn.Sequential(*layers)
-
-
-class ObservationNormalizer(nn.Module):
-    """``(x - loc) / scale`` with fixed buffers (e.g. the dataset's statistics).
-
-    Offline data gives the statistics up front, so networks normalise with
-    them instead of running estimates. With ``loc=None`` it is the identity.
-    """
-
-    def __init__(self, dim: int, loc: torch.Tensor | None = None, scale: torch.Tensor | None = None):
-        super().__init__()
-        loc = torch.zeros(dim) if loc is None else torch.as_tensor(loc, dtype=torch.float32).reshape(dim)
-        scale = torch.ones(dim) if scale is None else torch.as_tensor(scale, dtype=torch.float32).reshape(dim)
-        self.register_buffer("loc", loc.clone())
-        self.register_buffer("scale", scale.clamp_min(1e-6).clone())
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.loc) / self.scale
-
 
 class OptionHeads(nn.Module):
     """Policy over options, intra-option Gaussians and terminations for all options.
@@ -113,7 +78,7 @@ class OptionHeads(nn.Module):
         n, a = num_options, act_dim
         if shared_trunk:
             hidden = list(hidden)
-            self.trunk = nn.Sequential(mlp(obs_dim, hidden[-1], hidden[:-1], activation), _activation(activation)())
+            self.trunk = nn.Sequential(mlp(obs_dim, hidden[-1], hidden[:-1], activation), activation_class(activation)())
             self.option_head = nn.Linear(hidden[-1], n)
             self.intra_head = nn.Linear(hidden[-1], n * a)
             self.termination_head = nn.Linear(hidden[-1], n)
@@ -192,11 +157,29 @@ class OptionCriticActor(TensorDictModuleBase):
     :class:`~torchrl.envs.TensorDictPrimer` for ``prev_option``); partial
     resets re-pick the option only in the envs that reset.
 
+    For losses (:class:`~torchrl_offhrl.objectives.OptionCriticLoss`) the actor
+    also exposes its heads through tensordicts:
+    :meth:`get_option_heads` writes ``option_logits`` (``[*, n]``),
+    ``option_loc`` and ``option_scale`` (pre-tanh Gaussian parameters,
+    ``[*, n, A]``) and ``termination_probs`` (``beta(s, o)`` for every option,
+    ``[*, n]``; not to be confused with the rollout's ``termination_prob``);
+    :meth:`get_dist` returns the intra-option distributions of all options from
+    those entries (as ``actor.get_dist(td)`` in TorchRL's PPO loss).
+
+    Every key read or written is configurable with :meth:`set_keys` (names in
+    :attr:`tensor_keys`: ``observation``, ``action``, ``prev_option``,
+    ``is_init``, ``option``, ``option_start``, ``termination_prob``,
+    ``option_log_probs``, ``assignment_log_prob``, ``option_logits``,
+    ``option_loc``, ``option_scale``, ``termination_probs``);
+    :meth:`make_transforms` follows the configured ``prev_option`` and
+    ``is_init`` keys. A loss built on the actor afterwards takes the same names.
+
     Args:
         heads: an :class:`OptionHeads`.
         low, high: the action box the tanh squashes to.
+        observation_key: shortcut for ``set_keys(observation=...)``.
         action_key: where to write the action (``"latent_action"`` under the
-            latent transform).
+            latent transform); shortcut for ``set_keys(action=...)``.
 
     Examples:
         >>> from torchrl.envs import GymEnv, TransformedEnv, Compose
@@ -209,60 +192,187 @@ class OptionCriticActor(TensorDictModuleBase):
         (torch.Size([5]), torch.Size([5, 2]), True)
         >>> bool((td["next", "prev_option"] == td["option"]).all())
         True
+        >>> _ = actor.get_option_heads(td)
+        >>> td["option_loc"].shape, td["termination_probs"].shape
+        (torch.Size([5, 2, 1]), torch.Size([5, 2]))
+        >>> actor.get_dist(td).log_prob(td["action"].unsqueeze(-2)).shape  # every option's log-density
+        torch.Size([5, 2])
+
+        Renamed keys, e.g. for two option layers in one tensordict:
+
+        >>> actor = OptionCriticActor(heads, low=-2.0, high=2.0).set_keys(
+        ...     option=("high", "option"), prev_option=("high", "prev_option"), is_init="first_step")
+        >>> env = TransformedEnv(GymEnv("Pendulum-v1"), Compose(*actor.make_transforms()))
+        >>> td = env.rollout(3, actor)
+        >>> td["high", "option"].shape, bool(td["first_step"][0])
+        (torch.Size([3]), True)
     """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read or written by the actor; change them with :meth:`OptionCriticActor.set_keys`.
+
+        Attributes:
+            observation: the state the heads read.
+            action: the action written.
+            prev_option: the option of the previous step (read; written under
+                ``("next", prev_option)`` to carry it over).
+            is_init: the episode-start flag (:class:`~torchrl.envs.InitTracker`).
+            option: the option executed at this step.
+            option_start: whether a new option was picked at this step.
+            termination_prob: ``beta(s, prev_option)`` (1 at episode starts).
+            option_log_probs: ``log pi_o(a|s)`` under every option, ``[*, n]``.
+            assignment_log_prob: ``log P_t(o)``, ``[*, n]``.
+            option_logits: the heads' ``pi_O`` logits, ``[*, n]``.
+            option_loc, option_scale: the heads' pre-tanh Gaussians, ``[*, n, A]``.
+            termination_probs: the heads' ``beta(s, o)`` for every option, ``[*, n]``.
+        """
+
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        prev_option: NestedKey = "prev_option"
+        is_init: NestedKey = "is_init"
+        option: NestedKey = "option"
+        option_start: NestedKey = "option_start"
+        termination_prob: NestedKey = "termination_prob"
+        option_log_probs: NestedKey = "option_log_probs"
+        assignment_log_prob: NestedKey = "option_assignment_log_prob"
+        option_logits: NestedKey = "option_logits"
+        option_loc: NestedKey = "option_loc"
+        option_scale: NestedKey = "option_scale"
+        termination_probs: NestedKey = "termination_probs"
+
+    default_keys = _AcceptedKeys
 
     def __init__(
         self,
         heads: OptionHeads,
         low: float | torch.Tensor = -1.0,
         high: float | torch.Tensor = 1.0,
-        observation_key="observation",
-        action_key="action",
+        observation_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
     ):
         super().__init__()
         self.heads = heads
         self.num_options = heads.num_options
         self.register_buffer("low", torch.as_tensor(low, dtype=torch.float32).expand(heads.act_dim).clone())
         self.register_buffer("high", torch.as_tensor(high, dtype=torch.float32).expand(heads.act_dim).clone())
-        self.observation_key = observation_key
-        self.action_key = action_key
-        self.in_keys = [observation_key, "prev_option", "is_init"]
-        self.out_keys = [
-            "option",
-            "option_start",
-            "termination_prob",
-            "option_log_probs",
-            "option_assignment_log_prob",
-            action_key,
-            ("next", "prev_option"),
-        ]
+        self._tensor_keys = self._AcceptedKeys()
+        self.set_keys(observation=observation_key, action=action_key)
 
+    # ------------------------------------------------------------------ keys
+    @property
+    def tensor_keys(self) -> _AcceptedKeys:
+        """The configured keys (a dataclass; change them with :meth:`set_keys`)."""
+        return self._tensor_keys
+
+    @property
+    def observation_key(self) -> NestedKey:
+        return self._tensor_keys.observation
+
+    @property
+    def action_key(self) -> NestedKey:
+        return self._tensor_keys.action
+
+    def set_keys(self, **kwargs: NestedKey) -> OptionCriticActor:
+        """Rename the tensordict entries the actor reads or writes; returns the actor.
+
+        Names are the fields of :attr:`tensor_keys` (see the class docstring);
+        ``None`` restores the default. Keys must be distinct.
+        Call it before :meth:`make_transforms` and before building a loss on
+        the actor (both read the keys when they are made).
+        """
+        names = {f.name for f in fields(self._AcceptedKeys)}
+        conf = asdict(self._tensor_keys)
+        for name, value in kwargs.items():
+            if name not in names:
+                raise ValueError(f"{name!r} is not a key of {type(self).__name__}; accepted: {sorted(names)}")
+            if value is None:
+                value = getattr(self.default_keys(), name)
+            elif not isinstance(value, (str, tuple)):
+                raise TypeError(f"key {name}={value!r} is not a NestedKey (a string or a tuple of strings)")
+            conf[name] = unravel_key(value)
+        clash = [v for v in conf.values() if list(conf.values()).count(v) > 1]
+        if clash:
+            raise ValueError(f"two entries share the key {clash[0]!r}: keys must be distinct ({conf})")
+        self._tensor_keys = self._AcceptedKeys(**conf)
+        k = self._tensor_keys
+        self.in_keys = [k.observation, k.prev_option, k.is_init]
+        self.out_keys = [
+            k.option,
+            k.option_start,
+            k.termination_prob,
+            k.option_log_probs,
+            k.assignment_log_prob,
+            k.action,
+            unravel_key(("next", k.prev_option)),
+        ]
+        return self
+
+    # ------------------------------------------------------- heads and dists
     def distribution(self, loc: torch.Tensor, scale: torch.Tensor):
         """The tanh-Gaussian of given pre-tanh ``loc``/``scale`` on this actor's box."""
         from torchrl.modules import TanhNormal
 
         return TanhNormal(loc, scale, low=self.low, high=self.high, safe_tanh=True)
 
+    def get_option_heads(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Run the heads on ``observation`` and write their outputs into ``tensordict``; returns it.
+
+        Writes ``option_logits`` ``[*, n]``, ``option_loc`` and
+        ``option_scale`` ``[*, n, A]`` and ``termination_probs`` ``[*, n]``
+        (under the configured keys), with gradients.
+        """
+        k = self._tensor_keys
+        logits, loc, scale, beta = self.heads(tensordict.get(k.observation))
+        tensordict.set(k.option_logits, logits)
+        tensordict.set(k.option_loc, loc)
+        tensordict.set(k.option_scale, scale)
+        tensordict.set(k.termination_probs, beta)
+        return tensordict
+
+    def get_dist(self, tensordict: TensorDictBase):
+        """The intra-option distributions of **all** options: batch shape ``[*, n]``, event ``[A]``.
+
+        Built from the ``option_loc``/``option_scale`` entries of
+        ``tensordict`` (:meth:`get_option_heads` is called first when they are
+        absent; present entries are used as they are). ``log_prob(action.unsqueeze(-2))``
+        gives ``log pi_o(a|s)`` for every option, ``[*, n]``.
+        """
+        k = self._tensor_keys
+        if tensordict.get(k.option_loc, None) is None:
+            self.get_option_heads(tensordict)
+        return self.distribution(tensordict.get(k.option_loc), tensordict.get(k.option_scale))
+
     def make_transforms(self):
-        """``[InitTracker(), TensorDictPrimer(prev_option)]``: append them to the env."""
+        """``[InitTracker(init_key=is_init), TensorDictPrimer(prev_option)]``: append them to the env."""
         from torchrl.data import Categorical
         from torchrl.envs import InitTracker, TensorDictPrimer
 
+        k = self._tensor_keys
+        if not isinstance(k.is_init, str):
+            raise ValueError(
+                f"is_init={k.is_init!r}: InitTracker writes its flag next to each done entry, so the key must be a "
+                "string (set_keys(is_init='...'))"
+            )
         return [
-            InitTracker(),
-            TensorDictPrimer({"prev_option": Categorical(self.num_options, shape=(), dtype=torch.int64)}, default_value=0, expand_specs=True),
+            InitTracker(init_key=k.is_init),
+            TensorDictPrimer({k.prev_option: Categorical(self.num_options, shape=(), dtype=torch.int64)}, default_value=0, expand_specs=True),
         ]
 
+    # --------------------------------------------------------------- rollout
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs = tensordict.get(self.observation_key)
+        k = self._tensor_keys
+        obs = tensordict.get(k.observation)
         batch = obs.shape[:-1]
-        if "is_init" not in tensordict:
+        is_init = tensordict.get(k.is_init, None)
+        if is_init is None:
             raise KeyError(
-                "OptionCriticActor needs 'is_init' to know where episodes start: append "
+                f"OptionCriticActor needs {k.is_init!r} to know where episodes start: append "
                 "actor.make_transforms() (InitTracker + prev_option primer) to the env."
             )
-        is_init = tensordict.get("is_init").reshape(batch)
-        prev = tensordict.get("prev_option", None)
+        is_init = is_init.reshape(batch)
+        prev = tensordict.get(k.prev_option, None)
         if prev is None:
             prev = torch.zeros(batch, dtype=torch.long, device=obs.device)
         prev = prev.reshape(batch).long()
@@ -285,12 +395,11 @@ class OptionCriticActor(TensorDictModuleBase):
         dist = self.distribution(loc.gather(-2, idx).squeeze(-2), scale.gather(-2, idx).squeeze(-2))
         action = dist.deterministic_sample if det else dist.sample()
         all_logp = self.distribution(loc, scale).log_prob(action.unsqueeze(-2))
-        tensordict.set("option", option)
-        tensordict.set("option_start", terminate)
-        tensordict.set("termination_prob", beta_prev)
-        tensordict.set("option_log_probs", all_logp)
-        tensordict.set("option_assignment_log_prob", assign.clamp_min(1e-12).log())
-        tensordict.set(self.action_key, action)
-        tensordict.set(("next", "prev_option"), option)
+        tensordict.set(k.option, option)
+        tensordict.set(k.option_start, terminate)
+        tensordict.set(k.termination_prob, beta_prev)
+        tensordict.set(k.option_log_probs, all_logp)
+        tensordict.set(k.assignment_log_prob, assign.clamp_min(1e-12).log())
+        tensordict.set(k.action, action)
+        tensordict.set(unravel_key(("next", k.prev_option)), option)
         return tensordict
-
