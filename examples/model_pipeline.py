@@ -62,7 +62,7 @@ def main(cfg: DictConfig) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
 
-    data = resolve_dataset(cfg.dataset, cfg.env.name, cfg.env.env_id, cfg.num_transitions, cfg.dataset_seed)
+    data = resolve_dataset(cfg)
     print(data)
     t_data = time.time()
     mcfg = model_config(cfg)  # the same settings (and so the same cached models) as `offhrl train`

@@ -43,7 +43,7 @@ def main(cfg: DictConfig) -> None:
     torch.manual_seed(cfg["seed"])
 
     # data: a level name (generated and cached), an HDF5 file or a local Minari id
-    data = resolve_dataset(cfg["dataset"], env_cfg["name"], env_cfg["env_id"], cfg["num_transitions"], cfg["dataset_seed"])
+    data = resolve_dataset(cfg)
     t_data = time.time() - t_start
 
     # models: the dynamics ensemble and the CVAE, fitted once per dataset and cached

@@ -13,7 +13,7 @@ def test_model_pipeline_tiny(tmp_path):
     out = tmp_path / "out"
     cmd = [
         sys.executable, str(ROOT / "examples" / "model_pipeline.py"),
-        f"out_dir={out}", "num_transitions=1500",
+        f"out_dir={out}", "num_transitions=1500", "dataset_num_envs=4",
         "ensemble.hidden_sizes=[32,32]", "ensemble.fit.max_steps=40",
         "cvae.hidden_sizes=[32,32]", "cvae.fit.max_steps=40",
         "rollout.batch_size=16", "rollout.steps=20", "rollout.real_envs=2", "rollout.real_steps=60",

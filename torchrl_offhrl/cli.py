@@ -69,7 +69,7 @@ def cmd_fit(args) -> int:
     from .recipes.pipeline import fit_or_load_models
 
     cfg = compose("offline_train", args.overrides, "fit")
-    data = resolve_dataset(cfg.dataset, cfg.env.name, cfg.env.env_id, cfg.num_transitions, cfg.dataset_seed)
+    data = resolve_dataset(cfg)
     _, _, info = fit_or_load_models(model_config(cfg), data)
     for name in ("ensemble", "cvae"):
         hist = info.get(f"{name}_history")

@@ -55,14 +55,16 @@ def compose(config_name: str, overrides: list[str], command: str | None = None):
                          f"is e.g. algo=sac|ppo|moc, env=hopper|halfcheetah)") from err
 
 
-def resolve_dataset(spec: str, env_name: str, env_id: str, num_transitions: int | None = None, seed: int = 0) -> OfflineDataset:
-    """A dataset from ``spec``: a file path, a local Minari id, or a level name.
+def resolve_dataset(cfg: Mapping) -> OfflineDataset:
+    """The dataset a recipe config names: ``cfg.dataset`` is a file path, a local Minari id, or a level name.
 
-    Level names (``medium``, ``hopper-medium``, ``medium-expert``, ...) are
-    generated with the shipped behaviour policies on first use and cached
-    (:func:`torchrl_offhrl.data.named_dataset`).
+    Level names (``medium``, ``hopper-medium``, ``medium-expert``, ...) of
+    ``cfg.env`` are generated with the shipped behaviour policies on first
+    use and cached (:func:`torchrl_offhrl.data.named_dataset`), with
+    ``num_transitions`` transitions (null: 1M), collected by
+    ``dataset_num_envs`` envs with seed ``dataset_seed``.
     """
-    spec = str(spec)
+    spec, env_name, env_id = str(cfg["dataset"]), cfg["env"]["name"], cfg["env"]["env_id"]
     path = Path(spec).expanduser()
     if path.exists() or path.suffix in (".hdf5", ".h5"):
         return load_dataset(path, env_id=env_id)
@@ -74,7 +76,9 @@ def resolve_dataset(spec: str, env_name: str, env_id: str, num_transitions: int 
             f"dataset={spec!r} is neither an existing file, a Minari id, nor a level name "
             f"({', '.join(LEVELS)}); give a path to an HDF5 file or one of those names."
         )
-    return named_dataset(f"{env_name}-{level}", num_transitions=num_transitions, seed=seed)
+    return named_dataset(
+        f"{env_name}-{level}", num_transitions=cfg.get("num_transitions"), seed=cfg.get("dataset_seed", 0), num_envs=cfg.get("dataset_num_envs", 8),
+    )
 
 
 def model_config(cfg: Mapping) -> dict:

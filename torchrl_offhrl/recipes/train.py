@@ -48,7 +48,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     device = torch.device(cfg.get("device", "cpu"))
 
     # 1. data and models: one dataset for every training seed (its own seed is dataset_seed)
-    data = resolve_dataset(cfg["dataset"], env_cfg["name"], env_cfg["env_id"], cfg.get("num_transitions"), cfg.get("dataset_seed", 0))
+    data = resolve_dataset(cfg)
     level = data.metadata.get("level")
     t_data = time.time() - t_start
     pcfg = model_config(cfg)

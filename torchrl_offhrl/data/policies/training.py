@@ -38,7 +38,8 @@ def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256
     Examples:
         >>> import torch
         >>> actor = make_behaviour_actor(3, 2, -torch.ones(2), torch.ones(2), hidden=(8,))
-        >>>         >>> actor(TensorDict(observation=torch.zeros(4, 3), batch_size=[4]))["action"].shape
+        >>> from tensordict import TensorDict
+        >>> actor(TensorDict(observation=torch.zeros(4, 3), batch_size=[4]))["action"].shape
         torch.Size([4, 2])
     """
     net = nn.Sequential(mlp(obs_dim, 2 * act_dim, hidden, activation="relu"), NormalParamExtractor())
