@@ -23,6 +23,7 @@ def test_readme_snippet(tmp_path, monkeypatch):
     scope = {}
     exec(compile(block, "README.md", "exec"), scope)
     assert scope["rollout"].batch_size == (8, 20)
+    assert len(scope["rb"]) == len(scope["data"]) and scope["rb"].sample().batch_size == (256,)
     options = blocks[1]
     for old, new in {"1024 * 16 * 10": "8 * 16 * 2", "1024 * 16": "8 * 16"}.items():
         assert old in options, old
