@@ -49,22 +49,30 @@ class ObservationNormalizer(nn.Module):
 
     Offline data gives the statistics up front, so networks normalise with
     them instead of running estimates. With ``loc=None`` it is the identity.
+    ``clip`` bounds the normalised values to ``[-clip, clip]`` (the official
+    MOC code clips at 5).
 
     Examples:
         >>> norm = ObservationNormalizer(2, torch.tensor([1.0, 0.0]), torch.tensor([2.0, 1.0]))
         >>> norm(torch.tensor([3.0, 1.0]))
         tensor([1., 1.])
+        >>> ObservationNormalizer(2, clip=5.0)(torch.tensor([9.0, -1.0]))
+        tensor([ 5., -1.])
     """
 
-    def __init__(self, dim: int, loc: torch.Tensor | None = None, scale: torch.Tensor | None = None):
+    def __init__(self, dim: int, loc: torch.Tensor | None = None, scale: torch.Tensor | None = None, clip: float | None = None):
         super().__init__()
         loc = torch.zeros(dim) if loc is None else torch.as_tensor(loc, dtype=torch.float32).reshape(dim)
         scale = torch.ones(dim) if scale is None else torch.as_tensor(scale, dtype=torch.float32).reshape(dim)
         self.register_buffer("loc", loc.clone())
         self.register_buffer("scale", scale.clamp_min(1e-6).clone())
+        if clip is not None and clip <= 0:
+            raise ValueError(f"clip must be > 0 (or None for no clipping), got {clip}")
+        self.clip = clip
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.loc) / self.scale
+        x = (x - self.loc) / self.scale
+        return x if self.clip is None else x.clamp(-self.clip, self.clip)
 
 
 class NormalizedMLP(nn.Module):

@@ -34,11 +34,11 @@ def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_
             latent transform, ``"action"`` for the "no CVAE" ablation.
         device: where the networks and updates live.
         cfg, **kwargs: the algorithm's hyper-parameters (``configs/algo/<name>.yaml``,
-            as a mapping and/or keyword arguments; a ``name`` entry is
-            ignored). An unknown key is an error that lists the accepted ones.
+            as a mapping and/or keyword arguments; ``name`` and ``label`` (a
+            config's run name, e.g. ``moc_official``) are not passed on). An unknown key is an error that lists the accepted ones.
     """
     cls = agent_class(name)
-    cfg = {k: v for k, v in {**to_plain(cfg or {}), **kwargs}.items() if k != "name"}
+    cfg = {k: v for k, v in {**to_plain(cfg or {}), **kwargs}.items() if k not in ("name", "label")}
     accepted = agent_defaults(name)
     unknown = sorted(set(cfg) - set(accepted))
     if unknown:

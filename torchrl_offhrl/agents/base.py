@@ -117,11 +117,21 @@ class OnPolicyAgent(Agent):
         self.minibatch_size = int(minibatch_size)
         self.max_grad_norm = max_grad_norm
 
+    def prepare(self, batch: TensorDictBase) -> None:
+        """Annotate the ``[envs, time]`` batch before it is shuffled (default: the loss's value estimator writes the advantage)."""
+        self.loss.value_estimator(batch)
+
     def update(self, batch: TensorDictBase) -> dict[str, float]:
-        optim = self.optimizer
+        return self.minibatch_epochs(batch, self.optimizer, lambda out: sum_losses(out))
+
+    def minibatch_epochs(self, batch: TensorDictBase, optim: torch.optim.Optimizer, objective) -> dict[str, float]:
+        """:meth:`prepare` the batch, then ``epochs`` passes of shuffled minibatches, each one step of ``optim`` on ``objective(loss(minibatch))``.
+
+        Returns the loss outputs' scalar metrics averaged over minibatches and ``"updates"``.
+        """
         params = [p for grp in optim.param_groups for p in grp["params"]]
         with torch.no_grad():
-            self.loss.value_estimator(batch)
+            self.prepare(batch)
         flat = batch.reshape(-1)
         acc: dict[str, float] = {}
         n = 0
@@ -129,7 +139,7 @@ class OnPolicyAgent(Agent):
             for idx in torch.randperm(flat.numel()).split(self.minibatch_size):
                 out = self.loss(flat[idx])
                 optim.zero_grad()
-                sum_losses(out).backward()
+                objective(out).backward()
                 if self.max_grad_norm:
                     torch.nn.utils.clip_grad_norm_(params, float(self.max_grad_norm))
                 optim.step()

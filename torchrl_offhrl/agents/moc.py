@@ -68,9 +68,25 @@ class MOCAgent(OnPolicyAgent):
     """MOC: option-critic actor (``pi_O``, intra-option policies, terminations) and ``Q(s, o)``, on-policy.
 
     The paper's values (Hopper and HalfCheetah) are in ``configs/algo/moc.yaml``:
-    lr 1e-4, clip 0.2, eta 0.7, gamma 0.99, lambda 0.95; every argument is
-    documented in :class:`~torchrl_offhrl.modules.OptionHeads` and
-    :class:`~torchrl_offhrl.objectives.OptionCriticLoss`.
+    lr 1e-4, clip 0.2, eta 0.7, gamma 0.99, lambda 0.95; the network and loss
+    arguments are documented in :class:`~torchrl_offhrl.modules.OptionHeads`
+    and :class:`~torchrl_offhrl.objectives.OptionCriticLoss`.
+
+    Switches between this project's first version and the official
+    continuous-control MOC code (``configs/algo/moc_official.yaml`` sets all
+    of them the official way):
+
+    * ``update_schedule``: ``"joint"`` sums every loss term and steps every
+      parameter in each minibatch (hundreds of Adam steps per batch on the
+      termination and pi_O heads); ``"per_term"`` (official) steps the
+      intra-option policies and the critic over the minibatch epochs and the
+      termination head and pi_O once per batch on the full batch, with their
+      own learning rates ``termination_lr`` / ``option_lr`` (default: ``lr``).
+    * ``importance_correction``: ``"assignment"`` or ``"next_step"`` (official).
+    * ``adam_eps``: 1e-8 (torch's default) or 1e-5 (official).
+    * ``obs_clip``: None or 5.0 (official: normalised observations clipped).
+    * ``option_head_gain`` / ``termination_head_gain``: 0.01 (near-uniform
+      start) or 1.0 (official ``normc(1.0)``: O(1) logits).
     """
 
     evaluation_files = ("option_usage.png",)
@@ -102,18 +118,29 @@ class MOCAgent(OnPolicyAgent):
         epochs: int = 10,
         minibatch_size: int = 64,
         max_grad_norm: float | None = 0.5,
+        update_schedule: str = "joint",
+        termination_lr: float | None = None,
+        option_lr: float | None = None,
+        importance_correction: str = "assignment",
+        adam_eps: float = 1e-8,
+        obs_clip: float | None = None,
+        option_head_gain: float = 0.01,
+        termination_head_gain: float = 0.01,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm)
+        if update_schedule not in self.UPDATE_SCHEDULES:
+            raise ValueError(f"update_schedule must be one of {self.UPDATE_SCHEDULES}, got {update_schedule!r}")
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim, low, high = action_box(env, action_key)
         n = int(num_options)
         hidden = list(hidden_sizes)
         heads = OptionHeads(
             obs_dim, act_dim, n, hidden=hidden, shared_trunk=shared_trunk, activation=activation,
-            obs_loc=obs_loc, obs_scale=obs_scale, init_log_std=init_log_std,
+            obs_loc=obs_loc, obs_scale=obs_scale, init_log_std=init_log_std, obs_clip=obs_clip,
+            option_head_gain=option_head_gain, termination_head_gain=termination_head_gain,
         )
         self.policy = OptionCriticActor(heads, low=low, high=high, action_key=action_key)
-        critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale)
+        critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale, obs_clip=obs_clip)
         self.loss = OptionCriticLoss(
             self.policy,
             critic,
@@ -127,10 +154,54 @@ class MOCAgent(OnPolicyAgent):
             option_entropy_coef=option_entropy_coef,
             gamma=gamma,
             lmbda=lmbda,
+            importance_correction=importance_correction,
         )
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
+        self.update_schedule = update_schedule
         self.action_key = action_key
         self.num_options = n
+        if update_schedule == "joint":
+            self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr, eps=adam_eps)
+            self.termination_optimizer = self.option_optimizer = None
+            return
+        groups = {"termination": [], "option": [], "main": []}
+        for name, p in self.loss.named_parameters():
+            groups["termination" if ".termination_head." in name else "option" if ".option_head." in name else "main"].append(p)
+        self.optimizer = torch.optim.Adam(groups["main"], lr=lr, eps=adam_eps)
+        self.termination_optimizer = torch.optim.Adam(groups["termination"], lr=lr if termination_lr is None else termination_lr, eps=adam_eps)
+        self.option_optimizer = torch.optim.Adam(groups["option"], lr=lr if option_lr is None else option_lr, eps=adam_eps)
+
+    UPDATE_SCHEDULES = ("joint", "per_term")
+    #: the loss terms stepped over the minibatch epochs by the per-term schedule
+    MINIBATCH_TERMS = ("loss_objective", "loss_critic", "loss_entropy")
+
+    def prepare(self, batch) -> None:
+        self.loss.prepare_batch(batch)
+
+    def update(self, batch) -> dict:
+        if self.update_schedule == "joint":
+            return super().update(batch)
+        metrics = self.minibatch_epochs(batch, self.optimizer, lambda out: sum(out[k] for k in self.MINIBATCH_TERMS))
+        # termination and pi_O: one step each on the whole batch (official MOC), with the updated critic
+        out = self.loss(batch.reshape(-1))
+        self.termination_optimizer.zero_grad()
+        self.option_optimizer.zero_grad()
+        (out["loss_termination"] + out["loss_option"] + out["loss_option_entropy"]).backward()
+        self.termination_optimizer.step()
+        self.option_optimizer.step()
+        return metrics
+
+    def state_dict(self) -> dict:
+        state = super().state_dict()
+        if self.update_schedule == "per_term":
+            state["termination_optimizer"] = self.termination_optimizer.state_dict()
+            state["option_optimizer"] = self.option_optimizer.state_dict()
+        return state
+
+    def load_state_dict(self, state) -> None:
+        super().load_state_dict(state)
+        if self.update_schedule == "per_term":
+            self.termination_optimizer.load_state_dict(state["termination_optimizer"])
+            self.option_optimizer.load_state_dict(state["option_optimizer"])
 
     def env_transforms(self) -> list:
         return self.policy.make_transforms()

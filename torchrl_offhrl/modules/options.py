@@ -49,6 +49,13 @@ class OptionHeads(nn.Module):
         activation: ``"tanh"`` (default, MOC's choice), ``"relu"`` or ``"elu"``.
         obs_loc, obs_scale: optional normalisation statistics.
         init_log_std: initial log standard deviation of the pre-tanh Gaussians.
+        obs_clip: clip the normalised observations to ``[-obs_clip, obs_clip]``
+            (official MOC: 5; None: no clip).
+        option_head_gain, termination_head_gain: orthogonal-init gain of the
+            last layer of pi_O and of the termination head. 0.01 (default)
+            starts near-uniform pi_O and beta ~ 0.5 everywhere; 1.0 starts
+            with O(1) logits that depend on the state, as the official code's
+            ``normc(1.0)`` initialisation.
 
     Examples:
         >>> heads = OptionHeads(5, 2, num_options=3, hidden=(16,))
@@ -68,13 +75,16 @@ class OptionHeads(nn.Module):
         obs_loc: torch.Tensor | None = None,
         obs_scale: torch.Tensor | None = None,
         init_log_std: float = 0.0,
+        obs_clip: float | None = None,
+        option_head_gain: float = 0.01,
+        termination_head_gain: float = 0.01,
     ):
         super().__init__()
         if num_options < 1:
             raise ValueError(f"num_options must be >= 1, got {num_options}")
         self.obs_dim, self.act_dim, self.num_options = obs_dim, act_dim, num_options
         self.shared_trunk = shared_trunk
-        self.normalizer = ObservationNormalizer(obs_dim, obs_loc, obs_scale)
+        self.normalizer = ObservationNormalizer(obs_dim, obs_loc, obs_scale, clip=obs_clip)
         n, a = num_options, act_dim
         if shared_trunk:
             hidden = list(hidden)
@@ -88,10 +98,10 @@ class OptionHeads(nn.Module):
             self.intra_head = mlp(obs_dim, n * a, hidden, activation)
             self.termination_head = mlp(obs_dim, n, hidden, activation)
         self.log_std = nn.Parameter(torch.full((n, a), float(init_log_std)))
-        # small last layers: near-uniform pi_O, near-zero means, beta ~ 0.5
-        for head in (self.option_head, self.intra_head, self.termination_head):
+        # small last layers by default: near-uniform pi_O, near-zero means, beta ~ 0.5
+        for head, gain in ((self.option_head, option_head_gain), (self.intra_head, 0.01), (self.termination_head, termination_head_gain)):
             last = head if isinstance(head, nn.Linear) else head[-1]
-            nn.init.orthogonal_(last.weight, gain=0.01)
+            nn.init.orthogonal_(last.weight, gain=gain)
             nn.init.zeros_(last.bias)
 
     def forward(self, observation: torch.Tensor):
@@ -106,17 +116,19 @@ class OptionHeads(nn.Module):
 class OptionValueNet(nn.Module):
     """``Q(s, o)`` for every option: ``observation [*, D] -> [*, n]``."""
 
-    def __init__(self, obs_dim: int, num_options: int, hidden: Sequence[int] = (64, 64), activation: str = "tanh", obs_loc=None, obs_scale=None):
+    def __init__(self, obs_dim: int, num_options: int, hidden: Sequence[int] = (64, 64), activation: str = "tanh", obs_loc=None, obs_scale=None,
+                 obs_clip: float | None = None):
         super().__init__()
         self.num_options = num_options
-        self.normalizer = ObservationNormalizer(obs_dim, obs_loc, obs_scale)
+        self.normalizer = ObservationNormalizer(obs_dim, obs_loc, obs_scale, clip=obs_clip)
         self.net = mlp(obs_dim, num_options, hidden, activation)
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         return self.net(self.normalizer(observation))
 
 
-def make_option_critic(obs_dim: int, num_options: int, hidden=(64, 64), activation: str = "tanh", obs_loc=None, obs_scale=None, observation_key="observation", out_key="option_value") -> TensorDictModule:
+def make_option_critic(obs_dim: int, num_options: int, hidden=(64, 64), activation: str = "tanh", obs_loc=None, obs_scale=None, observation_key="observation",
+                       out_key="option_value", obs_clip: float | None = None) -> TensorDictModule:
     """The critic as a TensorDict module: ``observation -> option_value [*, n]``.
 
     Examples:
@@ -125,7 +137,7 @@ def make_option_critic(obs_dim: int, num_options: int, hidden=(64, 64), activati
         >>> critic(TensorDict(observation=torch.zeros(2, 3), batch_size=[2]))["option_value"].shape
         torch.Size([2, 4])
     """
-    return TensorDictModule(OptionValueNet(obs_dim, num_options, hidden, activation, obs_loc, obs_scale), in_keys=[observation_key], out_keys=[out_key])
+    return TensorDictModule(OptionValueNet(obs_dim, num_options, hidden, activation, obs_loc, obs_scale, obs_clip), in_keys=[observation_key], out_keys=[out_key])
 
 
 def _is_deterministic() -> bool:

@@ -222,8 +222,8 @@ class OptionCriticLoss(LossModule):
     :meth:`importance_log_ratio`), :meth:`critic_loss`,
     :meth:`termination_loss` and :meth:`option_policy_loss`
     (``loss_option``, ``loss_option_entropy``; both use
-    :meth:`option_advantages`) and the data metrics of
-    :meth:`option_metrics`. Each term takes that tensordict (and the weights
+    :meth:`option_advantages`), the data metrics of :meth:`option_metrics`
+    and :meth:`termination_diagnostics` (whether options are alive). Each term takes that tensordict (and the weights
     where it needs them) and returns ``(losses, metrics)``, two dicts of
     tensors; the output keeps the order of :attr:`out_keys`, then any extra
     entries. To change one term (Option-Critic's deliberation cost, PPOC's
@@ -252,6 +252,10 @@ class OptionCriticLoss(LossModule):
         option_entropy_coef: entropy bonus of ``pi_O`` (0.01).
         normalize_advantage: standardise the advantage within each call.
         gamma, lmbda: the default value estimator's discount and GAE lambda.
+        importance_correction: ``"assignment"`` (default, as before),
+            ``"next_step"`` (the official MOC correction; call
+            :meth:`prepare_batch` on each batch) or ``"none"``; see
+            :attr:`IMPORTANCE_CORRECTIONS`.
 
     Examples:
         >>> import torch
@@ -332,6 +336,13 @@ class OptionCriticLoss(LossModule):
         option_scale: NestedKey = "option_scale"
         termination_probs: NestedKey = "termination_probs"
         option_value: NestedKey = "option_value"
+        next_assignment_log_ratio: NestedKey = "next_assignment_log_ratio"
+
+    #: ``"assignment"``: ``log P_t(o) - log P_t(o_t)`` (this project's first version; the weights
+    #: ``w_t(o)`` already carry ``P_t(o)``, so it counts it twice); ``"next_step"``: the official MOC
+    #: correction ``log P(o_{t+1}|s_{t+1}, o) - log P(o_{t+1}|s_{t+1}, o_t)``, precomputed per batch by
+    #: :meth:`annotate_next_assignment` (0 where no next step is in the batch); ``"none"``: the action ratio only.
+    IMPORTANCE_CORRECTIONS = ("assignment", "next_step", "none")
 
     #: methods the actor must provide (checked at construction)
     required_actor_methods = ("get_option_heads", "get_dist")
@@ -364,9 +375,13 @@ class OptionCriticLoss(LossModule):
         normalize_advantage: bool = True,
         gamma: float = 0.99,
         lmbda: float = 0.95,
+        importance_correction: str = "assignment",
     ):
         super().__init__()
         self._check_actor(actor_network)
+        if importance_correction not in self.IMPORTANCE_CORRECTIONS:
+            raise ValueError(f"importance_correction must be one of {self.IMPORTANCE_CORRECTIONS}, got {importance_correction!r}")
+        self.importance_correction = importance_correction
         actor_options = getattr(actor_network, "num_options", None)
         if actor_options is None and num_options is None:
             raise TypeError(f"{type(actor_network).__name__} has no num_options attribute: pass num_options=")
@@ -463,6 +478,7 @@ class OptionCriticLoss(LossModule):
         return [
             "loss_objective", "loss_critic", "loss_termination", "loss_option", "loss_option_entropy", "loss_entropy",
             "termination_rate", "option_duration", "option_usage", "clip_fraction", "approx_kl", "option_entropy", "z",
+            "option_usage_entropy", "termination_advantage", "termination_advantage_positive",
         ]
 
     # ------------------------------------------------------- value estimator
@@ -508,6 +524,41 @@ class OptionCriticLoss(LossModule):
         with self.actor_network_params.to_module(self.actor_network):
             return self.actor_network.get_dist(tensordict)
 
+    @torch.no_grad()
+    def annotate_next_assignment(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write ``next_assignment_log_ratio`` ``[*, T, n]``: ``log P(o_{t+1}|s_{t+1}, o) - log P(o_{t+1}|s_{t+1}, o_t)``.
+
+        ``P(o'|s', o) = beta(s', o) pi_O(o'|s') + (1 - beta(s', o)) [o' == o]`` is
+        the probability that the actor, holding option ``o``, runs ``o'`` at the
+        next step; ``o_{t+1}`` is the option the data ran there. The data's
+        last batch dimension is time; the ratio is 0 after a ``done`` and at
+        the batch's last step (the next option is not in the batch), and 0
+        for ``o = o_t``. Computed with the loss's current parameters.
+        """
+        k = self.tensor_keys
+        option = tensordict.get(k.option).long()
+        nxt = self.option_heads(tensordict.get("next").copy())
+        pi_n = torch.softmax(nxt.get(k.option_logits), -1)  # [*, T, n]
+        beta_n = nxt.get(k.termination_probs)  # [*, T, n]: beta(s_{t+1}, o) for every o
+        o_next = torch.cat([option[..., 1:], option[..., -1:]], -1)  # [*, T]
+        pi_next = pi_n.gather(-1, o_next.unsqueeze(-1))  # [*, T, 1]
+        same = F.one_hot(o_next, self.num_options).to(beta_n.dtype)
+        log_p = (beta_n * pi_next + (1 - beta_n) * same).clamp_min(1e-12).log()  # [*, T, n]
+        ratio = log_p - log_p.gather(-1, option.unsqueeze(-1))
+        done = tensordict.get(("next", k.done)).reshape(option.shape)
+        valid = ~done
+        valid[..., -1] = False
+        tensordict.set(k.next_assignment_log_ratio, torch.where(valid.unsqueeze(-1), ratio, torch.zeros_like(ratio)))
+        return tensordict
+
+    @torch.no_grad()
+    def prepare_batch(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Everything a ``[envs, time]`` batch needs before it is split into minibatches: the advantage (and the next-step ratio)."""
+        self.value_estimator(tensordict)
+        if self.importance_correction == "next_step":
+            self.annotate_next_assignment(tensordict)
+        return tensordict
+
     # ----------------------------------------------------------------- terms
     def option_weights(self, td: TensorDictBase) -> tuple[torch.Tensor, float]:
         """Multi-updates weights ``w_t(o) = z P_t(o) + (1 - z) [o == o_t]`` (detached, ``[B, n]``) and ``z``.
@@ -524,13 +575,25 @@ class OptionCriticLoss(LossModule):
         return weights.detach(), z
 
     def importance_log_ratio(self, td: TensorDictBase, log_prob: torch.Tensor) -> torch.Tensor:
-        """``log pi_o(a|s) - log pi_{o_t,old}(a|s) + log P_t(o) - log P_t(o_t)``, ``[B, n]``.
+        """The log importance ratio for updating every option ``o`` with the data of ``o_t``, ``[B, n]``.
 
-        ``log_prob`` is the current ``log pi_o(a_t|s_t)`` of every option.
+        ``log pi_o(a|s) - log pi_{o_t,old}(a|s)`` plus, by ``importance_correction``,
+        ``log P_t(o) - log P_t(o_t)`` (``"assignment"``), the stored
+        next-step assignment ratio (``"next_step"``, official MOC) or nothing
+        (``"none"``). ``log_prob`` is the current ``log pi_o(a_t|s_t)`` of every option.
         """
         k = self.tensor_keys
         o = td.get(k.option).long().reshape(-1).unsqueeze(-1)
         old_exec = td.get(k.option_log_probs).gather(-1, o)
+        if self.importance_correction == "none":
+            return log_prob - old_exec
+        if self.importance_correction == "next_step":
+            if k.next_assignment_log_ratio not in td.keys(True):
+                raise KeyError(
+                    f"importance_correction='next_step' needs {k.next_assignment_log_ratio!r}: call "
+                    "loss.prepare_batch(batch) (or loss.annotate_next_assignment(batch)) on the [envs, time] batch before splitting it"
+                )
+            return log_prob - old_exec + td.get(k.next_assignment_log_ratio).reshape(log_prob.shape)
         log_assign = td.get(k.assignment_log_prob)
         return log_prob - old_exec + log_assign - log_assign.gather(-1, o)
 
@@ -611,8 +674,30 @@ class OptionCriticLoss(LossModule):
         return {"loss_option": loss_option, "loss_option_entropy": loss_option_entropy}, {"option_entropy": option_entropy.detach()}
 
     @torch.no_grad()
+    def termination_diagnostics(self, td: TensorDictBase) -> dict:
+        """Where terminations are decided (non-start steps): is the running option better than average?
+
+        ``termination_advantage``: the mean of ``Q(s_t, o_{t-1}) - V(s_t)``
+        (raw, current critic and pi_O); ``termination_advantage_positive``: the
+        fraction of those steps where it is positive. The termination gradient
+        pushes ``beta`` down where it is positive, so a fraction near 1 at every
+        step means terminations collapse (options never end); near 0, options
+        end at once.
+        """
+        k = self.tensor_keys
+        p = td.get(k.prev_option).long().reshape(-1).unsqueeze(-1)
+        cont = ~td.get(k.is_init).reshape(-1).bool()
+        q = td.get(k.option_value).detach()
+        v = (torch.softmax(td.get(k.option_logits).detach(), -1) * q).sum(-1)
+        adv = (q.gather(-1, p).squeeze(-1) - v)[cont]
+        if adv.numel() == 0:
+            nan = torch.tensor(float("nan"))
+            return {"termination_advantage": nan, "termination_advantage_positive": nan}
+        return {"termination_advantage": adv.mean(), "termination_advantage_positive": (adv > 0).to(q.dtype).mean()}
+
+    @torch.no_grad()
     def option_metrics(self, td: TensorDictBase) -> dict:
-        """Metrics of the data: ``termination_rate``, ``option_duration``, ``option_usage``."""
+        """Metrics of the data: ``termination_rate``, ``option_duration``, ``option_usage`` and its entropy ``option_usage_entropy`` (nats; ``log n`` when every option runs equally often, 0 when one runs alone)."""
         k = self.tensor_keys
         option = td.get(k.option).long().reshape(-1)
         prev = td.get(k.prev_option).long().reshape(-1)
@@ -627,14 +712,14 @@ class OptionCriticLoss(LossModule):
         n_starts = starts.reshape(-1).sum() if starts is not None else (is_init | (option != prev)).sum()
         option_duration = option.numel() / n_starts.clamp_min(1).to(torch.float32)
         usage = F.one_hot(option, self.num_options).to(td.get(k.assignment_log_prob).dtype).mean(0)
-        return {"termination_rate": termination_rate, "option_duration": option_duration, "option_usage": usage}
+        usage_entropy = -(usage * usage.clamp_min(1e-12).log()).sum()
+        return {"termination_rate": termination_rate, "option_duration": option_duration, "option_usage": usage, "option_usage_entropy": usage_entropy}
 
     # ---------------------------------------------------------------- forward
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         k = self.tensor_keys
         if k.advantage not in tensordict.keys(True):
-            tensordict = tensordict.copy()
-            self.value_estimator(tensordict)
+            tensordict = self.prepare_batch(tensordict.copy())
         # a shallow copy: the heads and Q are written into it, not into the caller's data
         td = tensordict.reshape(-1).copy()
         td = self.option_heads(td)
@@ -650,6 +735,7 @@ class OptionCriticLoss(LossModule):
             entries.update(losses)
             entries.update(metrics)
         entries.update(self.option_metrics(td))
+        entries.update(self.termination_diagnostics(td))
         entries["z"] = torch.tensor(z)
         out = {key: entries.pop(key) for key in self.out_keys if key in entries}
         out.update(entries)

@@ -17,7 +17,7 @@ from ..registry import LEVELS
 from ..utils import to_plain
 
 __all__ = [
-    "RESUMABLE_KEYS", "compose", "config_dir", "config_fingerprint", "default_run_dir", "model_config", "model_env_config",
+    "RESUMABLE_KEYS", "algo_label", "compose", "config_dir", "config_fingerprint", "default_run_dir", "model_config", "model_env_config",
     "pessimism_for", "resolve_dataset",
 ]
 
@@ -118,7 +118,7 @@ def model_env_config(cfg: Mapping, level: str | None) -> tuple[dict, dict]:
 
 
 def default_run_dir(cfg: Mapping) -> Path:
-    """``<out_root>/<algo>-<env>-<dataset>[-<ablations>]-seed<seed>``.
+    """``<out_root>/<algo label>-<env>-<dataset>[-<ablations>]-seed<seed>``.
 
     A dataset given as a file or a Minari id is named by its stem plus a short
     hash of the full path, so two files with the same name never share a run.
@@ -129,7 +129,12 @@ def default_run_dir(cfg: Mapping) -> Path:
         digest = hashlib.sha1(str(Path(spec).expanduser().resolve()).encode()).hexdigest()[:6]
         ds = f"{Path(spec).stem}-{digest}"
     abl = "".join(f"-{k}" for k, v in to_plain(cfg.get("ablation", {})).items() if v)
-    return Path(cfg.get("out_root", "outputs/runs")) / f"{cfg['algo']['name']}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
+    return Path(cfg.get("out_root", "outputs/runs")) / f"{algo_label(cfg['algo'])}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
+
+
+def algo_label(algo_cfg: Mapping) -> str:
+    """How runs of an algorithm config are named and grouped: its ``label`` (e.g. ``moc_official``), else its agent ``name``."""
+    return str(algo_cfg.get("label") or algo_cfg["name"])
 
 
 def config_fingerprint(cfg: Mapping) -> str:

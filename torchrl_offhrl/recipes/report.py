@@ -82,7 +82,8 @@ def load_run(run_dir) -> dict:
 def _group_key(run: dict) -> tuple:
     cfg = run["config"]
     abl = ",".join(k for k, v in sorted((cfg.get("ablation") or {}).items()) if v) or "-"
-    return (cfg.get("algo", {}).get("name", "?"), cfg.get("env", {}).get("env_id", "?"), str(cfg.get("dataset", "?")), abl)
+    algo = cfg.get("algo", {})
+    return (str(algo.get("label") or algo.get("name", "?")), cfg.get("env", {}).get("env_id", "?"), str(cfg.get("dataset", "?")), abl)
 
 
 def aggregate(run_dirs: Sequence, out_dir) -> str:

@@ -1,0 +1,138 @@
+"""The official-MOC switches: the per-term update schedule, the next-step importance correction, the diagnostics."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_offhrl.modules import OptionCriticActor, OptionHeads, make_option_critic
+from torchrl_offhrl.objectives import OptionCriticLoss
+
+
+def _constant_heads(logits, term_prob, obs_dim=2):
+    """Heads whose outputs do not depend on the state: zero weights, chosen biases."""
+    heads = OptionHeads(obs_dim, 1, len(logits), hidden=(4,))
+    with torch.no_grad():
+        for p in heads.parameters():
+            p.zero_()
+        heads.option_head[-1].bias.copy_(torch.tensor(logits).log())
+        heads.termination_head[-1].bias.copy_(torch.logit(torch.tensor(term_prob)))
+    return heads
+
+
+def test_next_step_correction_hand_computed():
+    """pi_O = (0.25, 0.75), beta = (0.2, 0.6) everywhere; options 0, 1, 1 over three steps of one env.
+
+    P(o'=1 | s', o=0) = 0.2 * 0.75 = 0.15 and P(o'=1 | s', o=1) = 0.6 * 0.75 + 0.4 = 0.85, so the
+    ratio log P(o_{t+1}|s_{t+1}, o) - log P(o_{t+1}|s_{t+1}, o_t) is (0, log(0.85/0.15)) at t=0 (o_t=0),
+    (log(0.15/0.85), 0) at t=1 (o_t=1), and 0 at the batch's last step (its next option is not in the batch).
+    """
+    actor = OptionCriticActor(_constant_heads([0.25, 0.75], [0.2, 0.6]), low=-1.0, high=1.0)
+    critic = make_option_critic(2, 2, hidden=(4,))
+    loss = OptionCriticLoss(actor, critic, importance_correction="next_step")
+    td = TensorDict(
+        {
+            "observation": torch.zeros(1, 3, 2),
+            "option": torch.tensor([[0, 1, 1]]),
+            "next": {"observation": torch.zeros(1, 3, 2), "done": torch.zeros(1, 3, 1, dtype=torch.bool)},
+        },
+        batch_size=[1, 3],
+    )
+    loss.annotate_next_assignment(td)
+    r = math.log(0.85 / 0.15)
+    expected = torch.tensor([[[0.0, r], [-r, 0.0], [0.0, 0.0]]])
+    torch.testing.assert_close(td["next_assignment_log_ratio"], expected)
+    # a done cuts it: the next row belongs to another episode
+    td["next", "done"][0, 0] = True
+    loss.annotate_next_assignment(td)
+    torch.testing.assert_close(td["next_assignment_log_ratio"][0, 0], torch.zeros(2))
+    # and the loss uses it: importance_log_ratio adds exactly the stored ratio to the action ratio
+    flat = td.reshape(-1)
+    flat["option_log_probs"] = torch.zeros(3, 2)
+    new_logp = torch.zeros(3, 2)
+    torch.testing.assert_close(loss.importance_log_ratio(flat, new_logp), flat["next_assignment_log_ratio"])
+
+
+def test_next_step_correction_needs_the_batch_prepared():
+    actor = OptionCriticActor(_constant_heads([0.5, 0.5], [0.5, 0.5]), low=-1.0, high=1.0)
+    loss = OptionCriticLoss(actor, make_option_critic(2, 2, hidden=(4,)), importance_correction="next_step")
+    flat = TensorDict({"option": torch.tensor([0]), "option_log_probs": torch.zeros(1, 2)}, batch_size=[1])
+    with pytest.raises(KeyError, match="prepare_batch"):
+        loss.importance_log_ratio(flat, torch.zeros(1, 2))
+    with pytest.raises(ValueError, match="importance_correction must be one of"):
+        OptionCriticLoss(actor, make_option_critic(2, 2, hidden=(4,)), importance_correction="double")
+
+
+def _moc_env():
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    d = make_toy_dataset(num_episodes=4, episode_length=10)
+    return make_model_env({"env": {"threshold": 1.0}}, DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)),
+                          ConditionalVAE.for_dataset(d, hidden_sizes=(8,)), d, batch_size=8)
+
+
+@pytest.mark.parametrize("schedule", ["joint", "per_term"])
+def test_update_schedule_counts_optimizer_steps(schedule):
+    """per_term: the termination head and pi_O get exactly one Adam step per batch, the rest one per minibatch."""
+    from torchrl_offhrl.agents import make_agent
+
+    env = _moc_env()
+    agent = make_agent("moc", env, num_options=2, hidden_sizes=[8], epochs=3, minibatch_size=16, update_schedule=schedule,
+                       importance_correction="next_step" if schedule == "per_term" else "assignment", termination_lr=1e-3, option_lr=2e-3)
+    for t in agent.env_transforms():
+        env.append_transform(t)
+    before = {n: p.detach().clone() for n, p in agent.loss.named_parameters()}
+    for _ in range(2):
+        with torch.no_grad():
+            batch = env.rollout(8, agent.policy, break_when_any_done=False)  # [8 envs, 8 steps] = 64 frames
+        out = agent.update(batch)
+    minibatches = 3 * 64 // 16
+    assert out["updates"] == minibatches
+    steps = lambda opt: {int(s["step"]) for s in opt.state.values()}  # noqa: E731
+    if schedule == "joint":
+        assert agent.termination_optimizer is None
+        assert steps(agent.optimizer) == {2 * minibatches}
+        return
+    assert steps(agent.optimizer) == {2 * minibatches}
+    assert steps(agent.termination_optimizer) == {2} and steps(agent.option_optimizer) == {2}
+    assert agent.termination_optimizer.param_groups[0]["lr"] == 1e-3 and agent.option_optimizer.param_groups[0]["lr"] == 2e-3
+    names = {n for n, p in agent.loss.named_parameters() if not torch.equal(p, before[n])}
+    assert any(".termination_head." in n for n in names) and any(".option_head." in n for n in names)
+    # the three groups partition the parameters
+    groups = [agent.optimizer, agent.termination_optimizer, agent.option_optimizer]
+    ids = [id(p) for opt in groups for g in opt.param_groups for p in g["params"]]
+    assert len(ids) == len(set(ids)) == len(list(agent.loss.parameters()))
+    # and a checkpoint holds all three
+    again = make_agent("moc", env, num_options=2, hidden_sizes=[8], update_schedule="per_term", importance_correction="next_step")
+    again.load_state_dict(agent.state_dict())
+    assert steps(again.termination_optimizer) == {2}
+
+
+def test_diagnostics_hand_computed():
+    """Q = (1, 3), pi_O = (0.25, 0.75): V = 2.5, so Q(s, o_prev) - V is -1.5 for option 0 and +0.5 for option 1."""
+    actor = OptionCriticActor(_constant_heads([0.25, 0.75], [0.5, 0.5]), low=-1.0, high=1.0)
+    critic = make_option_critic(2, 2, hidden=(4,))
+    with torch.no_grad():
+        for p in critic.parameters():
+            p.zero_()
+        critic.module.net[-1].bias.copy_(torch.tensor([1.0, 3.0]))
+    loss = OptionCriticLoss(actor, critic)
+    td = TensorDict(
+        {
+            "observation": torch.zeros(4, 2), "action": torch.zeros(4, 1), "option": torch.tensor([0, 0, 1, 1]),
+            "prev_option": torch.tensor([0, 0, 1, 0]), "is_init": torch.tensor([True, False, False, False]).unsqueeze(-1),
+            "option_log_probs": torch.zeros(4, 2), "option_assignment_log_prob": torch.full((4, 2), 0.5).log(),
+            "advantage": torch.zeros(4, 1), "value_target": torch.zeros(4, 1),
+        },
+        batch_size=[4],
+    )
+    out = loss(td)
+    # non-start steps: prev 0 (1 - 2.5 = -1.5), 1 (+0.5), 0 (-1.5)
+    torch.testing.assert_close(out["termination_advantage"], torch.tensor(-2.5 / 3))
+    torch.testing.assert_close(out["termination_advantage_positive"], torch.tensor(1 / 3))
+    # usage 0.5 / 0.5: entropy log 2
+    torch.testing.assert_close(out["option_usage_entropy"], torch.tensor(math.log(2)))
