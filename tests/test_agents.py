@@ -115,6 +115,9 @@ def test_a_new_agent_trains_end_to_end_without_library_changes(toy_registered, h
     evals = json.loads((run / "evals.json").read_text())
     assert [e["frames"] for e in evals] == [0, 128, 256]
     assert all(0 < e["toy_steps_alive"] <= 2 * 40 for e in evals)  # 2 episodes of at most 40 steps
+    # the same policy in the model env: the model-real gap is the difference of the two means
+    assert all(e["model_real_gap"] == pytest.approx(e["model_return_mean"] - e["return_mean"]) for e in evals)
+    assert (run / "training_metrics.png").stat().st_size > 1000
     assert (run / "toy.txt").read_text().startswith("Hopper-v5, ")
     assert str(run / "toy.txt") not in summary["plots"] and summary["plots"] == [str(run / "learning_curve.png")]
 

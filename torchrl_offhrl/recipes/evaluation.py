@@ -30,6 +30,13 @@ class Evaluator:
         episodes, max_steps, seed: the evaluation protocol (the same seed at
             every evaluation).
         ref: ``(random, expert)`` returns of the dataset's own references, or None.
+        model_env: the pessimistic model env (``batch_size=[episodes]``, the
+            agent's transforms appended), or None. With it, each evaluation also
+            rolls the same deterministic policy out in the model from dataset
+            start states: ``model_return_mean`` / ``_std`` and
+            ``model_real_gap`` (model minus real mean return; an agent that
+            exploits model errors shows a large positive gap). The global RNG
+            is restored afterwards, so training is not changed by it.
 
     ``evaluator(agent)`` returns ``return_mean``, ``return_std``,
     ``normalized_d4rl``, ``normalized_dataset`` and the agent's
@@ -37,8 +44,9 @@ class Evaluator:
     ``save_to=run_dir`` it also has the agent write its evaluation files.
     """
 
-    def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None):
+    def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None, model_env=None):
         self.env, self.env_id, self.episodes, self.max_steps, self.seed, self.ref = env, env_id, episodes, max_steps, seed, ref
+        self.model_env = model_env
 
     def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
         rets, td = evaluate_policy(
@@ -51,6 +59,12 @@ class Evaluator:
             "normalized_d4rl": normalized_score(self.env_id, mean),
             "normalized_dataset": normalized_score(self.env_id, mean, ref=self.ref) if self.ref else None,
         }
+        if self.model_env is not None:  # the same policy in the pessimistic model: a large gap means it exploits model errors
+            with torch.random.fork_rng():
+                model_rets = evaluate_policy(self.model_env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed)
+            rec["model_return_mean"] = float(model_rets.mean())
+            rec["model_return_std"] = float(model_rets.std())
+            rec["model_real_gap"] = rec["model_return_mean"] - mean
         alive = first_episode_mask(td["next", "done"].reshape(self.episodes, -1))
         rec.update(agent.evaluation_metrics(td, alive))
         if save_to is not None:

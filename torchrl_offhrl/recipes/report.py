@@ -19,7 +19,7 @@ import torch
 
 from ..scores import normalized_score
 
-__all__ = ["aggregate", "fmt_number", "format_summary", "load_run", "plot_curve", "run_summary"]
+__all__ = ["aggregate", "fmt_number", "format_summary", "load_run", "plot_curve", "plot_training_metrics", "run_summary"]
 
 
 def _plt():
@@ -188,3 +188,53 @@ def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimi
         "run_dir": str(run_dir),
         "plots": [str(Path(run_dir) / "learning_curve.png")] + [str(Path(run_dir) / f) for f in evaluation_files if f.endswith(".png")],
     }
+
+
+def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None):
+    """One panel per logged scalar of a run's CSV logs (``logs/scalars/{train,eval}/*.csv``), against frames.
+
+    Shows whether options are alive (termination rate, option duration, pi_O
+    and usage entropies, the termination advantage), whether the model is
+    exploited (``penalized_rate``, the model return next to the real one) and
+    the losses. ``keys`` picks panels by name (default: every file). Returns
+    the path, or None when there are no CSV logs (another logger backend).
+    A figure is a convenience: a failure to draw it warns and returns None.
+    """
+    import warnings
+
+    root = Path(log_dir) / "scalars"
+    files = sorted(root.glob("*/*.csv")) if root.is_dir() else []
+    series = {}
+    for f in files:
+        name = f"{f.parent.name}/{f.stem}"
+        if keys is not None and f.stem not in keys and name not in keys:
+            continue
+        rows = [line.split(",") for line in f.read_text().splitlines() if line]
+        if rows:
+            series[name] = ([float(r[0]) for r in rows], [float(r[1]) for r in rows])
+    if not series:
+        return None
+    try:
+        plt = _plt()
+        evals = {k: v for k, v in series.items() if k.startswith("eval/") and "return_mean" in k}
+        panels = ([("eval/returns", evals)] if evals else []) + [(k, {k: v}) for k, v in series.items() if k not in evals]
+        cols = 4
+        rows_n = -(-len(panels) // cols)
+        fig, axes = plt.subplots(rows_n, cols, figsize=(4 * cols, 2.6 * rows_n), squeeze=False)
+        for ax, (title, group) in zip(axes.flat, panels):
+            for name, (x, y) in group.items():
+                ax.plot(x, y, lw=1, label=name.split("/", 1)[1])
+            ax.set_title(title, fontsize=9)
+            ax.tick_params(labelsize=7)
+            if len(group) > 1:
+                ax.legend(fontsize=7)
+        for ax in list(axes.flat)[len(panels):]:
+            ax.axis("off")
+        fig.supxlabel("frames", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+    except Exception as err:  # noqa: BLE001
+        warnings.warn(f"could not draw {path}: {err!r}", stacklevel=2)
+        return None
+    return Path(path)

@@ -29,7 +29,7 @@ from ..utils import to_plain
 from .config import config_fingerprint, default_run_dir, model_config, model_env_config, resolve_dataset
 from .evaluation import Evaluator
 from .pipeline import fit_or_load_models, make_model_env, make_real_env
-from .report import plot_curve, run_summary
+from .report import plot_curve, plot_training_metrics, run_summary
 from .rundir import RunDirectory
 from .sources import model_env_collector, model_env_metrics
 
@@ -77,9 +77,14 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=pcfg["env"].get("latent_bound", 2.0))
     for t in agent.env_transforms():
         eval_env.append_transform(t)
+    model_eval_env = None
+    if cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
+        model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold)
+        for t in agent.env_transforms():
+            model_eval_env.append_transform(t)
     ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
     evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=int(cfg["seed"]) * 1000 + 7,
-                          ref=ref if None not in ref else None)
+                          ref=ref if None not in ref else None, model_env=model_eval_env)
     title = f"{env_cfg['env_id']}, {cfg['dataset']}"
 
     # 4. resume, log, train, evaluate, checkpoint
@@ -120,8 +125,8 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
                 rec = evaluate(final=run.frames >= total)
                 run.records.append(rec)
                 if logger is not None:
-                    for k in ("return_mean", "normalized_d4rl"):
-                        if rec[k] is not None:
+                    for k in ("return_mean", "normalized_d4rl", "model_return_mean", "model_real_gap"):
+                        if rec.get(k) is not None:
                             logger.log_scalar(f"eval/{k}", rec[k], step=run.frames)
                 bar.set_postfix(ret=f"{rec['return_mean']:.0f}", score=f"{rec['normalized_d4rl'] or 0:.1f}")
                 bar.write(f"[{run.frames} frames] real {env_cfg['env_id']} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f} "
@@ -150,5 +155,6 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         models=model_info["model_dir"], run_dir=run.path, evaluation_files=agent.evaluation_files,
     )
     run.write_json("summary.json", summary)
+    plot_training_metrics(run.path / "logs", run.path / "training_metrics.png")
     eval_env.close()
     return summary
