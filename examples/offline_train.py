@@ -19,7 +19,7 @@ import time
 import hydra
 import torch
 from omegaconf import DictConfig
-from torchrl.envs import RewardSum
+from torchrl.envs import RewardScaling, RewardSum
 from tqdm.auto import tqdm
 
 from torchrl_offhrl.agents import make_agent
@@ -66,6 +66,8 @@ def main(cfg: DictConfig) -> None:
     for t in agent.env_transforms():
         env.append_transform(t)
     env.append_transform(RewardSum())
+    if mcfg["env"]["reward_scale"] != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
+        env.append_transform(RewardScaling(loc=0.0, scale=mcfg["env"]["reward_scale"]))
 
     # evaluation: deterministic, in the real env, through the same decoder
     eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=cfg["eval"]["episodes"],

@@ -24,7 +24,14 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "official_4opt": ("official, 4 options", ["algo=moc_official", "algo.num_options=4"]),
     "official_fast_heads": ("official, termination and pi_O lr 1e-3", ["algo=moc_official", "algo.termination_lr=1e-3", "algo.option_lr=1e-3"]),
     "official_xi": ("official, xi = 0.01 (Option-Critic's deliberation cost)", ["algo=moc_official", "algo.xi=0.01"]),
+    "official_rs": ("official, rewards x 0.1 for learning", ["algo=moc_official", "model_env.reward_scale=0.1"]),
+    "official_rs_fast_heads": ("official, rewards x 0.1, termination and pi_O lr 1e-3",
+                               ["algo=moc_official", "model_env.reward_scale=0.1", "algo.termination_lr=1e-3", "algo.option_lr=1e-3"]),
+    "joint_std": ("first MOC, initial intra-option std e^-1 (log_std -1)", ["algo=moc", "algo.init_log_std=-1.0"]),
+    "official_std": ("official, initial std e^-1", ["algo=moc_official", "algo.init_log_std=-1.0"]),
+    "official_std_rs": ("official, initial std e^-1, rewards x 0.1", ["algo=moc_official", "algo.init_log_std=-1.0", "model_env.reward_scale=0.1"]),
     "ppo": ("PPO (flat), same budget", ["algo=ppo"]),
+    "ppo_rs": ("PPO, rewards x 0.1 for learning", ["algo=ppo", "model_env.reward_scale=0.1"]),
 }
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 

@@ -22,7 +22,7 @@ import time
 from collections.abc import Mapping
 
 import torch
-from torchrl.envs import RewardSum
+from torchrl.envs import RewardScaling, RewardSum
 
 from ..agents import make_agent
 from ..utils import to_plain
@@ -73,6 +73,8 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     for t in agent.env_transforms():
         env.append_transform(t)
     env.append_transform(RewardSum())  # ("next", "episode_reward"): model returns in the logs
+    if pcfg["env"].get("reward_scale", 1.0) != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
+        env.append_transform(RewardScaling(loc=0.0, scale=float(pcfg["env"]["reward_scale"])))
     episodes = int(cfg["eval"]["episodes"])
     eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=pcfg["env"].get("latent_bound", 2.0))
     for t in agent.env_transforms():
