@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from ..utils import atomic_write
+from .config import RESUMABLE_KEYS
 
 __all__ = ["RunDirectory", "trim_csv_logs"]
 
@@ -46,8 +47,6 @@ class RunDirectory:
             return False
         state = torch.load(self.checkpoint_path, weights_only=True, map_location=device)
         if state.get("fingerprint") not in (None, self.fingerprint):
-            from .config import RESUMABLE_KEYS
-
             raise ValueError(
                 f"{self.path} holds a checkpoint of a run with a different configuration (only {', '.join(RESUMABLE_KEYS)} "
                 f"may change when resuming); give another run_dir= or out_root=, or delete {self.checkpoint_path} to start over"
