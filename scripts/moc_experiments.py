@@ -1,6 +1,7 @@
 """Small, cached MOC experiments on the demo's setting (100k hopper-medium transitions, demo-size models, 164k frames).
 
     python scripts/moc_experiments.py run NAME [NAME ...]     # train the named variants (resumable run dirs)
+    python scripts/moc_experiments.py list                     # the variants
     python scripts/moc_experiments.py table                    # docs/results/moc_demo_experiments.md from the finished runs
 
 Each variant is a list of hydra overrides of configs/demo.yaml; the dataset and
@@ -33,6 +34,11 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "ppo": ("PPO (flat), same budget", ["algo=ppo"]),
     "ppo_rs": ("PPO, rewards x 0.1 for learning", ["algo=ppo", "model_env.reward_scale=0.1"]),
 }
+# the same variants on better-fitted models (20k fitting steps instead of the demo's 3k: the model then
+# ends the decoder policy's episodes where the real env does; see scripts/model_episode_ends.py)
+FIT20K = ["ensemble.fit.max_steps=20000", "cvae.fit.max_steps=20000"]
+for _name in ("joint", "official", "official_std_rs", "ppo"):
+    VARIANTS[f"{_name}_fit20k"] = (VARIANTS[_name][0] + "; models fitted 20k steps", VARIANTS[_name][1] + FIT20K)
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 
@@ -85,7 +91,12 @@ def main(argv=None) -> int:
     r = sub.add_parser("run")
     r.add_argument("names", nargs="+", choices=sorted(VARIANTS))
     sub.add_parser("table")
+    sub.add_parser("list")
     a = p.parse_args(argv)
+    if a.cmd == "list":
+        for name, (what, overrides) in VARIANTS.items():
+            print(f"{name:28s} {what}  [{' '.join(overrides)}]")
+        return 0
     if a.cmd == "run":
         run(a.names)
         return 0

@@ -1,0 +1,73 @@
+"""How long do episodes last in the pessimistic model, and what ends them, next to the real env?
+
+    python scripts/model_episode_ends.py [hydra overrides of configs/demo.yaml ...]
+    python scripts/model_episode_ends.py model_env.member_mode=mean ensemble.fit.max_steps=20000
+
+Rolls the untrained MOC agent's deterministic policy (the CVAE decoder's mean
+action) out for 50 episodes in the model env built exactly as `offhrl train`
+builds it (cached dataset and models) and in the real env, and prints the
+return, the episode length, what ended each model episode (pessimism penalty,
+task termination, horizon) and, for terminations, which Hopper health
+condition fired. A model whose episodes end much earlier than the real ones
+trains the agent on a different problem than the one it is evaluated on.
+"""
+from __future__ import annotations
+
+import sys
+
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_offhrl.agents import make_agent
+from torchrl_offhrl.recipes.config import compose, model_config, model_env_config, resolve_dataset
+from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env, make_real_env
+from torchrl_offhrl.rollouts import first_episode_mask
+from torchrl_offhrl.utils import to_plain
+
+EPISODES = 50
+
+
+def rollout(env, policy, seed: int):
+    env.set_seed(seed)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.rollout(1000, policy, break_when_any_done=False)
+    done = td["next", "done"].reshape(EPISODES, -1)
+    alive = first_episode_mask(done)
+    ret = (td["next", "reward"].reshape(EPISODES, -1) * alive).sum(1)
+    return td, alive, alive & done, ret, alive.sum(1).float()
+
+
+def main(overrides: list[str]) -> None:
+    torch.set_num_threads(1)
+    cfg = to_plain(compose("demo", overrides))
+    data = resolve_dataset(cfg)
+    mcfg = model_config(cfg)
+    ensemble, cvae, _ = fit_or_load_models(mcfg, data, progress=False)
+    mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"))
+    torch.manual_seed(0)
+    env = make_model_env(mcfg, ensemble, cvae, data, batch_size=EPISODES)
+    stats = data.stats()
+    agent = make_agent("moc", env, cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std)
+    real = make_real_env(cfg["env"]["env_id"], cvae, num_envs=EPISODES)
+    for e in (env, real):
+        for t in agent.env_transforms():
+            e.append_transform(t)
+    print(f"pessimism {pessimism}, threshold {env.base_env.threshold:.3g}, member_mode {mcfg['env'].get('member_mode')}")
+    for name, e in (("model", env), ("real", real)):
+        td, alive, end, ret, length = rollout(e, agent.policy, seed=1)
+        nobs = td["next", "observation"].reshape(EPISODES, alive.shape[1], -1)[end]
+        line = f"{name}: return {ret.mean():.0f} ± {ret.std():.0f}, length {length.mean():.0f}, reward/step {(ret / length).mean():.2f}"
+        if name == "model":
+            pen = int((td["next", "penalized"].reshape(EPISODES, -1) & end).sum())
+            term = int((td["next", "terminated"].reshape(EPISODES, -1) & end).sum()) - pen
+            line += f"; ended by penalty {pen}, task termination {term}, horizon {EPISODES - pen - term}"
+        terminated = td["next", "terminated"].reshape(EPISODES, -1)[end] if name == "real" else None
+        z, angle = nobs[:, 0], nobs[:, 1]
+        mask = torch.ones_like(z, dtype=torch.bool) if terminated is None else terminated
+        line += f"; at terminal steps: z <= 0.7 in {int(((z <= 0.7) & mask).sum())}, |angle| >= 0.2 in {int(((angle.abs() >= 0.2) & mask).sum())}"
+        print(line)
+    real.close()
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
