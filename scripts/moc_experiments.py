@@ -39,6 +39,11 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
 FIT20K = ["ensemble.fit.max_steps=20000", "cvae.fit.max_steps=20000"]
 for _name in ("joint", "official", "official_std_rs", "ppo"):
     VARIANTS[f"{_name}_fit20k"] = (VARIANTS[_name][0] + "; models fitted 20k steps", VARIANTS[_name][1] + FIT20K)
+VARIANTS["ppo_fit20k_500k"] = ("PPO, models fitted 20k steps, 3x the frames (492k)",
+                               ["algo=ppo", *FIT20K, "train.total_frames=491520", "eval.every_frames=98304"])
+VARIANTS["moc_fit20k_500k"] = ("first MOC, models fitted 20k steps, 3x the frames (492k)",
+                               ["algo=moc", *FIT20K, "train.total_frames=491520", "eval.every_frames=98304"])
+VARIANTS["ppo_nocvae_fit20k"] = ("PPO in real actions (no CVAE), models fitted 20k steps", ["algo=ppo", "ablation.no_cvae=true", *FIT20K])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 
