@@ -174,3 +174,29 @@ def test_off_policy_agent_waits_for_its_random_frames():
     for a, b in zip(agent.loss.parameters(), agent2.loss.parameters()):
         assert torch.equal(a, b)
 
+
+
+def test_reward_scale_scales_what_the_agent_learns_from_only(toy_registered, hopper_file, tmp_path, monkeypatch):
+    """model_env.reward_scale=0.5 halves the rewards in the agent's batches; the logged episode returns stay unscaled."""
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    seen = []
+    real = ToyAgent.update
+    monkeypatch.setattr(ToyAgent, "update", lambda self, batch: (seen.append(batch.clone()), real(self, batch))[1])
+    for scale in (1.0, 0.5):
+        cfg = to_plain(compose("offline_train", [
+            f"dataset={hopper_file}", f"out_root={tmp_path / str(scale)}", "ensemble.hidden_sizes=[32,32]", "ensemble.fit.max_steps=40",
+            "cvae.hidden_sizes=[32,32]", "cvae.fit.max_steps=40", "collector.num_envs=4", "train.total_frames=64",
+            "eval.every_frames=64", "eval.episodes=2", "eval.max_steps=10", "eval.at_start=false", "eval.model_env=false",
+            f"model_env.reward_scale={scale}",
+        ]))
+        cfg["algo"] = {"name": "toy-pg", "frames_per_batch": 64}
+        train(cfg, progress=False)
+    full, half = seen
+    torch.testing.assert_close(full["next", "observation"], half["next", "observation"])  # the same rollout
+    torch.testing.assert_close(half["next", "reward"], 0.5 * full["next", "reward"])
+    torch.testing.assert_close(half["next", "episode_reward"], full["next", "episode_reward"])
+    assert full["next", "episode_reward"].abs().sum() > 0
