@@ -44,6 +44,12 @@ VARIANTS["ppo_fit20k_500k"] = ("PPO, models fitted 20k steps, 3x the frames (492
 VARIANTS["moc_fit20k_500k"] = ("first MOC, models fitted 20k steps, 3x the frames (492k)",
                                ["algo=moc", *FIT20K, "train.total_frames=491520", "eval.every_frames=98304"])
 VARIANTS["ppo_nocvae_fit20k"] = ("PPO in real actions (no CVAE), models fitted 20k steps", ["algo=ppo", "ablation.no_cvae=true", *FIT20K])
+# the CVAE's KL weight: at the paper's 0.5 the decoder ignores the latent (posterior collapse: its actions vary
+# by ~3% of the data's action std over the latent box), so no latent policy can act differently from it
+KL = ["cvae.kl_weight=0.05"]
+VARIANTS["moc_kl"] = ("first MOC, CVAE KL weight 0.05 (the decoder uses its latent)", ["algo=moc", *KL])
+VARIANTS["official_kl"] = ("official MOC, CVAE KL weight 0.05", ["algo=moc_official", *KL])
+VARIANTS["ppo_kl"] = ("PPO, CVAE KL weight 0.05", ["algo=ppo", *KL])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 
