@@ -50,6 +50,8 @@ KL = ["cvae.kl_weight=0.05"]
 VARIANTS["moc_kl"] = ("first MOC, CVAE KL weight 0.05 (the decoder uses its latent)", ["algo=moc", *KL])
 VARIANTS["official_kl"] = ("official MOC, CVAE KL weight 0.05", ["algo=moc_official", *KL])
 VARIANTS["ppo_kl"] = ("PPO, CVAE KL weight 0.05", ["algo=ppo", *KL])
+for _name in ("moc_kl", "official_kl", "ppo_kl"):
+    VARIANTS[f"{_name}_fit20k"] = (VARIANTS[_name][0] + "; models fitted 20k steps", VARIANTS[_name][1] + FIT20K)
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 
