@@ -54,8 +54,7 @@ def main():
         if "buffer_size" in acfg:
             acfg["buffer_size"] = 100_000
         agent = make_agent(algo, env, acfg, obs_loc=stats.obs_mean.to(dev), obs_scale=stats.obs_std.to(dev), device=dev)
-        for t in agent.env_transforms():
-            env.append_transform(t)
+        agent.attach(env)
         fpb = max(a.num_envs, agent.frames_per_batch // a.num_envs * a.num_envs)
         collector = Collector(env, agent.policy, frames_per_batch=fpb, total_frames=fpb + a.frames, device=dev, auto_register_policy_transforms=False)
         t_collect = t_update = 0.0

@@ -63,8 +63,7 @@ def main(cfg: DictConfig) -> None:
     stats = data.stats()
     agent = make_agent(algo["name"], env, algo, obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
                        action_key="latent_action" if latent else "action", device=device)
-    for t in agent.env_transforms():
-        env.append_transform(t)
+    agent.attach(env)
     env.append_transform(RewardSum())
     if mcfg["env"]["reward_scale"] != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
         env.append_transform(RewardScaling(loc=0.0, scale=mcfg["env"]["reward_scale"]))
@@ -72,8 +71,7 @@ def main(cfg: DictConfig) -> None:
     # evaluation: deterministic, in the real env, through the same decoder
     eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=cfg["eval"]["episodes"],
                              latent_bound=mcfg["env"]["latent_bound"])
-    for t in agent.env_transforms():
-        eval_env.append_transform(t)
+    agent.attach(eval_env)
     ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
     evaluator = Evaluator(eval_env, env_cfg["env_id"], cfg["eval"]["episodes"], cfg["eval"]["max_steps"],
                           seed=cfg["seed"] * 1000 + 7, ref=None if None in ref else ref)

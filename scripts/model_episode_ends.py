@@ -50,8 +50,7 @@ def main(overrides: list[str]) -> None:
     agent = make_agent("moc", env, cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std)
     real = make_real_env(cfg["env"]["env_id"], cvae, num_envs=EPISODES)
     for e in (env, real):
-        for t in agent.env_transforms():
-            e.append_transform(t)
+        agent.attach(e)
     print(f"pessimism {pessimism}, threshold {env.base_env.threshold:.3g}, member_mode {mcfg['env'].get('member_mode')}")
     for name, e in (("model", env), ("real", real)):
         td, alive, end, ret, length = rollout(e, agent.policy, seed=1)

@@ -83,8 +83,7 @@ def test_update_schedule_counts_optimizer_steps(schedule):
     env = _moc_env()
     agent = make_agent("moc", env, num_options=2, hidden_sizes=[8], epochs=3, minibatch_size=16, update_schedule=schedule,
                        importance_correction="next_step" if schedule == "per_term" else "assignment", termination_lr=1e-3, option_lr=2e-3)
-    for t in agent.env_transforms():
-        env.append_transform(t)
+    agent.attach(env)
     before = {n: p.detach().clone() for n, p in agent.loss.named_parameters()}
     for _ in range(2):
         with torch.no_grad():

@@ -81,6 +81,12 @@ class Agent:
         """Transforms to append to every env the policy acts in (collection and evaluation)."""
         return []
 
+    def attach(self, env):
+        """Append a fresh set of :meth:`env_transforms` to ``env`` (a ``TransformedEnv``) and return it."""
+        for t in self.env_transforms():
+            env.append_transform(t)
+        return env
+
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         raise NotImplementedError
 
@@ -122,7 +128,7 @@ class OnPolicyAgent(Agent):
         self.loss.value_estimator(batch)
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
-        return self.minibatch_epochs(batch, self.optimizer, lambda out: sum_losses(out))
+        return self.minibatch_epochs(batch, self.optimizer, sum_losses)
 
     def minibatch_epochs(self, batch: TensorDictBase, optim: torch.optim.Optimizer, objective) -> dict[str, float]:
         """:meth:`prepare` the batch, then ``epochs`` passes of shuffled minibatches, each one step of ``optim`` on ``objective(loss(minibatch))``.

@@ -103,8 +103,7 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
     env = make_real_env(env_id, cvae, num_envs=episodes, latent_bound=bound)
     agent = make_agent(cfg["algo"]["name"], env, cfg["algo"], action_key="latent_action" if latent else "action")
-    for t in agent.env_transforms():
-        env.append_transform(t)
+    agent.attach(env)
     state = torch.load(ckpt_path, weights_only=True, map_location="cpu")
     agent.load_state_dict(state["agent"])
     rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)
@@ -130,8 +129,7 @@ def render_episode(env_id, cvae, bound, agent, out: Path, max_steps: int, seed: 
 
     try:
         env = make_real_env(env_id, cvae, num_envs=1, latent_bound=bound, render_mode="rgb_array")
-        for t in agent.env_transforms():
-            env.append_transform(t)
+        agent.attach(env)
         env.set_seed(seed)
         base = env.base_env._env  # the gymnasium vector env
         out.mkdir(parents=True, exist_ok=True)

@@ -70,20 +70,17 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         algo["name"], env, algo, obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
         action_key="latent_action" if latent else "action", device=device,
     )
-    for t in agent.env_transforms():
-        env.append_transform(t)
+    agent.attach(env)
     env.append_transform(RewardSum())  # ("next", "episode_reward"): model returns in the logs
     if pcfg["env"].get("reward_scale", 1.0) != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
         env.append_transform(RewardScaling(loc=0.0, scale=float(pcfg["env"]["reward_scale"])))
     episodes = int(cfg["eval"]["episodes"])
     eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=pcfg["env"].get("latent_bound", 2.0))
-    for t in agent.env_transforms():
-        eval_env.append_transform(t)
+    agent.attach(eval_env)
     model_eval_env = None
     if cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
         model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold)
-        for t in agent.env_transforms():
-            model_eval_env.append_transform(t)
+        agent.attach(model_eval_env)
     ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
     evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=int(cfg["seed"]) * 1000 + 7,
                           ref=ref if None not in ref else None, model_env=model_eval_env)
