@@ -50,9 +50,9 @@ def main():
         pcfg = {"seed": 0, "device": str(dev), "env": {"quantile": 0.99, "penalty": 20.0, "threshold": threshold}}
         env = make_model_env(pcfg, ens, cvae, data, batch_size=a.num_envs)
         threshold = env.base_env.threshold
-        acfg = {**cfg["algo"], "init_random_frames": 0}
-        if "buffer_size" in acfg:
-            acfg["buffer_size"] = 100_000
+        acfg = dict(cfg["algo"])
+        if "buffer_size" in acfg:  # off-policy: a smaller buffer, and learning from the first batch on
+            acfg.update(buffer_size=100_000, init_random_frames=0)
         agent = make_agent(algo, env, acfg, obs_loc=stats.obs_mean.to(dev), obs_scale=stats.obs_std.to(dev), device=dev)
         agent.attach(env)
         fpb = max(a.num_envs, agent.frames_per_batch // a.num_envs * a.num_envs)
