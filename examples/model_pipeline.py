@@ -78,7 +78,7 @@ def main(cfg: DictConfig) -> None:
         else:
             print(f"{name}: loaded from {info['model_dir']}")
 
-    mcfg["env"], _ = model_env_config(OmegaConf.to_container(cfg, resolve=True), data.metadata.get("level"))
+    mcfg["env"], _ = model_env_config(OmegaConf.to_container(cfg, resolve=True), data.metadata.get("level"), data)
     env = make_model_env(mcfg, ensemble, cvae, data, batch_size=cfg.rollout.batch_size)
     threshold = env.base_env.threshold  # calibrated once, reused
     check_env_specs(make_model_env(mcfg, ensemble, cvae, data, batch_size=None, threshold=threshold))

@@ -56,7 +56,7 @@ def main(cfg: DictConfig) -> None:
 
     # the composed env: TransformedEnv(PessimisticModelEnv, LatentActionTransform) with the paper's pessimism
     latent = not cfg["ablation"]["no_cvae"]
-    mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"))
+    mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"), data)
     env = make_model_env(mcfg, ensemble, cvae if latent else None, data, batch_size=cfg["collector"]["num_envs"], latent=latent)
 
     # the agent (configs/algo/<name>.yaml) and the transforms its policy needs on every env it acts in

@@ -4,11 +4,15 @@
     python scripts/moc_experiments.py list                     # the variants
     python scripts/moc_experiments.py table                    # docs/results/moc_demo_experiments.md from the finished runs
 
-Each variant is a list of hydra overrides of configs/demo.yaml; the dataset and
+Each variant is a list of hydra overrides of configs/demo.yaml as it was before
+issue 13 (LEGACY: CVAE KL weight 0.5, unscaled rewards, 3k-step model fits;
+the variants say what they change); the dataset and
 the fitted models come from the cache, so a variant costs only its MOC frames.
 Rows report the final and the best evaluation separately (10 deterministic
 episodes, the training seed's evaluation seeds: these are development runs on
 one seed, not results), and the option diagnostics of the last logged batch.
+Rows run before the agents switched to fused Adam (``fused_adam``) used torch's
+per-tensor Adam: a rerun matches them up to floating-point rounding.
 """
 from __future__ import annotations
 
@@ -20,15 +24,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "outputs" / "moc_experiments"
 VARIANTS: dict[str, tuple[str, list[str]]] = {
-    "joint": ("this project's first MOC (every term in every minibatch; 4 options)", ["algo=moc"]),
+    "joint": ("this project's first MOC (every term in every minibatch; 4 options)", ["algo=moc_joint"]),
     "official": ("official MOC switches (configs/algo/moc_official.yaml; 2 options)", ["algo=moc_official"]),
     "official_4opt": ("official, 4 options", ["algo=moc_official", "algo.num_options=4"]),
-    "official_fast_heads": ("official, termination and pi_O lr 1e-3", ["algo=moc_official", "algo.termination_lr=1e-3", "algo.option_lr=1e-3"]),
-    "official_xi": ("official, xi = 0.01 (Option-Critic's deliberation cost)", ["algo=moc_official", "algo.xi=0.01"]),
     "official_rs": ("official, rewards x 0.1 for learning", ["algo=moc_official", "model_env.reward_scale=0.1"]),
     "official_rs_fast_heads": ("official, rewards x 0.1, termination and pi_O lr 1e-3",
                                ["algo=moc_official", "model_env.reward_scale=0.1", "algo.termination_lr=1e-3", "algo.option_lr=1e-3"]),
-    "joint_std": ("first MOC, initial intra-option std e^-1 (log_std -1)", ["algo=moc", "algo.init_log_std=-1.0"]),
+    "joint_std": ("first MOC, initial intra-option std e^-1 (log_std -1)", ["algo=moc_joint", "algo.init_log_std=-1.0"]),
     "official_std": ("official, initial std e^-1", ["algo=moc_official", "algo.init_log_std=-1.0"]),
     "official_std_rs": ("official, initial std e^-1, rewards x 0.1", ["algo=moc_official", "algo.init_log_std=-1.0", "model_env.reward_scale=0.1"]),
     "ppo": ("PPO (flat), same budget", ["algo=ppo"]),
@@ -42,17 +44,48 @@ for _name in ("joint", "official", "official_std_rs", "ppo"):
 VARIANTS["ppo_fit20k_500k"] = ("PPO, models fitted 20k steps, 3x the frames (492k)",
                                ["algo=ppo", *FIT20K, "train.total_frames=491520", "eval.every_frames=98304"])
 VARIANTS["moc_fit20k_500k"] = ("first MOC, models fitted 20k steps, 3x the frames (492k)",
-                               ["algo=moc", *FIT20K, "train.total_frames=491520", "eval.every_frames=98304"])
+                               ["algo=moc_joint", *FIT20K, "train.total_frames=491520", "eval.every_frames=98304"])
 VARIANTS["ppo_nocvae_fit20k"] = ("PPO in real actions (no CVAE), models fitted 20k steps", ["algo=ppo", "ablation.no_cvae=true", *FIT20K])
 # the CVAE's KL weight: at the paper's 0.5 the decoder ignores the latent (posterior collapse: its actions vary
 # by ~3% of the data's action std over the latent box), so no latent policy can act differently from it
 KL = ["cvae.kl_weight=0.05"]
-VARIANTS["moc_kl"] = ("first MOC, CVAE KL weight 0.05 (the decoder uses its latent)", ["algo=moc", *KL])
+VARIANTS["moc_kl"] = ("first MOC, CVAE KL weight 0.05 (the decoder uses its latent)", ["algo=moc_joint", *KL])
 VARIANTS["official_kl"] = ("official MOC, CVAE KL weight 0.05", ["algo=moc_official", *KL])
 VARIANTS["ppo_kl"] = ("PPO, CVAE KL weight 0.05", ["algo=ppo", *KL])
 for _name in ("moc_kl", "official_kl", "ppo_kl"):
     VARIANTS[f"{_name}_fit20k"] = (VARIANTS[_name][0] + "; models fitted 20k steps", VARIANTS[_name][1] + FIT20K)
+# rewards divided by the dataset's return-to-go std (model_env.reward_scale=auto): the critic can fit its targets
+AUTO = ["model_env.reward_scale=auto"]
+for _name in ("ppo_kl_fit20k", "official_kl_fit20k", "moc_kl_fit20k", "ppo_fit20k", "official_fit20k"):
+    VARIANTS[f"{_name}_auto"] = (VARIANTS[_name][0] + "; rewards / return std", VARIANTS[_name][1] + AUTO)
+# options that learn: the per-batch steps of beta and pi_O need a larger step size to move in 80 batches, and the
+# deliberation cost xi (in units of the scaled rewards) makes switching cost something
+BASE = ["algo=moc_official", *KL, *FIT20K, *AUTO]
+VARIANTS["official_fast"] = ("official, KL 0.05, 20k fits, rewards / std, termination and pi_O lr 1e-3",
+                             [*BASE, "algo.termination_lr=1e-3", "algo.option_lr=1e-3"])
+VARIANTS["official_fast_xi"] = ("official, KL 0.05, 20k fits, rewards / std, termination and pi_O lr 1e-3, xi 0.01",
+                                [*BASE, "algo.termination_lr=1e-3", "algo.option_lr=1e-3", "algo.xi=0.01"])
+VARIANTS["official_xi"] = ("official, KL 0.05, 20k fits, rewards / std, xi 0.01", [*BASE, "algo.xi=0.01"])
+VARIANTS["official_fast_xi_clip"] = ("official_fast_xi with PPO's Hopper clip 0.1 and gradient norm clipped at 0.5",
+                                     [*BASE, "algo.termination_lr=1e-3", "algo.option_lr=1e-3", "algo.xi=0.01", "algo.clip_epsilon=0.1",
+                                      "algo.max_grad_norm=0.5"])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
+
+
+# the demo's settings when these experiments began (before issue 13 changed the defaults): every variant starts
+# from them, so a row means the same thing whatever the current defaults are
+LEGACY = {"cvae.kl_weight": "0.5", "model_env.reward_scale": "1.0", "ensemble.fit.max_steps": "3000", "cvae.fit.max_steps": "3000",
+          "algo.minibatch_size": "256"}
+
+
+def overrides_of(name: str) -> list[str]:
+    """LEGACY updated with the variant's overrides (hydra refuses a key given twice)."""
+    merged = dict(LEGACY)
+    for o in VARIANTS[name][1]:
+        key, _, value = o.partition("=")
+        merged[key] = value
+    algo = merged.pop("algo", None)
+    return ([f"algo={algo}"] if algo else []) + [f"{k}={v}" for k, v in merged.items()]
 
 
 def run(names: list[str]) -> None:
@@ -61,8 +94,7 @@ def run(names: list[str]) -> None:
     from torchrl_offhrl.utils import to_plain
 
     for name in names:
-        _, overrides = VARIANTS[name]
-        cfg = to_plain(compose("demo", [*overrides, f"run_dir={OUT / name}"]))
+        cfg = to_plain(compose("demo", [*overrides_of(name), f"run_dir={OUT / name}"]))
         s = train(cfg)
         print(f"{name}: final {s['final']['normalized_d4rl']:.1f}")
 

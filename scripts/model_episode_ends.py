@@ -43,7 +43,7 @@ def main(overrides: list[str]) -> None:
     data = resolve_dataset(cfg)
     mcfg = model_config(cfg)
     ensemble, cvae, _ = fit_or_load_models(mcfg, data, progress=False)
-    mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"))
+    mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"), data)
     torch.manual_seed(0)
     env = make_model_env(mcfg, ensemble, cvae, data, batch_size=EPISODES)
     stats = data.stats()

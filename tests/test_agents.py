@@ -200,3 +200,45 @@ def test_reward_scale_scales_what_the_agent_learns_from_only(toy_registered, hop
     torch.testing.assert_close(half["next", "reward"], 0.5 * full["next", "reward"])
     torch.testing.assert_close(half["next", "episode_reward"], full["next", "episode_reward"])
     assert full["next", "episode_reward"].abs().sum() > 0
+
+
+@pytest.mark.parametrize("algo", ["ppo", "moc"])
+def test_speed_switches_do_not_change_the_update(algo):
+    """fused_adam and (PPO) functional are speed switches: one on-policy update gives the same parameters either way."""
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    d = make_toy_dataset(num_episodes=4, episode_length=10)
+    env = make_model_env({"env": {"threshold": 1.0}}, DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)),
+                         ConditionalVAE.for_dataset(d, hidden_sizes=(8,)), d, batch_size=8)
+    common = {"hidden_sizes": [8], "frames_per_batch": 32, "minibatch_size": 8, "epochs": 2}
+    slow = {"fused_adam": False, **({"functional": True} if algo == "ppo" else {})}
+    fast = {"fused_adam": True, **({"functional": False} if algo == "ppo" else {})}
+    agents = []
+    for switches in (slow, fast):
+        torch.manual_seed(0)
+        agents.append(make_agent(algo, env, **common, **switches))
+        agents[-1].attach(env)
+    def weights(agent):  # the functional loss keeps its copies under "<net>_params."
+        return {k.replace("_params.", "."): v for k, v in agent.loss.state_dict().items()}
+
+    start = {k: v.clone() for k, v in weights(agents[0]).items()}
+    for name, a in start.items():  # built from the same seed: the same start
+        assert torch.equal(a, weights(agents[1])[name]), name
+    torch.manual_seed(1)
+    env.set_seed(1)
+    with torch.no_grad():
+        batch = env.rollout(4, agents[0].policy, break_when_any_done=False)
+    metrics = []
+    for agent in agents:
+        torch.manual_seed(2)  # the same minibatch order
+        metrics.append(agent.update(batch.clone()))
+    assert metrics[0]["updates"] == metrics[1]["updates"] == 8
+    after = [weights(a) for a in agents]
+    assert after[0].keys() == after[1].keys()
+    assert any(not torch.equal(v, start[k]) for k, v in after[0].items())  # the update moved the weights
+    for name, a in after[0].items():
+        torch.testing.assert_close(a, after[1][name], rtol=1e-4, atol=1e-5, msg=name)
+    for k in ("train/loss_objective", "train/loss_critic"):
+        assert metrics[0][k] == pytest.approx(metrics[1][k], rel=1e-4, abs=1e-6)

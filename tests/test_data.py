@@ -435,3 +435,22 @@ def test_to_replay_buffer_rejects_bad_input():
     with pytest.raises(TypeError, match="sampler must be a torchrl.data.replay_buffers.Sampler"):
         ds.to_replay_buffer(batch_size=8, sampler="random")
     assert len(ds.to_replay_buffer(batch_size=40)) == 40  # the whole dataset is a valid batch
+
+
+def test_returns_to_go_matches_the_backward_recursion():
+    """The vectorised returns-to-go equal G_t = r_t + gamma G_{t+1} run episode by episode (long episodes, gamma 0.99 and 1)."""
+    from torchrl_offhrl.data import make_toy_dataset
+
+    ds = make_toy_dataset(num_episodes=4, episode_length=700, seed=3)
+    r = ds.data["next", "reward"].squeeze(-1).double()
+    starts = ds.episode_starts()
+    for gamma in (0.99, 1.0, 0.0):
+        expected = torch.zeros_like(r)
+        acc = 0.0
+        for i in reversed(range(r.numel())):
+            last = i + 1 == r.numel() or bool(starts[i + 1])
+            acc = float(r[i]) + (0.0 if last else gamma * acc)
+            expected[i] = acc
+        torch.testing.assert_close(ds.returns_to_go(gamma), expected, rtol=1e-9, atol=1e-7)
+    with pytest.raises(ValueError, match="gamma"):
+        ds.returns_to_go(1.5)

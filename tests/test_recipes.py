@@ -213,7 +213,8 @@ def test_aggregate_seeds(tmp_path):
         (d / "config.json").write_text(json.dumps({"algo": {"name": "moc"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {}}))
     table = aggregate(sorted(tmp_path.glob("moc-*")), tmp_path / "agg")
     # final returns 20 and 30: mean 25, std 7.07; scores 2 and 12: mean 7
-    assert "| moc | Hopper-v5 | medium | - | 2 | 200 | 25.0 ± 7.1 | 7.0 ± 7.1 |" in table
+    # best per seed: 2 and 12 (the last evaluation here); no frame-0 evaluation: untrained n/a; no summary: behaviour n/a
+    assert "| moc | Hopper-v5 | medium | - | 2 | 200 | 25.0 ± 7.1 | 7.0 ± 7.1 | 7.0 ± 7.1 | n/a | n/a |" in table
     assert (tmp_path / "agg" / "curves.png").is_file() and (tmp_path / "agg" / "results.csv").is_file()
 
 
@@ -288,3 +289,33 @@ def test_sac_target_entropy_is_per_env():
     )
     agent = make_agent("sac", env, {"frames_per_batch": 64})
     assert float(agent.loss.target_entropy) == -2.0
+
+
+def test_reward_scale_auto_is_one_over_the_datasets_return_std():
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.recipes.config import compose, model_env_config
+    from torchrl_offhrl.utils import to_plain
+
+    data = make_toy_dataset(num_episodes=6, episode_length=30, seed=1)
+    cfg = to_plain(compose("offline_train", ["model_env.reward_scale=auto", "algo=ppo", "algo.gamma=0.9"]))
+    menv, _ = model_env_config(cfg, "medium", data)
+    assert menv["reward_scale"] == pytest.approx(1.0 / float(data.returns_to_go(0.9).std()))
+    assert menv["reward_scale"] != pytest.approx(1.0 / float(data.returns_to_go(0.99).std()))  # the agent's gamma is used
+    with pytest.raises(ValueError, match="pass data"):
+        model_env_config(cfg, "medium")
+    for bad in ("0", "-1", "'x'"):
+        with pytest.raises(ValueError, match="reward_scale"):
+            model_env_config(to_plain(compose("offline_train", [f"model_env.reward_scale={bad}"])), "medium", data)
+
+
+def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
+    """A seed whose best evaluation is not its last: final, best and the frame-0 score are three different columns."""
+    for seed, scores in ((0, (5.0, 9.0, 3.0)), (1, (7.0, 8.0, 6.0))):
+        d = tmp_path / f"ppo-hopper-medium-seed{seed}"
+        d.mkdir()
+        evals = [{"frames": f, "return_mean": 10 * s, "return_std": 0.0, "normalized_d4rl": s} for f, s in zip((0, 100, 200), scores)]
+        (d / "evals.json").write_text(json.dumps(evals))
+        (d / "config.json").write_text(json.dumps({"algo": {"name": "ppo"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {}}))
+    table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
+    # final 3, 6 -> 4.5 ± 2.1; best 9, 8 -> 8.5 ± 0.7; untrained 5, 7 -> 6.0
+    assert "| ppo | Hopper-v5 | medium | - | 2 | 200 | 45.0 ± 21.2 | 4.5 ± 2.1 | 8.5 ± 0.7 | 6.0 | n/a |" in table

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from ..modules import OptionCriticActor, OptionHeads, make_option_critic
 from ..objectives import OptionCriticLoss
 from ..rollouts import first_episode_mask
-from .base import OnPolicyAgent, action_box
+from .base import OnPolicyAgent, action_box, adam
 from .registry import register_agent
 
 __all__ = ["MOCAgent", "option_usage", "plot_option_usage"]
@@ -87,6 +87,9 @@ class MOCAgent(OnPolicyAgent):
     * ``obs_clip``: None or 5.0 (official: normalised observations clipped).
     * ``option_head_gain`` / ``termination_head_gain``: 0.01 (near-uniform
       start) or 1.0 (official ``normc(1.0)``: O(1) logits).
+
+    ``fused_adam`` is a speed switch (the same update rule, see
+    :func:`~torchrl_offhrl.agents.adam`).
     """
 
     evaluation_files = ("option_usage.png",)
@@ -126,8 +129,10 @@ class MOCAgent(OnPolicyAgent):
         obs_clip: float | None = None,
         option_head_gain: float = 0.01,
         termination_head_gain: float = 0.01,
+        fused_adam: bool = True,
+        compile: bool = False,
     ):
-        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm)
+        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile)
         if update_schedule not in self.UPDATE_SCHEDULES:
             raise ValueError(f"update_schedule must be one of {self.UPDATE_SCHEDULES}, got {update_schedule!r}")
         obs_dim = env.observation_spec["observation"].shape[-1]
@@ -160,15 +165,15 @@ class MOCAgent(OnPolicyAgent):
         self.action_key = action_key
         self.num_options = n
         if update_schedule == "joint":
-            self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr, eps=adam_eps)
+            self.optimizer = adam(self.loss.parameters(), lr=lr, eps=adam_eps, fused=fused_adam)
             self.termination_optimizer = self.option_optimizer = None
             return
         groups = {"termination": [], "option": [], "main": []}
         for name, p in self.loss.named_parameters():
             groups["termination" if ".termination_head." in name else "option" if ".option_head." in name else "main"].append(p)
-        self.optimizer = torch.optim.Adam(groups["main"], lr=lr, eps=adam_eps)
-        self.termination_optimizer = torch.optim.Adam(groups["termination"], lr=lr if termination_lr is None else termination_lr, eps=adam_eps)
-        self.option_optimizer = torch.optim.Adam(groups["option"], lr=lr if option_lr is None else option_lr, eps=adam_eps)
+        self.optimizer = adam(groups["main"], lr=lr, eps=adam_eps, fused=fused_adam)
+        self.termination_optimizer = adam(groups["termination"], lr=lr if termination_lr is None else termination_lr, eps=adam_eps, fused=fused_adam)
+        self.option_optimizer = adam(groups["option"], lr=lr if option_lr is None else option_lr, eps=adam_eps, fused=fused_adam)
 
     UPDATE_SCHEDULES = ("joint", "per_term")
     #: the loss terms stepped over the minibatch epochs by the per-term schedule

@@ -10,7 +10,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss
 
 from ..nets import NormalizedMLP, tanh_gaussian_actor
-from .base import OnPolicyAgent, action_box
+from .base import OnPolicyAgent, action_box, adam
 from .registry import register_agent
 
 __all__ = ["PPOAgent"]
@@ -18,7 +18,12 @@ __all__ = ["PPOAgent"]
 
 @register_agent("ppo")
 class PPOAgent(OnPolicyAgent):
-    """PPO with GAE; the paper's values are in ``configs/algo/ppo.yaml`` (lr and clip per env in ``configs/env/``)."""
+    """PPO with GAE; the paper's values are in ``configs/algo/ppo.yaml`` (lr and clip per env in ``configs/env/``).
+
+    Speed switches (the same algorithm either way): ``fused_adam`` (one fused
+    Adam kernel, see :func:`~torchrl_offhrl.agents.adam`) and ``functional``
+    (TorchRL's functionalised loss; ``False`` calls the networks directly).
+    """
 
     def __init__(
         self,
@@ -40,8 +45,11 @@ class PPOAgent(OnPolicyAgent):
         epochs: int = 10,
         minibatch_size: int = 64,
         max_grad_norm: float | None = 0.5,
+        fused_adam: bool = True,
+        functional: bool = False,
+        compile: bool = False,
     ):
-        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm)
+        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile)
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim, low, high = action_box(env, action_key)
         hidden = list(hidden_sizes)
@@ -59,8 +67,9 @@ class PPOAgent(OnPolicyAgent):
             critic_coeff=vf_coef,
             loss_critic_type="l2",  # squared error, as SB3 (whose values the paper took) and as MOC's critic
             normalize_advantage=True,
+            functional=functional,  # False: the networks are called directly, not through a copy of their parameters (faster, same maths)
         )
         self.loss.set_keys(action=action_key, sample_log_prob=f"{action_key}_log_prob")
         self.loss.make_value_estimator(gamma=gamma, lmbda=lmbda)
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
+        self.optimizer = adam(self.loss.parameters(), lr=lr, fused=fused_adam)
         self.action_key = action_key

@@ -12,7 +12,7 @@ from torchrl.objectives import group_optimizers
 
 from ..data.policies.training import make_sac_loss
 from ..nets import NormalizedMLP, tanh_gaussian_actor
-from .base import Agent, action_box, scalar_metrics, sum_losses
+from .base import Agent, action_box, adam, scalar_metrics, sum_losses
 from .registry import register_agent
 
 __all__ = ["SACAgent"]
@@ -46,6 +46,7 @@ class SACAgent(Agent):
         utd_ratio: float = 1.0,
         frames_per_batch: int = 64,
         alpha_init: float = 1.0,
+        fused_adam: bool = True,
     ):
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim, low, high = action_box(env, action_key)
@@ -59,9 +60,9 @@ class SACAgent(Agent):
             self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau, alpha_init=alpha_init, action_key=action_key,
         )
         self.optimizer = group_optimizers(
-            torch.optim.Adam(self.loss.actor_network_params.flatten_keys().values(), lr=lr),
-            torch.optim.Adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=lr),
-            torch.optim.Adam([self.loss.log_alpha], lr=lr),
+            adam(self.loss.actor_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
+            adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
+            adam([self.loss.log_alpha], lr=lr, fused=fused_adam),
         )
         self.action_key = action_key
         self.frames_per_batch = int(frames_per_batch)

@@ -255,6 +255,46 @@ class OfflineDataset:
             out = out[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
         return out
 
+    def returns_to_go(self, gamma: float) -> torch.Tensor:
+        """Discounted return from every transition to the end of its episode, ``[N]`` (float64).
+
+        ``G_t = r_t + gamma * G_{t+1}`` inside an episode, ``G = r`` at its last
+        transition (a truncated episode is cut there too). Vectorised: the
+        rewards weighted by ``gamma ** t`` (``t`` the step within the episode)
+        are summed backwards once and each episode's tail subtracted.
+
+        Examples:
+            >>> import torch
+            >>> from tensordict import TensorDict
+            >>> from torchrl_offhrl.data import OfflineDataset
+            >>> td = TensorDict({"observation": torch.zeros(4, 1), "action": torch.zeros(4, 1), "next": {
+            ...     "observation": torch.zeros(4, 1), "reward": torch.tensor([[1.0], [2.0], [4.0], [8.0]]),
+            ...     "terminated": torch.tensor([[False], [True], [False], [True]]),
+            ...     "truncated": torch.zeros(4, 1, dtype=torch.bool)}}, batch_size=[4])
+            >>> OfflineDataset(td).returns_to_go(0.5).tolist()
+            [2.0, 2.0, 8.0, 8.0]
+        """
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        starts = self.episode_starts()
+        n = starts.numel()
+        idx = torch.arange(n, device=starts.device)
+        start_idx = torch.cummax(torch.where(starts, idx, torch.zeros_like(idx)), 0).values
+        t = (idx - start_idx).double()
+        # the first index after each transition's episode
+        ends = torch.nonzero(starts).squeeze(-1)[1:].tolist() + [n]
+        ep_id = torch.cumsum(starts.long(), 0) - 1
+        after = torch.as_tensor(ends, device=starts.device)[ep_id]
+        log_g = float("-inf") if gamma == 0 else torch.log(torch.tensor(gamma, dtype=torch.float64)).item()
+        weights = torch.exp(t * log_g) if gamma > 0 else (t == 0).double()
+        rewards = self.data.get(("next", "reward")).reshape(n).double()
+        w = rewards * weights
+        tail = torch.flip(torch.cumsum(torch.flip(w, (0,)), 0), (0,))  # tail[i] = sum_{k >= i} w_k
+        tail = torch.cat([tail, tail.new_zeros(1)])
+        if gamma == 0:
+            return rewards
+        return (tail[:n] - tail[after]) / weights
+
     def return_stats(self) -> dict:
         """Mean/std/min/max and count of the returns of the complete episodes.
 

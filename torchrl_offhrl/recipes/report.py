@@ -103,6 +103,11 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
         sc = torch.tensor([s for s in scores if s is not None], dtype=torch.float64)
         frames = min(r["evals"][-1]["frames"] for r in rs)
         beh = [r["summary"]["behaviour_normalized_d4rl"] for r in rs if r["summary"] and r["summary"].get("behaviour_normalized_d4rl") is not None]
+        # the best evaluation of each seed (reported apart from the final one, never instead of it) and the untrained start
+        best = [max(e["normalized_d4rl"] for e in r["evals"] if e.get("normalized_d4rl") is not None) for r in rs
+                if any(e.get("normalized_d4rl") is not None for e in r["evals"])]
+        start = [r["evals"][0]["normalized_d4rl"] for r in rs if r["evals"][0]["frames"] == 0 and r["evals"][0].get("normalized_d4rl") is not None]
+        bt, st = torch.tensor(best, dtype=torch.float64), torch.tensor(start, dtype=torch.float64)
         rows.append(
             {
                 "algo": key[0], "env": key[1], "dataset": key[2], "ablation": key[3], "seeds": len(rs), "frames": frames,
@@ -110,16 +115,21 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
                 "score_mean": float(sc.mean()) if sc.numel() else None,
                 "score_std": float(sc.std()) if sc.numel() > 1 else 0.0,
                 "behaviour_score": float(sum(beh) / len(beh)) if beh else None,
+                "best_score_mean": float(bt.mean()) if bt.numel() else None,
+                "best_score_std": float(bt.std()) if bt.numel() > 1 else 0.0,
+                "untrained_score_mean": float(st.mean()) if st.numel() else None,
             }
         )
-    header = "| algo | env | dataset | ablation | seeds | frames | return (mean ± std) | D4RL score (mean ± std) | behaviour score |"
-    lines = [header, "|" + "---|" * 9]
+    header = ("| algo | env | dataset | ablation | seeds | frames | final return (mean ± std) | final D4RL score (mean ± std) | "
+              "best D4RL score (mean ± std) | untrained score | behaviour score |")
+    lines = [header, "|" + "---|" * 11]
     for r in rows:
         score = "n/a" if r["score_mean"] is None else f"{r['score_mean']:.1f} ± {r['score_std']:.1f}"
-        beh = "n/a" if r["behaviour_score"] is None else f"{r['behaviour_score']:.1f}"
+        best = "n/a" if r["best_score_mean"] is None else f"{r['best_score_mean']:.1f} ± {r['best_score_std']:.1f}"
         lines.append(
             f"| {r['algo']} | {r['env']} | {r['dataset']} | {r['ablation']} | {r['seeds']} | {r['frames']} | "
-            f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {score} | {beh} |"
+            f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {score} | {best} | {fmt_number(r['untrained_score_mean'])} | "
+            f"{fmt_number(r['behaviour_score'])} |"
         )
     table = "\n".join(lines)
     (out / "results.md").write_text(table + "\n")

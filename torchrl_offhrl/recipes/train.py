@@ -60,7 +60,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
 
     # 2. the composed model env (no CVAE: the agent acts in real actions)
     latent = not cfg.get("ablation", {}).get("no_cvae", False)
-    pcfg["env"], pess = model_env_config(cfg, level)
+    pcfg["env"], pess = model_env_config(cfg, level, data)
     env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=int(cfg["collector"]["num_envs"]), latent=latent)
     threshold = env.base_env.threshold
 
@@ -88,7 +88,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
 
     # 4. resume, log, train, evaluate, checkpoint
     run.resume(agent, device)
-    run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "model_dir": model_info["model_dir"]})
+    run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "resolved_reward_scale": pcfg["env"].get("reward_scale", 1.0), "model_dir": model_info["model_dir"]})
     logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
 
     def evaluate(final: bool = False) -> dict:
