@@ -69,6 +69,8 @@ VARIANTS["official_xi"] = ("official, KL 0.05, 20k fits, rewards / std, xi 0.01"
 VARIANTS["official_fast_xi_clip"] = ("official_fast_xi with PPO's Hopper clip 0.1 and gradient norm clipped at 0.5",
                                      [*BASE, "algo.termination_lr=1e-3", "algo.option_lr=1e-3", "algo.xi=0.01", "algo.clip_epsilon=0.1",
                                       "algo.max_grad_norm=0.5"])
+VARIANTS["default_pess05"] = ("the new default MOC (= official_fast_xi) with the pessimism threshold at 0.5 x the dataset's max discrepancy "
+                              "(Hopper medium's table: 1.08)", [*BASE, "algo=moc", "+model_env.pessimism.fraction=0.5"])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 

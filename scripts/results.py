@@ -7,7 +7,7 @@ Scales:
 
 * ``demo``: the embedded demo's setting (``configs/demo.yaml``): 100k generated
   transitions per dataset, demo-size models (ensemble 5 x MLP(256, 256), CVAE
-  MLP(256, 256), fitted up to 20k steps), 164k agent frames;
+  MLP(256, 256), fitted up to 20k steps), 164k agent frames (twice the demo's);
 * ``full``: the paper's setting (``configs/offline_train.yaml``): 1M generated
   transitions, paper-size models (ensemble 5 x MLP(512, 512), CVAE
   MLP(720, 720)), 1M agent frames.
@@ -36,6 +36,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = {"demo": "demo", "full": "offline_train"}
+# the demo stops MOC at 82k frames; the results run twice that, to show what longer training does
+BUDGET = {"demo": ["train.total_frames=163840", "eval.every_frames=40960"], "full": []}
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy")
 
 
@@ -52,7 +54,7 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int]) -> None
         for algo in algos:
             for seed in seeds:
                 cfg = to_plain(compose(CONFIG[scale], [f"algo={algo}", f"env={env}", "dataset=medium", f"seed={seed}",
-                                                       f"run_dir={run_dir(scale, env, algo, seed)}"]))
+                                                       f"run_dir={run_dir(scale, env, algo, seed)}", *BUDGET[scale]]))
                 s = train(cfg)
                 print(f"{scale} {env} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
