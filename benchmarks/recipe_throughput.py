@@ -12,7 +12,9 @@ training loop (collection + updates, no evaluation).
 Each recipe runs twice in the same process, "before" with torch's per-tensor
 Adam (``fused_adam=false``) and, for PPO, TorchRL's functionalised loss
 (``functional=true``), as the agents ran before the speed work, and "after"
-with the config's defaults; the speed-up column is after / before.
+with the config's defaults, and for PPO and MOC "compiled" (``compile=true``:
+``torch.compile`` of the minibatch loss, built during the untimed warm-up
+batch); the speed-up column is relative to "before".
 """
 from __future__ import annotations
 
@@ -50,7 +52,7 @@ def main():
     stats = data.stats()
     rows = []
     threshold = None
-    variants = [(algo, when) for algo in ("sac", "ppo", "moc") for when in ("before", "after")]
+    variants = [(algo, when) for algo in ("sac", "ppo", "moc") for when in ("before", "after", "compiled") if not (algo == "sac" and when == "compiled")]
     for algo, when in variants:
         torch.manual_seed(0)
         cfg = OmegaConf.to_container(compose("offline_train", [f"algo={algo}"]), resolve=True)
@@ -60,6 +62,8 @@ def main():
         acfg = dict(cfg["algo"])
         if "buffer_size" in acfg:  # off-policy: a smaller buffer, and learning from the first batch on
             acfg.update(buffer_size=100_000, init_random_frames=0)
+        if when == "compiled":  # the warm-up batch below builds the compiled loss (not timed)
+            acfg["compile"] = True
         if when == "before":
             acfg["fused_adam"] = False
             if "functional" in acfg:

@@ -100,6 +100,7 @@ def main(cfg: DictConfig) -> None:
         for batch in collector:
             t0 = time.time()
             run.frames += batch.numel()
+            agent.set_progress((run.frames - batch.numel()) / total)  # schedules (e.g. anneal_lr) follow the frame budget
             metrics = agent.update(batch)
             run.updates += int(metrics.pop("updates"))
             train_time += time.time() - t0

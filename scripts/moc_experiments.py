@@ -71,6 +71,9 @@ VARIANTS["official_fast_xi_clip"] = ("official_fast_xi with PPO's Hopper clip 0.
                                       "algo.max_grad_norm=0.5"])
 VARIANTS["default_pess05"] = ("the new default MOC (= official_fast_xi) with the pessimism threshold at 0.5 x the dataset's max discrepancy "
                               "(Hopper medium's table: 1.08)", [*BASE, "algo=moc", "+model_env.pessimism.fraction=0.5"])
+VARIANTS["default_anneal"] = ("the new default MOC with anneal_lr (every step size linearly to 0 over the 164k frames)",
+                              [*BASE, "algo=moc", "algo.anneal_lr=true"])
+VARIANTS["ppo_anneal"] = ("PPO, KL 0.05, 20k fits, rewards / std, anneal_lr", ["algo=ppo", *KL, *FIT20K, *AUTO, "algo.anneal_lr=true"])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 

@@ -242,3 +242,45 @@ def test_speed_switches_do_not_change_the_update(algo):
         torch.testing.assert_close(a, after[1][name], rtol=1e-4, atol=1e-5, msg=name)
     for k in ("train/loss_objective", "train/loss_critic"):
         assert metrics[0][k] == pytest.approx(metrics[1][k], rel=1e-4, abs=1e-6)
+
+
+def test_anneal_lr_follows_the_frame_budget():
+    """anneal_lr: every optimiser's lr is its initial lr x (1 - fraction done), MOC's termination and pi_O optimisers too; off: unchanged."""
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    d = make_toy_dataset(num_episodes=4, episode_length=10)
+    env = make_model_env({"env": {"threshold": 1.0}}, DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)),
+                         ConditionalVAE.for_dataset(d, hidden_sizes=(8,)), d, batch_size=8)
+    moc = make_agent("moc", env, hidden_sizes=[8], lr=1e-4, termination_lr=1e-3, option_lr=2e-3, anneal_lr=True)
+    assert len(moc.optimizers()) == 3
+    moc.set_progress(0.25)
+    lrs = sorted(g["lr"] for opt in moc.optimizers() for g in opt.param_groups)
+    assert lrs == pytest.approx([0.75e-4, 0.75e-3, 1.5e-3])
+    moc.set_progress(1.0)
+    assert all(g["lr"] == 0.0 for opt in moc.optimizers() for g in opt.param_groups)
+    moc.set_progress(0.5)  # from the initial lr, not compounded
+    assert sorted(g["lr"] for opt in moc.optimizers() for g in opt.param_groups) == pytest.approx([0.5e-4, 0.5e-3, 1e-3])
+    ppo = make_agent("ppo", env, hidden_sizes=[8], lr=3e-4)
+    ppo.set_progress(0.5)
+    assert all(g["lr"] == 3e-4 for g in ppo.optimizer.param_groups)
+
+
+def test_training_loop_reports_progress_before_each_update(toy_registered, hopper_file, tmp_path, monkeypatch):
+    """train() calls agent.set_progress(frames done / total) before every update: 0 and 0.5 for two batches of 64 out of 128."""
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    seen = []
+    monkeypatch.setattr(ToyAgent, "set_progress", lambda self, f: seen.append(f), raising=False)
+    cfg = to_plain(compose("offline_train", [
+        f"dataset={hopper_file}", f"out_root={tmp_path}", "ensemble.hidden_sizes=[32,32]", "ensemble.fit.max_steps=40",
+        "cvae.hidden_sizes=[32,32]", "cvae.fit.max_steps=40", "collector.num_envs=4", "train.total_frames=128",
+        "eval.every_frames=128", "eval.episodes=2", "eval.max_steps=10", "eval.at_start=false", "eval.model_env=false",
+    ]))
+    cfg["algo"] = {"name": "toy-pg", "frames_per_batch": 64}
+    train(cfg, progress=False)
+    assert seen == [0.0, 0.5]

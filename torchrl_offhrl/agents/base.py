@@ -76,6 +76,10 @@ class Agent:
 
     ``update(batch)`` returns a dict of float metrics (logged under their
     names) that includes ``"updates"``: the number of gradient steps taken.
+    The training loop calls :meth:`set_progress` before each update with the
+    fraction of the frame budget already collected (schedules such as
+    ``anneal_lr`` use it; it derives from the frame count, so a resumed run
+    continues the same schedule).
     """
 
     name: str = ""
@@ -88,6 +92,9 @@ class Agent:
     replay_buffer: Any = None
     #: files :meth:`save_evaluation` writes into the run directory (the loop re-evaluates when one is missing)
     evaluation_files: tuple[str, ...] = ()
+
+    def set_progress(self, fraction: float) -> None:
+        """Called before each update with the fraction of the frame budget done (``[0, 1]``); default: nothing."""
 
     def env_transforms(self) -> list:
         """Transforms to append to every env the policy acts in (collection and evaluation)."""
@@ -128,16 +135,38 @@ class OnPolicyAgent(Agent):
     each minibatch; gradients are clipped to ``max_grad_norm`` (``None``: no
     clipping). The batch's last dimension is time (``[envs, steps]``).
     ``compile=True`` runs the minibatch loss through ``torch.compile`` (a
-    speed switch: the same computation).
+    speed switch: the same computation). ``anneal_lr=True`` decays every
+    step size linearly to 0 over the frame budget (:meth:`set_progress`).
     """
 
-    def __init__(self, *, frames_per_batch: int, epochs: int, minibatch_size: int, max_grad_norm: float | None, compile: bool = False):
+    def __init__(self, *, frames_per_batch: int, epochs: int, minibatch_size: int, max_grad_norm: float | None, compile: bool = False,
+                 anneal_lr: bool = False):
         self.frames_per_batch = int(frames_per_batch)
         self.epochs = int(epochs)
         self.minibatch_size = int(minibatch_size)
         self.max_grad_norm = max_grad_norm
         self.compile = bool(compile)
+        self.anneal_lr = bool(anneal_lr)
         self._compiled_loss = None
+
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        """Every optimiser the agent owns (its attributes that are optimisers, :attr:`optimizer` first)."""
+        found = [self.optimizer] + [v for k, v in vars(self).items() if isinstance(v, torch.optim.Optimizer) and k != "optimizer"]
+        return list(dict.fromkeys(found))
+
+    def set_progress(self, fraction: float) -> None:
+        """With ``anneal_lr``, every optimiser's step size is its initial one times ``1 - fraction`` (linear to 0).
+
+        As TorchRL's PPO scripts (``anneal_lr``) and the ``linear`` schedule of
+        the baselines PPO that the official MOC code builds on.
+        """
+        if not self.anneal_lr:
+            return
+        mult = min(max(1.0 - float(fraction), 0.0), 1.0)
+        for opt in self.optimizers():
+            for group in opt.param_groups:
+                group.setdefault("initial_lr", group["lr"])
+                group["lr"] = group["initial_lr"] * mult
 
     def minibatch_loss(self, minibatch: TensorDictBase):
         """``loss(minibatch)``; with ``compile=True`` through ``torch.compile`` (built on first use, ~40 s on CPU).

@@ -148,8 +148,9 @@ class MOCAgent(OnPolicyAgent):
         termination_head_gain: float = 1.0,
         fused_adam: bool = True,
         compile: bool = False,
+        anneal_lr: bool = False,
     ):
-        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile)
+        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         if update_schedule not in self.UPDATE_SCHEDULES:
             raise ValueError(f"update_schedule must be one of {self.UPDATE_SCHEDULES}, got {update_schedule!r}")
         obs_dim = env.observation_spec["observation"].shape[-1]

@@ -48,8 +48,9 @@ class PPOAgent(OnPolicyAgent):
         fused_adam: bool = True,
         functional: bool = False,
         compile: bool = False,
+        anneal_lr: bool = False,
     ):
-        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile)
+        super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim, low, high = action_box(env, action_key)
         hidden = list(hidden_sizes)

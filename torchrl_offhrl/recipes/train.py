@@ -112,6 +112,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         for batch in collector:
             t0 = time.time()
             run.frames += batch.numel()
+            agent.set_progress((run.frames - batch.numel()) / total)  # schedules (e.g. anneal_lr) follow the frame budget
             metrics = agent.update(batch)
             run.updates += int(metrics.pop("updates"))
             train_time += time.time() - t0
