@@ -69,7 +69,7 @@ class MOCAgent(OnPolicyAgent):
 
     The defaults are ``configs/algo/moc.yaml``: the official continuous-control
     MOC with the paper's values (Hopper and HalfCheetah: lr 1e-4, clip 0.2,
-    eta 0.7, gamma 0.99, lambda 0.95) and two measured deviations, each one
+    eta 0.7, gamma 0.99, lambda 0.95) and three measured deviations, each one
     switch away from the official code (``configs/algo/moc_official.yaml``):
 
     * ``termination_lr`` / ``option_lr`` 1e-3 (official: ``lr``). Under the
@@ -79,6 +79,11 @@ class MOCAgent(OnPolicyAgent):
     * ``xi`` 0.01 (official: 0): the deliberation cost in
       ``beta (Q - V + xi)``, in units of the rewards the agent learns from
       (``model_env.reward_scale=auto``).
+    * ``anneal_lr`` True (official, as we read it: constant step sizes):
+      every step size decays linearly to 0 over the frame budget. Without it
+      MOC improves early and then falls back as it starts to exploit the
+      model (3 seeds at 164k frames: best 84.9 +- 3.6, final 41.3 +- 39.0,
+      from 51.6 untrained).
 
     On the cached demo setting (hopper-medium, one development seed) these
     give options of ~13 steps with pi_O entropy ~0.47 and a real-env score of
@@ -148,7 +153,7 @@ class MOCAgent(OnPolicyAgent):
         termination_head_gain: float = 1.0,
         fused_adam: bool = True,
         compile: bool = False,
-        anneal_lr: bool = False,
+        anneal_lr: bool = True,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         if update_schedule not in self.UPDATE_SCHEDULES:
