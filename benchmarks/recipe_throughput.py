@@ -27,7 +27,8 @@ import torch
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--frames", type=int, default=16384, help="frames per recipe (after one warm-up batch)")
+    p.add_argument("--frames", type=int, default=16384, help="frames per on-policy recipe (after one warm-up batch)")
+    p.add_argument("--sac-frames", type=int, default=2048, help="frames for SAC (one update per frame: slow)")
     p.add_argument("--num-envs", type=int, default=64)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     a = p.parse_args()
@@ -71,7 +72,7 @@ def main():
         agent = make_agent(algo, env, acfg, obs_loc=stats.obs_mean.to(dev), obs_scale=stats.obs_std.to(dev), device=dev)
         agent.attach(env)
         fpb = max(a.num_envs, agent.frames_per_batch // a.num_envs * a.num_envs)
-        collector = Collector(env, agent.policy, frames_per_batch=fpb, total_frames=fpb + a.frames, device=dev, auto_register_policy_transforms=False)
+        collector = Collector(env, agent.policy, frames_per_batch=fpb, total_frames=fpb + (a.sac_frames if algo == "sac" else a.frames), device=dev, auto_register_policy_transforms=False)
         t_collect = t_update = 0.0
         updates = frames = 0
         it = iter(collector)

@@ -69,11 +69,12 @@ VARIANTS["official_xi"] = ("official, KL 0.05, 20k fits, rewards / std, xi 0.01"
 VARIANTS["official_fast_xi_clip"] = ("official_fast_xi with PPO's Hopper clip 0.1 and gradient norm clipped at 0.5",
                                      [*BASE, "algo.termination_lr=1e-3", "algo.option_lr=1e-3", "algo.xi=0.01", "algo.clip_epsilon=0.1",
                                       "algo.max_grad_norm=0.5"])
-VARIANTS["default_pess05"] = ("the new default MOC (= official_fast_xi) with the pessimism threshold at 0.5 x the dataset's max discrepancy "
-                              "(Hopper medium's table: 1.08)", [*BASE, "algo=moc", "+model_env.pessimism.fraction=0.5"])
+FAST_XI = ["algo.termination_lr=1e-3", "algo.option_lr=1e-3", "algo.xi=0.01"]
+VARIANTS["default_pess05"] = ("official_fast_xi with the pessimism threshold at 0.5 x the dataset's max discrepancy "
+                              "(Hopper medium's table: 1.08)", [*BASE, *FAST_XI, "+model_env.pessimism.fraction=0.5"])
 DEMO_BUDGET = ["train.total_frames=81920", "eval.every_frames=20480"]
 VARIANTS["default_anneal"] = ("official_fast_xi with anneal_lr (every step size linearly to 0), over the demo's 82k frames",
-                              [*BASE, "algo=moc", "algo.anneal_lr=true", *DEMO_BUDGET])
+                              [*BASE, *FAST_XI, "algo.anneal_lr=true", *DEMO_BUDGET])
 VARIANTS["ppo_anneal"] = ("PPO, KL 0.05, 20k fits, rewards / std, anneal_lr, over 82k frames",
                           ["algo=ppo", *KL, *FIT20K, *AUTO, "algo.anneal_lr=true", *DEMO_BUDGET])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")

@@ -40,6 +40,10 @@ CONFIG = {"demo": "demo", "full": "offline_train"}
 # twice the frames, to show what longer training does, on models fitted for 20k steps
 BUDGET = {"demo": ["train.total_frames=163840", "eval.every_frames=40960", "ensemble.fit.max_steps=20000", "cvae.fit.max_steps=20000"],
           "full": []}
+# what a reader of a scale's report must know about how its seeds were used
+NOTES = {"demo": ("Seeds 1-3 were first run with constant step sizes (`docs/results/demo_noanneal/`); the late fall seen there "
+                  "prompted trying `anneal_lr` (chosen on development seed 0 at the demo's 82k frames: 47.8 -> 89.0), "
+                  "so these seeds are no longer untouched by the choice of settings. A clean comparison needs new seeds.")}
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy")
 
 
@@ -81,6 +85,7 @@ def report(scale: str) -> str:
     lines = [f"# Offline results, `{scale}` scale", "", __doc__.split("Scales:")[1].split("Seeds 1")[0].strip(), "",
              f"Made by `python scripts/results.py report --scale {scale}` from the finished runs under `outputs/results/{scale}/`.",
              "Scores are D4RL-normalised; final and best are separate columns (the best is never reported as the result).", "",
+             *([NOTES[scale], ""] if scale in NOTES else []),
              table, "", "## MOC option diagnostics at the end of training (mean over seeds of the last 5 logged batches)", "",
              "| env | seeds | " + " | ".join(DIAG) + " |", "|---|---|" + "---|" * len(DIAG)]
     for env in sorted({d.name.split("-")[1] for d in runs}):

@@ -80,10 +80,11 @@ class MOCAgent(OnPolicyAgent):
       ``beta (Q - V + xi)``, in units of the rewards the agent learns from
       (``model_env.reward_scale=auto``).
     * ``anneal_lr`` True (official, as we read it: constant step sizes):
-      every step size decays linearly to 0 over the frame budget. Without it
-      MOC improves early and then falls back as it starts to exploit the
-      model (3 seeds at 164k frames: best 84.9 +- 3.6, final 41.3 +- 39.0,
-      from 51.6 untrained).
+      every step size decays linearly to 0 over the frame budget. Chosen on
+      the development seed at the demo's 82k frames (47.8 -> 89.0). It does
+      not cure the late fall: on seeds 1-3 at 164k frames MOC ends at
+      31.0 +- 4.1 with it and 41.3 +- 39.0 without (51.6 untrained), after
+      bests of 71.7 +- 10.2 and 84.9 +- 3.6.
 
     On the cached demo setting (hopper-medium, one development seed) these
     give options of ~13 steps with pi_O entropy ~0.47 and a real-env score of
