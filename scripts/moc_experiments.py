@@ -77,6 +77,9 @@ VARIANTS["default_anneal"] = ("official_fast_xi with anneal_lr (every step size 
                               [*BASE, *FAST_XI, "algo.anneal_lr=true", *DEMO_BUDGET])
 VARIANTS["ppo_anneal"] = ("PPO, KL 0.05, 20k fits, rewards / std, anneal_lr, over 82k frames",
                           ["algo=ppo", *KL, *FIT20K, *AUTO, "algo.anneal_lr=true", *DEMO_BUDGET])
+VARIANTS["default_1opt"] = ("the default MOC (with anneal_lr) with ONE option: MOC's machinery without options, next to PPO",
+                            [*BASE, *FAST_XI, "algo.anneal_lr=true", "algo.num_options=1"])
+VARIANTS["default_164k"] = ("the default MOC (official_fast_xi + anneal_lr) over 164k frames", [*BASE, *FAST_XI, "algo.anneal_lr=true"])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 
