@@ -80,6 +80,9 @@ VARIANTS["ppo_anneal"] = ("PPO, KL 0.05, 20k fits, rewards / std, anneal_lr, ove
 VARIANTS["default_1opt"] = ("the default MOC (with anneal_lr) with ONE option: MOC's machinery without options, next to PPO",
                             [*BASE, *FAST_XI, "algo.anneal_lr=true", "algo.num_options=1"])
 VARIANTS["default_164k"] = ("the default MOC (official_fast_xi + anneal_lr) over 164k frames", [*BASE, *FAST_XI, "algo.anneal_lr=true"])
+# a second development seed (evaluation seed 10007; not a results seed)
+VARIANTS["default_164k_s10"] = ("default_164k on development seed 10", [*VARIANTS["default_164k"][1], "seed=10"])
+VARIANTS["default_1opt_s10"] = ("default_1opt on development seed 10", [*VARIANTS["default_1opt"][1], "seed=10"])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 
