@@ -135,3 +135,26 @@ def test_diagnostics_hand_computed():
     torch.testing.assert_close(out["termination_advantage_positive"], torch.tensor(1 / 3))
     # usage 0.5 / 0.5: entropy log 2
     torch.testing.assert_close(out["option_usage_entropy"], torch.tensor(math.log(2)))
+
+
+def test_explained_variance_hand_computed():
+    """explained_variance = 1 - Var(G - Q(s, o_t)) / Var(G), on the executed option's Q (constant Q = (1, 3))."""
+    actor = OptionCriticActor(_constant_heads([0.25, 0.75], [0.5, 0.5]), low=-1.0, high=1.0)
+    critic = make_option_critic(2, 2, hidden=(4,))
+    with torch.no_grad():
+        for p in critic.parameters():
+            p.zero_()
+        critic.module.net[-1].bias.copy_(torch.tensor([1.0, 3.0]))
+    loss = OptionCriticLoss(actor, critic)
+    td = TensorDict(
+        {
+            "observation": torch.zeros(4, 2), "action": torch.zeros(4, 1), "option": torch.tensor([0, 0, 1, 1]),
+            "prev_option": torch.tensor([0, 0, 1, 0]), "is_init": torch.tensor([True, False, False, False]).unsqueeze(-1),
+            "option_log_probs": torch.zeros(4, 2), "option_assignment_log_prob": torch.full((4, 2), 0.5).log(),
+            "advantage": torch.zeros(4, 1), "value_target": torch.tensor([[2.0], [0.0], [4.0], [3.0]]),
+        },
+        batch_size=[4],
+    )
+    out = loss(td)
+    # executed Q: 1, 1, 3, 3; G - Q: 1, -1, 1, 0 -> var 0.6875; Var(G) = 2.1875
+    assert out["explained_variance"].item() == pytest.approx(1 - 0.6875 / 2.1875)

@@ -184,7 +184,8 @@ class OptionCriticLoss(LossModule):
     and metrics: ``termination_rate`` (mean ``beta`` at non-start steps, from
     the data), ``option_duration`` (steps per option start),
     ``option_usage`` (``[n]``), ``clip_fraction``, ``approx_kl``,
-    ``option_entropy``, ``z``.
+    ``option_entropy``, ``z``, ``explained_variance`` (of the value targets
+    by ``Q(s_t, o_t)``, as PPO logs for ``V``).
 
     Sum every ``loss_*`` entry and call ``backward``. The advantage comes from
     :meth:`make_value_estimator` (:class:`OptionGAE`, gamma 0.99, lambda
@@ -478,7 +479,7 @@ class OptionCriticLoss(LossModule):
         return [
             "loss_objective", "loss_critic", "loss_termination", "loss_option", "loss_option_entropy", "loss_entropy",
             "termination_rate", "option_duration", "option_usage", "clip_fraction", "approx_kl", "option_entropy", "z",
-            "option_usage_entropy", "termination_advantage", "termination_advantage_positive",
+            "option_usage_entropy", "termination_advantage", "termination_advantage_positive", "explained_variance",
         ]
 
     # ------------------------------------------------------- value estimator
@@ -630,7 +631,11 @@ class OptionCriticLoss(LossModule):
         q = td.get(k.option_value)
         target = td.get(k.value_target).reshape(-1)
         loss_critic = self.critic_coef * (weights * (q - target.detach().unsqueeze(-1)).pow(2)).sum(-1).mean()
-        return {"loss_critic": loss_critic}, {}
+        with torch.no_grad():  # how much of the targets' variance Q(s_t, o_t) explains (PPO logs the same for V)
+            o = td.get(k.option).long().reshape(-1).unsqueeze(-1)
+            q_exec = q.detach().gather(-1, o).squeeze(-1)
+            explained = 1 - (target - q_exec).var(unbiased=False) / target.var(unbiased=False).clamp_min(1e-12)
+        return {"loss_critic": loss_critic}, {"explained_variance": explained}
 
     def option_advantages(self, td: TensorDictBase) -> torch.Tensor:
         """``Q(s, o) - V(s)`` for every option (detached, ``[B, n]``), optionally normalised by its std."""
