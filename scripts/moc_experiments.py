@@ -83,6 +83,8 @@ VARIANTS["default_164k"] = ("the default MOC (official_fast_xi + anneal_lr) over
 # a second development seed (evaluation seed 10007; not a results seed)
 VARIANTS["default_164k_s10"] = ("default_164k on development seed 10", [*VARIANTS["default_164k"][1], "seed=10"])
 VARIANTS["default_1opt_s10"] = ("default_1opt on development seed 10", [*VARIANTS["default_1opt"][1], "seed=10"])
+VARIANTS["default_ev"] = ("the default MOC over 41k frames, to read its critic's explained variance",
+                          [*BASE, *FAST_XI, "algo.anneal_lr=true", "train.total_frames=40960", "eval.every_frames=40960"])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 
