@@ -115,16 +115,9 @@ def run(names: list[str]) -> None:
         print(f"{name}: final {s['final']['normalized_d4rl']:.1f}")
 
 
-def _last(run: Path, key: str):
-    f = run / "logs" / "scalars" / "train" / f"{key}.csv"
-    if not f.is_file():
-        return None
-    rows = [line.split(",") for line in f.read_text().splitlines() if line]
-    tail = [float(r[1]) for r in rows[-5:]]
-    return sum(tail) / len(tail) if tail else None
-
-
 def table() -> str:
+    from torchrl_offhrl.recipes.report import logged_tail_mean
+
     lines = [
         "| variant | what | final D4RL | best D4RL (frames) | untrained | model-real gap (final) | " + " | ".join(DIAG) + " |",
         "|" + "---|" * (6 + len(DIAG)),
@@ -136,7 +129,7 @@ def table() -> str:
         evals = json.loads((run / "evals.json").read_text())
         final, first = evals[-1], evals[0]
         best = max(evals[1:] or evals, key=lambda e: e["normalized_d4rl"])
-        diag = [_last(run, k) for k in DIAG]
+        diag = [logged_tail_mean(run, k) for k in DIAG]
         gap = final.get("model_real_gap")
         lines.append(
             f"| {name} | {what} | {final['normalized_d4rl']:.1f} | {best['normalized_d4rl']:.1f} ({best['frames']}) | "

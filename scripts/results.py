@@ -65,16 +65,8 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int]) -> None
                 print(f"{scale} {env} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
-def _last(run: Path, key: str, n: int = 5):
-    f = run / "logs" / "scalars" / "train" / f"{key}.csv"
-    if not f.is_file():
-        return None
-    vals = [float(line.split(",")[1]) for line in f.read_text().splitlines() if line][-n:]
-    return sum(vals) / len(vals) if vals else None
-
-
 def report(scale: str) -> str:
-    from torchrl_offhrl.recipes.report import aggregate
+    from torchrl_offhrl.recipes.report import aggregate, logged_tail_mean
 
     base = ROOT / "outputs" / "results" / scale
     runs = sorted(d for d in base.glob("*-seed*") if (d / "summary.json").is_file())
@@ -93,7 +85,7 @@ def report(scale: str) -> str:
         if moc:
             vals = []
             for k in DIAG:
-                xs = [v for v in (_last(d, k) for d in moc) if v is not None]
+                xs = [v for v in (logged_tail_mean(d, k) for d in moc) if v is not None]
                 vals.append(f"{sum(xs) / len(xs):.3g}" if xs else "n/a")
             lines.append(f"| {env} | {len(moc)} | " + " | ".join(vals) + " |")
             for d in moc:  # the option-usage plots of every seed's final evaluation

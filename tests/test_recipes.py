@@ -319,3 +319,16 @@ def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
     table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
     # final 3, 6 -> 4.5 ± 2.1; best 9, 8 -> 8.5 ± 0.7; untrained 5, 7 -> 6.0
     assert "| ppo | Hopper-v5 | medium | - | 2 | 200 | 45.0 ± 21.2 | 4.5 ± 2.1 | 8.5 ± 0.7 | 6.0 | n/a |" in table
+
+
+def test_logged_tail_mean_reads_the_csv_logs(tmp_path):
+    from torchrl_offhrl.recipes.report import logged_tail_mean, read_scalar_logs
+
+    d = tmp_path / "logs" / "scalars" / "train"
+    d.mkdir(parents=True)
+    (d / "termination_rate.csv").write_text("".join(f"{f},{v}\n" for f, v in zip(range(0, 700, 100), (9, 9, 1, 2, 3, 4, 5))))
+    (d / "empty.csv").write_text("")
+    assert logged_tail_mean(tmp_path, "termination_rate") == pytest.approx(3.0)  # mean of the last 5: 1..5
+    assert logged_tail_mean(tmp_path, "termination_rate", n=2) == pytest.approx(4.5)
+    assert logged_tail_mean(tmp_path, "missing") is None and logged_tail_mean(tmp_path, "empty") is None
+    assert list(read_scalar_logs(tmp_path / "logs")) == ["train/termination_rate"]

@@ -19,7 +19,10 @@ import torch
 
 from ..scores import normalized_score
 
-__all__ = ["aggregate", "fmt_number", "format_summary", "load_run", "plot_curve", "plot_training_metrics", "run_summary"]
+__all__ = [
+    "aggregate", "fmt_number", "format_summary", "load_run", "logged_tail_mean", "plot_curve", "plot_training_metrics", "read_scalar_logs",
+    "run_summary",
+]
 
 
 def _plt():
@@ -200,6 +203,33 @@ def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimi
     }
 
 
+def read_scalar_logs(log_dir, keys: Sequence[str] | None = None) -> dict[str, tuple[list[float], list[float]]]:
+    """A run's CSV logs (``log_dir/scalars/{train,eval}/*.csv``) as ``{"<group>/<key>": (frames, values)}``.
+
+    ``keys`` picks series by key or by ``group/key`` (default: every file);
+    empty files are left out, and so is everything when there are no CSV logs.
+    """
+    root = Path(log_dir) / "scalars"
+    series = {}
+    for f in sorted(root.glob("*/*.csv")) if root.is_dir() else []:
+        name = f"{f.parent.name}/{f.stem}"
+        if keys is not None and f.stem not in keys and name not in keys:
+            continue
+        rows = [line.split(",") for line in f.read_text().splitlines() if line]
+        if rows:
+            series[name] = ([float(r[0]) for r in rows], [float(r[1]) for r in rows])
+    return series
+
+
+def logged_tail_mean(run_dir, key: str, n: int = 5) -> float | None:
+    """Mean of the last ``n`` logged values of the training scalar ``key`` of a run (None when it was not logged)."""
+    series = read_scalar_logs(Path(run_dir) / "logs", [f"train/{key}"])
+    if not series:
+        return None
+    tail = series[f"train/{key}"][1][-n:]
+    return sum(tail) / len(tail)
+
+
 def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None):
     """One panel per logged scalar of a run's CSV logs (``logs/scalars/{train,eval}/*.csv``), against frames.
 
@@ -212,16 +242,7 @@ def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None):
     """
     import warnings
 
-    root = Path(log_dir) / "scalars"
-    files = sorted(root.glob("*/*.csv")) if root.is_dir() else []
-    series = {}
-    for f in files:
-        name = f"{f.parent.name}/{f.stem}"
-        if keys is not None and f.stem not in keys and name not in keys:
-            continue
-        rows = [line.split(",") for line in f.read_text().splitlines() if line]
-        if rows:
-            series[name] = ([float(r[0]) for r in rows], [float(r[1]) for r in rows])
+    series = read_scalar_logs(log_dir, keys)
     if not series:
         return None
     try:
