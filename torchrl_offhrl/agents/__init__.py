@@ -18,10 +18,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from ..utils import to_plain
-from .base import Agent, OnPolicyAgent, action_box, adam, scalar_metrics, sum_losses
+from .base import Agent, MetricMeans, OnPolicyAgent, action_box, adam, sum_losses
 from .registry import AGENTS, agent_class, agent_defaults, register_agent
 
-__all__ = ["AGENTS", "Agent", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "make_agent", "register_agent", "scalar_metrics", "sum_losses"]
+__all__ = [
+    "AGENTS", "Agent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "make_agent", "register_agent",
+    "sum_losses",
+]
 
 def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_scale=None, action_key: str = "latent_action", device="cpu", **kwargs) -> Agent:
     """Build the agent registered as ``name`` for ``env`` (specs only: the composed model env or a real env with the same action key).

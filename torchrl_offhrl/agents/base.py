@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-__all__ = ["Agent", "OnPolicyAgent", "action_box", "adam", "scalar_metrics", "sum_losses"]
+__all__ = ["Agent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "sum_losses"]
 
 
 def sum_losses(out: Mapping) -> torch.Tensor:
@@ -26,9 +26,35 @@ def sum_losses(out: Mapping) -> torch.Tensor:
     return sum(v for k, v in out.items() if k.startswith("loss_"))
 
 
-def scalar_metrics(out: Mapping, prefix: str = "train/") -> dict[str, float]:
-    """Every one-element tensor of a loss output, as floats named ``prefix + key``."""
-    return {prefix + k: float(v.detach()) for k, v in out.items() if isinstance(v, torch.Tensor) and v.numel() == 1}
+class MetricMeans:
+    """Means, over the steps of an update, of every one-element tensor of the loss outputs (named ``prefix + key``).
+
+    Summed on their device and read once by :meth:`means` (no device sync
+    per gradient step); :attr:`count` is the number of outputs added.
+
+    Examples:
+        >>> import torch
+        >>> m = MetricMeans()
+        >>> m.add({"loss_a": torch.tensor(1.0), "usage": torch.zeros(3)})
+        >>> m.add({"loss_a": torch.tensor(2.0)})
+        >>> m.means(), m.count
+        ({'train/loss_a': 1.5}, 2)
+    """
+
+    def __init__(self, prefix: str = "train/"):
+        self.prefix = prefix
+        self.count = 0
+        self._sums: dict[str, torch.Tensor] = {}
+
+    def add(self, out: Mapping) -> None:
+        for k, v in out.items():
+            if isinstance(v, torch.Tensor) and v.numel() == 1:
+                v = v.detach().reshape(()).double()
+                self._sums[k] = self._sums[k] + v if k in self._sums else v
+        self.count += 1
+
+    def means(self) -> dict[str, float]:
+        return {self.prefix + k: float(v) / max(self.count, 1) for k, v in self._sums.items()}
 
 
 def adam(params, lr: float, eps: float = 1e-8, fused: bool = True) -> torch.optim.Adam:
@@ -198,8 +224,7 @@ class OnPolicyAgent(Agent):
         with torch.no_grad():
             self.prepare(batch)
         flat = batch.reshape(-1)
-        acc: dict[str, torch.Tensor] = {}  # summed on the device, read once at the end (no sync per minibatch)
-        n = 0
+        metrics = MetricMeans()
         for _ in range(self.epochs):
             for idx in torch.randperm(flat.numel(), device=flat.device).split(self.minibatch_size):
                 out = self.minibatch_loss(flat[idx])
@@ -208,9 +233,5 @@ class OnPolicyAgent(Agent):
                 if self.max_grad_norm:
                     torch.nn.utils.clip_grad_norm_(params, float(self.max_grad_norm))
                 optim.step()
-                for k, v in out.items():
-                    if isinstance(v, torch.Tensor) and v.numel() == 1:
-                        v = v.detach().reshape(()).double()
-                        acc[k] = acc[k] + v if k in acc else v
-                n += 1
-        return {**{f"train/{k}": float(v) / max(n, 1) for k, v in acc.items()}, "updates": n}
+                metrics.add(out)
+        return {**metrics.means(), "updates": metrics.count}

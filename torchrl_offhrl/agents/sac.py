@@ -12,7 +12,7 @@ from torchrl.objectives import group_optimizers
 
 from ..data.policies.training import make_sac_loss
 from ..nets import NormalizedMLP, tanh_gaussian_actor
-from .base import Agent, action_box, adam, scalar_metrics, sum_losses
+from .base import Agent, MetricMeans, action_box, adam, sum_losses
 from .registry import register_agent
 
 __all__ = ["SACAgent"]
@@ -74,8 +74,7 @@ class SACAgent(Agent):
     def update(self, batch):
         self.replay_buffer.extend(batch.reshape(-1))
         self.frames += batch.numel()
-        acc: dict[str, float] = {}
-        n = 0
+        metrics = MetricMeans()
         if self.frames >= self.init_random_frames:
             for _ in range(max(1, round(batch.numel() * self.utd_ratio))):
                 out = self.loss(self.replay_buffer.sample())
@@ -83,10 +82,8 @@ class SACAgent(Agent):
                 sum_losses(out).backward()
                 self.optimizer.step()
                 self.target_updater.step()
-                for k, v in scalar_metrics(out).items():
-                    acc[k] = acc.get(k, 0.0) + v
-                n += 1
-        return {**{k: v / max(n, 1) for k, v in acc.items()}, "updates": n}
+                metrics.add(out)
+        return {**metrics.means(), "updates": metrics.count}
 
     def state_dict(self) -> dict:
         return {**super().state_dict(), "target_updater": self.target_updater.state_dict(), "frames": self.frames}
