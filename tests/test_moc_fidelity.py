@@ -111,24 +111,29 @@ def test_update_schedule_counts_optimizer_steps(schedule):
     assert steps(again.termination_optimizer) == {2}
 
 
-def test_diagnostics_hand_computed():
-    """Q = (1, 3), pi_O = (0.25, 0.75): V = 2.5, so Q(s, o_prev) - V is -1.5 for option 0 and +0.5 for option 1."""
+def _constant_q_loss_and_batch(value_target):
+    """A loss with Q = (1, 3) and pi_O = (0.25, 0.75) everywhere, and a 4-step batch: options 0, 0, 1, 1 after 0, 0, 1, 0."""
     actor = OptionCriticActor(_constant_heads([0.25, 0.75], [0.5, 0.5]), low=-1.0, high=1.0)
     critic = make_option_critic(2, 2, hidden=(4,))
     with torch.no_grad():
         for p in critic.parameters():
             p.zero_()
         critic.module.net[-1].bias.copy_(torch.tensor([1.0, 3.0]))
-    loss = OptionCriticLoss(actor, critic)
     td = TensorDict(
         {
             "observation": torch.zeros(4, 2), "action": torch.zeros(4, 1), "option": torch.tensor([0, 0, 1, 1]),
             "prev_option": torch.tensor([0, 0, 1, 0]), "is_init": torch.tensor([True, False, False, False]).unsqueeze(-1),
             "option_log_probs": torch.zeros(4, 2), "option_assignment_log_prob": torch.full((4, 2), 0.5).log(),
-            "advantage": torch.zeros(4, 1), "value_target": torch.zeros(4, 1),
+            "advantage": torch.zeros(4, 1), "value_target": torch.as_tensor(value_target, dtype=torch.float32).reshape(4, 1),
         },
         batch_size=[4],
     )
+    return OptionCriticLoss(actor, critic), td
+
+
+def test_diagnostics_hand_computed():
+    """Q = (1, 3), pi_O = (0.25, 0.75): V = 2.5, so Q(s, o_prev) - V is -1.5 for option 0 and +0.5 for option 1."""
+    loss, td = _constant_q_loss_and_batch([0.0, 0.0, 0.0, 0.0])
     out = loss(td)
     # non-start steps: prev 0 (1 - 2.5 = -1.5), 1 (+0.5), 0 (-1.5)
     torch.testing.assert_close(out["termination_advantage"], torch.tensor(-2.5 / 3))
@@ -139,22 +144,7 @@ def test_diagnostics_hand_computed():
 
 def test_explained_variance_hand_computed():
     """explained_variance = 1 - Var(G - Q(s, o_t)) / Var(G), on the executed option's Q (constant Q = (1, 3))."""
-    actor = OptionCriticActor(_constant_heads([0.25, 0.75], [0.5, 0.5]), low=-1.0, high=1.0)
-    critic = make_option_critic(2, 2, hidden=(4,))
-    with torch.no_grad():
-        for p in critic.parameters():
-            p.zero_()
-        critic.module.net[-1].bias.copy_(torch.tensor([1.0, 3.0]))
-    loss = OptionCriticLoss(actor, critic)
-    td = TensorDict(
-        {
-            "observation": torch.zeros(4, 2), "action": torch.zeros(4, 1), "option": torch.tensor([0, 0, 1, 1]),
-            "prev_option": torch.tensor([0, 0, 1, 0]), "is_init": torch.tensor([True, False, False, False]).unsqueeze(-1),
-            "option_log_probs": torch.zeros(4, 2), "option_assignment_log_prob": torch.full((4, 2), 0.5).log(),
-            "advantage": torch.zeros(4, 1), "value_target": torch.tensor([[2.0], [0.0], [4.0], [3.0]]),
-        },
-        batch_size=[4],
-    )
+    loss, td = _constant_q_loss_and_batch([2.0, 0.0, 4.0, 3.0])
     out = loss(td)
     # executed Q: 1, 1, 3, 3; G - Q: 1, -1, 1, 0 -> var 0.6875; Var(G) = 2.1875
     assert out["explained_variance"].item() == pytest.approx(1 - 0.6875 / 2.1875)
