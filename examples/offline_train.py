@@ -99,8 +99,8 @@ def main(cfg: DictConfig) -> None:
         next_eval = (run.frames // every + 1) * every
         for batch in collector:
             t0 = time.time()
+            agent.set_progress(run.frames / total)  # before this batch counts: schedules (e.g. anneal_lr) follow the frame budget
             run.frames += batch.numel()
-            agent.set_progress((run.frames - batch.numel()) / total)  # schedules (e.g. anneal_lr) follow the frame budget
             metrics = agent.update(batch)
             run.updates += int(metrics.pop("updates"))
             train_time += time.time() - t0

@@ -111,8 +111,8 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
         next_eval = (run.frames // eval_every + 1) * eval_every
         for batch in collector:
             t0 = time.time()
+            agent.set_progress(run.frames / total)  # before this batch counts: schedules (e.g. anneal_lr) follow the frame budget
             run.frames += batch.numel()
-            agent.set_progress((run.frames - batch.numel()) / total)  # schedules (e.g. anneal_lr) follow the frame budget
             metrics = agent.update(batch)
             run.updates += int(metrics.pop("updates"))
             train_time += time.time() - t0
