@@ -454,3 +454,5 @@ def test_returns_to_go_matches_the_backward_recursion():
         torch.testing.assert_close(ds.returns_to_go(gamma), expected, rtol=1e-9, atol=1e-7)
     with pytest.raises(ValueError, match="gamma"):
         ds.returns_to_go(1.5)
+    with pytest.raises(ValueError, match="underflows"):  # 0.5 ** 1099 is below float64's range: a clear error, not NaN
+        make_toy_dataset(num_episodes=1, episode_length=1100).returns_to_go(0.5)

@@ -276,24 +276,19 @@ class OfflineDataset:
         """
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
-        starts = self.episode_starts()
-        n = starts.numel()
-        idx = torch.arange(n, device=starts.device)
-        start_idx = torch.cummax(torch.where(starts, idx, torch.zeros_like(idx)), 0).values
-        t = (idx - start_idx).double()
-        # the first index after each transition's episode
-        ends = torch.nonzero(starts).squeeze(-1)[1:].tolist() + [n]
-        ep_id = torch.cumsum(starts.long(), 0) - 1
-        after = torch.as_tensor(ends, device=starts.device)[ep_id]
-        log_g = float("-inf") if gamma == 0 else torch.log(torch.tensor(gamma, dtype=torch.float64)).item()
-        weights = torch.exp(t * log_g) if gamma > 0 else (t == 0).double()
-        rewards = self.data.get(("next", "reward")).reshape(n).double()
-        w = rewards * weights
-        tail = torch.flip(torch.cumsum(torch.flip(w, (0,)), 0), (0,))  # tail[i] = sum_{k >= i} w_k
-        tail = torch.cat([tail, tail.new_zeros(1)])
+        rewards = self.data.get(("next", "reward")).reshape(-1).double()
         if gamma == 0:
             return rewards
-        return (tail[:n] - tail[after]) / weights
+        ep = torch.cumsum(self.episode_starts().long(), 0) - 1  # episode index of every transition
+        length = torch.bincount(ep)
+        first = torch.cumsum(length, 0) - length  # first transition of every episode
+        t = torch.arange(rewards.numel(), device=rewards.device) - first[ep]  # step within the episode
+        weights = torch.tensor(gamma, dtype=torch.float64, device=rewards.device) ** t
+        if not bool((weights > 0).all()):
+            raise ValueError(f"returns_to_go: gamma={gamma} ** (episode length {int(length.max())}) underflows float64; use a larger gamma")
+        tail = torch.flip(torch.cumsum(torch.flip(rewards * weights, (0,)), 0), (0,))  # tail[i] = sum_{k >= i} w_k
+        tail = torch.cat([tail, tail.new_zeros(1)])
+        return (tail[: rewards.numel()] - tail[(first + length)[ep]]) / weights
 
     def return_stats(self) -> dict:
         """Mean/std/min/max and count of the returns of the complete episodes.
