@@ -266,7 +266,7 @@ def train_behaviour(
     state = None
     state_dir = latest_state(out)
     if state_dir is not None:  # a saved run: check it is this one, and whether anything is left to do
-        state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=False)
+        state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=True)
         saved = state["identity"]
         unused = set() if _algorithm(algorithm)["target_critics"] else {"tau"}  # CrossQ has no target critics
         diff = {k: (saved[k], v) for k, v in identity.items() if k in saved and k not in unused and saved[k] != v}
