@@ -332,3 +332,23 @@ def test_logged_tail_mean_reads_the_csv_logs(tmp_path):
     assert logged_tail_mean(tmp_path, "termination_rate", n=2) == pytest.approx(4.5)
     assert logged_tail_mean(tmp_path, "missing") is None and logged_tail_mean(tmp_path, "empty") is None
     assert list(read_scalar_logs(tmp_path / "logs")) == ["train/termination_rate"]
+
+
+@pytest.mark.parametrize("name", ["../../outside", "/tmp", "replay-12/../..", 7])
+def test_resume_refuses_a_replay_name_outside_the_run(tmp_path, name):
+    """A checkpoint's replay folder is later removed with rmtree: a crafted name must not reach outside the run."""
+    victim = tmp_path / "outside"
+    victim.mkdir()
+    run = rundir.RunDirectory(tmp_path / "a" / "run", "fp")
+    torch.save({"agent": {}, "frames": 1, "updates": 1, "records": [], "rng": torch.get_rng_state(), "replay": name,
+                "fingerprint": "fp"}, run.checkpoint_path)
+
+    class Agent:
+        replay_buffer = None
+
+        def load_state_dict(self, state):
+            pass
+
+    with pytest.raises(ValueError, match="replay-<frames>"):
+        run.resume(Agent())
+    assert victim.is_dir()

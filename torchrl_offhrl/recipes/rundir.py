@@ -11,6 +11,7 @@ checkpoint that names it and the previous one deleted only after.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -54,7 +55,12 @@ class RunDirectory:
         agent.load_state_dict(state["agent"])
         self.frames, self.updates, self.records = int(state["frames"]), int(state["updates"]), list(state["records"])
         torch.set_rng_state(state["rng"])
-        self._replay = state.get("replay")
+        replay = state.get("replay")
+        if replay is not None and not (isinstance(replay, str) and re.fullmatch(r"replay-\d+", replay)):
+            # the name is later joined to the run directory and removed with rmtree: never outside it
+            raise ValueError(f"{self.checkpoint_path} names its replay buffer {replay!r}, not a replay-<frames> folder of the run; "
+                             "the checkpoint is corrupt or was not written by `offhrl train`: delete it to start over")
+        self._replay = replay
         if agent.replay_buffer is not None and self._replay is not None:
             if not (self.path / self._replay).is_dir():
                 raise FileNotFoundError(f"the checkpoint's replay buffer {self.path / self._replay} is missing; delete {self.checkpoint_path} to start over")
