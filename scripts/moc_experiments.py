@@ -85,6 +85,28 @@ VARIANTS["default_164k_s10"] = ("default_164k on development seed 10", [*VARIANT
 VARIANTS["default_1opt_s10"] = ("default_1opt on development seed 10", [*VARIANTS["default_1opt"][1], "seed=10"])
 VARIANTS["default_ev"] = ("the default MOC over 41k frames, to read its critic's explained variance",
                           [*BASE, *FAST_XI, "algo.anneal_lr=true", "train.total_frames=40960", "eval.every_frames=40960"])
+# the model member drawn for every step instead of every episode (MBPO's rollouts): a policy cannot exploit one
+# member's errors over a whole episode
+DEFAULT = [*BASE, *FAST_XI, "algo.anneal_lr=true"]
+VARIANTS["default_step"] = ("the default MOC, model member redrawn every step (member_mode step)", [*DEFAULT, "model_env.member_mode=step"])
+VARIANTS["default_step_s10"] = ("default_step on development seed 10", [*VARIANTS["default_step"][1], "seed=10"])
+# a smaller initial intra-option std: at e^0 = 1 (the CVAE prior's std) the exploring policy samples the whole
+# behaviour distribution (the stochastic untrained agent scores about the data's 37) while evaluation acts on the
+# latent mean (the decoder's mode, ~50-70): what training improves is not what evaluation measures
+VARIANTS["default_std1"] = ("the default MOC, initial intra-option std e^-1", [*DEFAULT, "algo.init_log_std=-1.0"])
+VARIANTS["default_std1_s10"] = ("default_std1 on development seed 10", [*VARIANTS["default_std1"][1], "seed=10"])
+VARIANTS["default_step_std1"] = ("default_step with initial intra-option std e^-1", [*VARIANTS["default_step"][1], "algo.init_log_std=-1.0"])
+VARIANTS["default_step_std1_s10"] = ("default_step_std1 on development seed 10", [*VARIANTS["default_step_std1"][1], "seed=10"])
+for _seed in (20, 30):  # two more development seeds for the member_mode comparison
+    VARIANTS[f"default_164k_s{_seed}"] = (f"default_164k on development seed {_seed}", [*VARIANTS["default_164k"][1], f"seed={_seed}"])
+    VARIANTS[f"default_step_s{_seed}"] = (f"default_step on development seed {_seed}", [*VARIANTS["default_step"][1], f"seed={_seed}"])
+# model episodes start at any dataset state instead of the data's start states: the agent trains on the whole
+# gait the data covers, not only on what its own rollouts reach before the model (or the pessimism) ends them
+for _seed in (0, 10, 20):
+    _sfx = "" if _seed == 0 else f"_s{_seed}"
+    VARIANTS[f"default_any{_sfx}"] = (f"the default MOC, model episodes start at any dataset state (reset_states any); seed {_seed}",
+                                     [*DEFAULT, "model_env.reset_states=any", f"seed={_seed}"])
+VARIANTS["hc_default"] = ("the default MOC on halfcheetah-medium (demo-size models fitted 20k steps)", [*DEFAULT, "env=halfcheetah"])
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy", "termination_advantage_positive", "penalized_rate")
 
 

@@ -352,3 +352,20 @@ def test_resume_refuses_a_replay_name_outside_the_run(tmp_path, name):
     with pytest.raises(ValueError, match="replay-<frames>"):
         run.resume(Agent())
     assert victim.is_dir()
+
+
+def test_model_env_reset_states_from_the_config():
+    """``model_env.reset_states`` reaches the env; an explicit argument (the evaluation's "initial") wins over it."""
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    d = make_toy_dataset(num_episodes=4, episode_length=10)
+    ens, cvae = DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)), ConditionalVAE.for_dataset(d, hidden_sizes=(8,))
+    cfg = {"env": {"threshold": 1.0, "reset_states": "any"}}
+    anywhere = make_model_env(cfg, ens, cvae, d, batch_size=4).base_env
+    assert anywhere.start_states.shape[0] == d.data.shape[0] == 40
+    initial = make_model_env(cfg, ens, cvae, d, batch_size=4, reset_states="initial").base_env
+    assert torch.equal(initial.start_states, d.initial_observations().float())
+    assert initial.start_states.shape[0] == 4
+    assert make_model_env({"env": {"threshold": 1.0}}, ens, cvae, d, batch_size=4).base_env.start_states.shape[0] == 4

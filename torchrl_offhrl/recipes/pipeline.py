@@ -89,13 +89,16 @@ def make_model_env(
     batch_size: int | None = None,
     latent: bool = True,
     threshold: float | None = None,
+    reset_states: str | None = None,
 ) -> TransformedEnv:
     """``TransformedEnv(PessimisticModelEnv(...), LatentActionTransform(...))``.
 
     ``latent=False`` (the paper's "no CVAE" ablation, and transfer) leaves the
     agent acting in real actions. ``threshold`` overrides ``cfg.env.threshold``:
     pass an env's calibrated ``base_env.threshold`` to build more envs (e.g. for
-    evaluation) without scoring the dataset again.
+    evaluation) without scoring the dataset again. ``reset_states`` overrides
+    ``cfg.env.reset_states`` (``"initial"``, the default: episodes start where
+    the data's episodes start; ``"any"``: at any dataset state).
     """
     env_cfg = cfg["env"]
     if threshold is None:
@@ -110,6 +113,7 @@ def make_model_env(
         fraction=env_cfg.get("fraction"),
         horizon=env_cfg.get("horizon", 1000),
         member_mode=env_cfg.get("member_mode", "episode"),
+        reset_states=reset_states or env_cfg.get("reset_states", "initial"),
         batch_size=[] if batch_size is None else [batch_size],
         device=cfg.get("device", "cpu"),
         seed=cfg.get("seed"),

@@ -79,7 +79,8 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     agent.attach(eval_env)
     model_eval_env = None
     if cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
-        model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold)
+        model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold,
+                                         reset_states="initial")  # the real env's start states, whatever training uses
         agent.attach(model_eval_env)
     ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
     evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=int(cfg["seed"]) * 1000 + 7,
