@@ -369,3 +369,32 @@ def test_model_env_reset_states_from_the_config():
     assert torch.equal(initial.start_states, d.initial_observations().float())
     assert initial.start_states.shape[0] == 4
     assert make_model_env({"env": {"threshold": 1.0}}, ens, cvae, d, batch_size=4).base_env.start_states.shape[0] == 4
+
+
+def test_a_run_directory_holds_one_run_at_a_time(tmp_path):
+    """A second run on a locked directory is refused (another process, or this one); a dead holder does not block."""
+    run = rundir.RunDirectory(tmp_path / "run", "fp")
+    with run.locked():
+        with pytest.raises(RuntimeError, match=f"pid {os.getpid()}"):
+            with rundir.RunDirectory(tmp_path / "run", "fp").locked():
+                pass
+        other = subprocess.run(
+            [sys.executable, "-c", "import sys; from torchrl_offhrl.recipes.rundir import RunDirectory\n"
+             "try:\n    RunDirectory(sys.argv[1], 'fp').locked().__enter__()\nexcept RuntimeError as e:\n    print(e); sys.exit(3)",
+             str(tmp_path / "run")], capture_output=True, text=True)
+        assert other.returncode == 3 and "in use by a run" in other.stdout
+    with run.locked():  # released after the block
+        pass
+    # a holder killed with SIGKILL leaves the lock file, not the lock
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from torchrl_offhrl.recipes.rundir import RunDirectory\n"
+         "cm = RunDirectory(sys.argv[1], 'fp').locked(); cm.__enter__(); print('locked', flush=True); time.sleep(60)", str(tmp_path / "run")],
+        stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    with pytest.raises(RuntimeError, match="in use"):
+        with run.locked():
+            pass
+    holder.kill()
+    holder.wait()
+    with run.locked():
+        pass

@@ -10,7 +10,9 @@ checkpoint that names it and the previous one deleted only after.
 """
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -41,6 +43,39 @@ class RunDirectory:
         self.updates = 0
         self.records: list[dict] = []
         self._replay: str | None = None
+
+    @contextlib.contextmanager
+    def locked(self):
+        """Hold an exclusive lock on the directory (``.lock``) while the block runs; refuse if another run holds it.
+
+        An OS file lock (``flock``): the OS releases it when its process dies,
+        so a killed run never blocks the next one. Where ``fcntl`` is missing
+        (Windows) the block runs unlocked.
+        """
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX
+            yield self
+            return
+        fd = os.open(self.path / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
+                raise RuntimeError(
+                    f"{self.path} is in use by a run that is still going (pid {holder}): two runs in one run_dir would "
+                    "interleave their checkpoints and logs. Wait for it to finish, or give another run_dir=."
+                ) from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+            try:
+                yield self
+            finally:
+                os.ftruncate(fd, 0)
+                fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
 
     def resume(self, agent, device="cpu") -> bool:
         """Load the checkpoint into ``agent`` (and its replay buffer) and the counters; False when there is none."""

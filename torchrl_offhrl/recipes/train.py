@@ -37,13 +37,23 @@ __all__ = ["train"]
 
 
 def train(cfg: Mapping, progress: bool = True) -> dict:
-    """Run one recipe end to end; returns the summary also written to ``run_dir/summary.json``."""
-    from tqdm.auto import tqdm
+    """Run one recipe end to end; returns the summary also written to ``run_dir/summary.json``.
 
+    The run directory is locked for the whole run: a second ``train`` on the
+    same directory (another process, or this one) is refused with
+    ``RuntimeError`` instead of interleaving its checkpoints and logs.
+    """
     cfg = to_plain(cfg)
     t_start = time.time()
-    algo, env_cfg = cfg["algo"], cfg["env"]
     run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
+    with run.locked():
+        return _train(cfg, run, t_start, progress)
+
+
+def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict:
+    from tqdm.auto import tqdm
+
+    algo, env_cfg = cfg["algo"], cfg["env"]
     torch.manual_seed(cfg["seed"])
     device = torch.device(cfg.get("device", "cpu"))
 
