@@ -67,8 +67,10 @@ def cmd_collect(args) -> int:
 def cmd_fit(args) -> int:
     from .recipes.config import compose, model_config, resolve_dataset
     from .recipes.pipeline import fit_or_load_models
+    from .recipes.schema import validate_config
 
     cfg = compose("offline_train", args.overrides, "fit")
+    validate_config(to_plain(cfg))
     data = resolve_dataset(cfg)
     _, _, info = fit_or_load_models(model_config(cfg), data)
     for name in ("ensemble", "cvae"):

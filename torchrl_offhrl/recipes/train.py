@@ -31,6 +31,7 @@ from .evaluation import Evaluator
 from .pipeline import fit_or_load_models, make_model_env, make_real_env
 from .report import plot_curve, plot_training_metrics, run_summary
 from .rundir import RunDirectory
+from .schema import validate_config
 from .sources import model_env_collector, model_env_metrics
 
 __all__ = ["train"]
@@ -44,6 +45,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     ``RuntimeError`` instead of interleaving its checkpoints and logs.
     """
     cfg = to_plain(cfg)
+    validate_config(cfg)  # every bad value named before any data or model work
     t_start = time.time()
     run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
     with run.locked():

@@ -1,0 +1,65 @@
+"""Up-front config validation: every bad value named with its key before any dataset or model work."""
+import pytest
+
+from torchrl_offhrl.cli import main
+from torchrl_offhrl.recipes.config import compose
+from torchrl_offhrl.recipes.schema import validate_config
+from torchrl_offhrl.utils import to_plain
+
+# the values of issue 14's probe: each used to start generating a 1M-transition dataset first
+BAD = {
+    "train.total_frames=-5": "train.total_frames: expected an integer >= 1, got -5",
+    "algo.lr=-1": "algo.lr: expected a number > 0, got -1",
+    "algo.num_options=0": "algo.num_options: expected an integer >= 1, got 0",
+    "model_env.horizon=0": "model_env.horizon: expected an integer >= 1, got 0",
+    "eval.episodes=0": "eval.episodes: expected an integer >= 1, got 0",
+    "eval.every_frames=0": "eval.every_frames: expected an integer >= 1, got 0",
+    "seed=abc": "seed: expected an integer >= 0, got 'abc'",
+    "model_env.member_mode=sometimes": "model_env.member_mode: expected one of 'episode', 'step', 'mean', got 'sometimes'",
+    "model_env.reward_scale=-2": "model_env.reward_scale: expected a positive number or 'auto', got -2",
+    "ensemble.hidden_sizes=[64,0]": "ensemble.hidden_sizes: expected a non-empty list of positive integers, got [64, 0]",
+    "algo.gamma=1.5": "algo.gamma: expected a number > 0 and <= 1, got 1.5",
+}
+
+
+@pytest.mark.parametrize("override", sorted(BAD))
+def test_each_bad_value_is_named_before_any_work(override, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    assert main(["train", override, f"out_root={tmp_path / 'runs'}"]) == 2
+    err = capsys.readouterr().err
+    assert BAD[override] in err
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()  # no dataset, no model, no run directory
+
+
+def test_every_bad_value_at_once():
+    cfg = to_plain(compose("offline_train", list(BAD)))
+    with pytest.raises(ValueError) as info:
+        validate_config(cfg)
+    lines = str(info.value).splitlines()[1:]
+    assert sorted(line.strip() for line in lines) == sorted(BAD.values())
+
+
+def test_cuda_on_a_machine_without_it():
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(ValueError, match="device: expected a device this machine has .* got 'cuda'"):
+        validate_config(to_plain(compose("offline_train", ["device=cuda"])))
+    with pytest.raises(ValueError, match="device: expected a torch device"):
+        validate_config(to_plain(compose("offline_train", ["device=gpu0"])))
+
+
+@pytest.mark.parametrize("config", ["offline_train", "demo", "pipeline"])
+@pytest.mark.parametrize("algo", ["moc", "moc_official", "moc_joint", "ppo", "sac"])
+def test_the_shipped_configs_are_valid(config, algo):
+    for env in ("hopper", "halfcheetah"):
+        validate_config(to_plain(compose(config, [f"algo={algo}", f"env={env}"])))
+
+
+def test_null_head_step_sizes_and_booleans_pass():
+    validate_config({"algo": {"lr": 1e-4, "termination_lr": None, "option_lr": 1e-3, "anneal_lr": True, "max_grad_norm": None}})
+    with pytest.raises(ValueError, match="algo.termination_lr: expected a number > 0 or null, got 0"):
+        validate_config({"algo": {"termination_lr": 0}})
+    with pytest.raises(ValueError, match="algo.anneal_lr: expected true or false, got 'yes'"):
+        validate_config({"algo": {"anneal_lr": "yes"}})
