@@ -6,7 +6,36 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_write", "cache_dir", "one_thread", "to_plain"]
+__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "load_torch_file", "one_thread", "to_plain"]
+
+
+class CorruptFileError(ValueError):
+    """A file that exists but cannot be read back (truncated, overwritten, not what its name says); the message names it."""
+
+
+def load_torch_file(path: str | os.PathLike, what: str, fix: str, map_location="cpu"):
+    """``torch.load(path, weights_only=True)``, with a one-line :class:`CorruptFileError` naming ``path`` and ``fix`` when it cannot be read.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> p = pathlib.Path(tempfile.mkdtemp()) / "model.pt"
+        >>> _ = p.write_bytes(b"not a checkpoint")
+        >>> load_torch_file(p, "checkpoint", "delete it")
+        Traceback (most recent call last):
+        ...
+        torchrl_offhrl.utils.CorruptFileError: .../model.pt: the checkpoint is corrupt or truncated (...); delete it
+    """
+    import pickle
+
+    import torch
+
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except (RuntimeError, OSError, EOFError, pickle.UnpicklingError, ValueError) as err:
+        if isinstance(err, FileNotFoundError):
+            raise
+        reason = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
+        raise CorruptFileError(f"{path}: the {what} is corrupt or truncated ({reason}); {fix}") from None
 
 
 @contextmanager

@@ -22,6 +22,7 @@ import hashlib
 import os
 import re
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -422,7 +423,11 @@ def named_dataset(
     env_id, short, level, n = _resolve_size(name, num_transitions)
     path = dataset_path(f"{short}-{level}", n, seed, num_envs)
     if path.is_file():
-        return load_dataset(path)
+        try:
+            return load_dataset(path)
+        except DatasetError as err:  # the cache can always be rebuilt: say so, and generate the file again
+            warnings.warn(f"the cached dataset {path} is corrupt ({err}); deleting it and generating it again", stacklevel=2)
+            path.unlink()
     needed = _POLICY_LEVELS[level]
     shipped = list_policies()
     for lv in needed:

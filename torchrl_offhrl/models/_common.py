@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..utils import atomic_write
+from ..utils import atomic_write, load_torch_file
 from .trainer import SupervisedTrainer
 
 __all__ = ["FitMixin", "atomic_torch_save"]
@@ -61,7 +61,8 @@ class FitMixin:
         path = Path(path).expanduser()
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no checkpoint there; write one with {cls.__name__}.save(path).")
-        blob = torch.load(path, map_location=map_location, weights_only=True)
+        blob = load_torch_file(path, f"{cls.__name__} checkpoint", f"fit the model again and save it with {cls.__name__}.save(path)",
+                               map_location=map_location)
         if not isinstance(blob, dict) or blob.get("class") != cls.__name__:
             found = blob.get("class") if isinstance(blob, dict) else type(blob).__name__
             raise ValueError(f"{path}: holds a {found!r} checkpoint, not a {cls.__name__} one.")

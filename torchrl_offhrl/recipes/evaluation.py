@@ -15,6 +15,7 @@ from ..agents import make_agent
 from ..models import ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
+from ..utils import load_torch_file
 from .pipeline import make_real_env
 
 __all__ = ["Evaluator", "evaluate_run", "render_episode"]
@@ -104,7 +105,7 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     env = make_real_env(env_id, cvae, num_envs=episodes, latent_bound=bound)
     agent = make_agent(cfg["algo"]["name"], env, cfg["algo"], action_key="latent_action" if latent else "action")
     agent.attach(env)
-    state = torch.load(ckpt_path, weights_only=True, map_location="cpu")
+    state = load_torch_file(ckpt_path, "run checkpoint", f"its previous checkpoint is {run / 'checkpoint.prev.pt'} (rename it to evaluate that one)")
     agent.load_state_dict(state["agent"])
     rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)
     env.close()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -17,7 +18,7 @@ from torchrl.envs import TransformedEnv
 from ..data import OfflineDataset, make_gym_env
 from ..envs import LatentActionTransform, PessimisticModelEnv
 from ..models import ConditionalVAE, DynamicsEnsemble
-from ..utils import cache_dir, to_plain
+from ..utils import CorruptFileError, cache_dir, to_plain
 
 __all__ = [
     "GaussianLatentPolicy",
@@ -31,6 +32,18 @@ log = logging.getLogger(__name__)
 
 def _digest(obj: Any) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def _load_cached(cls, path):
+    """A cached model, or None when there is none or it is corrupt (then it is deleted, with a warning, to be fitted again)."""
+    if not path.is_file():
+        return None
+    try:
+        return cls.load(path)
+    except CorruptFileError as err:
+        warnings.warn(f"the model cache entry is corrupt, fitting the model again: {err}", stacklevel=3)
+        path.unlink()
+        return None
 
 
 def fit_or_load_models(
@@ -58,8 +71,8 @@ def fit_or_load_models(
     e_path, c_path = folder / "ensemble.pt", folder / "cvae.pt"
     val_ratio = cfg["dataset"].get("val_ratio", 0.1)
     torch.manual_seed(cfg["seed"])
-    if e_path.is_file():
-        ensemble = DynamicsEnsemble.load(e_path)
+    ensemble = _load_cached(DynamicsEnsemble, e_path)
+    if ensemble is not None:
         info["ensemble"] = "loaded"
     else:
         ensemble = DynamicsEnsemble.for_dataset(
@@ -69,8 +82,8 @@ def fit_or_load_models(
         ensemble.save(e_path)
         info["ensemble"] = "fitted"
         info["ensemble_history"] = ensemble.training_history
-    if c_path.is_file():
-        cvae = ConditionalVAE.load(c_path)
+    cvae = _load_cached(ConditionalVAE, c_path)
+    if cvae is not None:
         info["cvae"] = "loaded"
     else:
         cvae = ConditionalVAE.for_dataset(data, hidden_sizes=ccfg["hidden_sizes"], kl_weight=ccfg["kl_weight"]).to(device)

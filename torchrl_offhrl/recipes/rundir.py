@@ -6,7 +6,11 @@ records, RNG state, the config fingerprint and, for agents with a replay
 buffer, the name of the ``replay-<frames>/`` folder saved with it),
 ``evals.json``, ``logs/`` (TorchRL logger) and whatever the report writes.
 Every file is written atomically; a replay folder is written before the
-checkpoint that names it and the previous one deleted only after.
+checkpoint that names it and the previous one deleted only after. The
+checkpoint before the last is kept as ``checkpoint.prev.pt``: a damaged
+``checkpoint.pt`` is reported and the run resumes from it instead (agents
+without a replay buffer; an off-policy agent's previous buffer is not kept,
+so its fallback stops with the missing buffer named).
 """
 from __future__ import annotations
 
@@ -15,11 +19,12 @@ import json
 import os
 import re
 import shutil
+import warnings
 from pathlib import Path
 
 import torch
 
-from ..utils import atomic_write
+from ..utils import CorruptFileError, atomic_write, load_torch_file
 from .config import RESUMABLE_KEYS
 
 __all__ = ["RunDirectory", "trim_csv_logs"]
@@ -39,6 +44,7 @@ class RunDirectory:
         self.path.mkdir(parents=True, exist_ok=True)
         self.fingerprint = fingerprint
         self.checkpoint_path = self.path / "checkpoint.pt"
+        self.previous_path = self.path / "checkpoint.prev.pt"
         self.frames = 0
         self.updates = 0
         self.records: list[dict] = []
@@ -81,7 +87,15 @@ class RunDirectory:
         """Load the checkpoint into ``agent`` (and its replay buffer) and the counters; False when there is none."""
         if not self.checkpoint_path.is_file():
             return False
-        state = torch.load(self.checkpoint_path, weights_only=True, map_location=device)
+        try:
+            state = load_torch_file(self.checkpoint_path, "run checkpoint", f"delete it to start over (or restore {self.previous_path.name})",
+                                    map_location=device)
+        except CorruptFileError as err:
+            if not self.previous_path.is_file():
+                raise
+            warnings.warn(f"{err}; resuming from the checkpoint before it, {self.previous_path}", stacklevel=2)
+            state = load_torch_file(self.previous_path, "previous run checkpoint", f"delete it and {self.checkpoint_path.name} to start over",
+                                    map_location=device)
         if state.get("fingerprint") not in (None, self.fingerprint):
             raise ValueError(
                 f"{self.path} holds a checkpoint of a run with a different configuration (only {', '.join(RESUMABLE_KEYS)} "
@@ -120,12 +134,15 @@ class RunDirectory:
             "agent": agent.state_dict(), "frames": self.frames, "updates": self.updates, "records": self.records,
             "rng": torch.get_rng_state(), "replay": new_replay, "fingerprint": self.fingerprint,
         }
+        if self.checkpoint_path.is_file():  # the one before stays, for a checkpoint damaged later (resume falls back to it)
+            with atomic_write(self.previous_path) as tmp:
+                shutil.copyfile(self.checkpoint_path, tmp)
         with atomic_write(self.checkpoint_path) as tmp:
             torch.save(state, tmp)
         with atomic_write(self.path / "evals.json") as tmp:
             Path(tmp).write_text(json.dumps(self.records, indent=1))
-        if self._replay is not None and self._replay != new_replay:
-            shutil.rmtree(self.path / self._replay, ignore_errors=True)
+        if self._replay is not None and self._replay != new_replay:  # one buffer on disk: the previous checkpoint
+            shutil.rmtree(self.path / self._replay, ignore_errors=True)  # keeps the agent, not its (large) buffer
         self._replay = new_replay
 
     def logger(self, backend: str | None, **kwargs):

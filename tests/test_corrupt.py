@@ -1,0 +1,83 @@
+"""Damaged artefacts: each is reported in one line naming the file and the fix; cache entries are rebuilt, a run falls back."""
+import pytest
+import torch
+
+from torchrl_offhrl.data import DatasetError, load_dataset, make_toy_dataset
+from torchrl_offhrl.data.generate import dataset_path, named_dataset
+from torchrl_offhrl.models import DynamicsEnsemble
+from torchrl_offhrl.recipes.pipeline import fit_or_load_models
+from torchrl_offhrl.recipes.rundir import RunDirectory
+from torchrl_offhrl.utils import CorruptFileError
+
+
+def _truncate(path, keep=0.5):
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+
+
+class _Agent:
+    replay_buffer = None
+
+    def __init__(self, value=0.0):
+        self.w = torch.tensor([value])
+
+    def state_dict(self):
+        return {"w": self.w.clone()}
+
+    def load_state_dict(self, state):
+        self.w = state["w"].clone()
+
+
+def test_a_damaged_run_checkpoint_falls_back_to_the_one_before(tmp_path):
+    run = RunDirectory(tmp_path / "run", "fp")
+    for frames, value in ((100, 1.0), (200, 2.0)):
+        run.frames = frames
+        run.checkpoint(_Agent(value))
+    _truncate(run.checkpoint_path)
+    again, agent = RunDirectory(tmp_path / "run", "fp"), _Agent()
+    with pytest.warns(UserWarning, match=r"checkpoint\.pt: the run checkpoint is corrupt.*resuming from the checkpoint before it"):
+        assert again.resume(agent)
+    assert again.frames == 100 and agent.w.item() == 1.0  # the checkpoint at 100 frames, intact
+    # without the one before: one line naming the file and the fix
+    again.previous_path.unlink()
+    with pytest.raises(CorruptFileError, match=r"run/checkpoint\.pt: the run checkpoint is corrupt or truncated .*delete it to start over") as info:
+        RunDirectory(tmp_path / "run", "fp").resume(_Agent())
+    assert "\n" not in str(info.value)
+
+
+def test_a_damaged_hdf5_file_names_the_file(tmp_path):
+    from torchrl_offhrl.data.io import save_dataset
+
+    path = tmp_path / "d.hdf5"
+    save_dataset(make_toy_dataset(num_episodes=50, episode_length=100), path)
+    _truncate(path)
+    with pytest.raises(DatasetError, match=r"d\.hdf5: cannot be read: the file is corrupt or truncated"):
+        load_dataset(path)
+
+
+def test_a_damaged_cached_dataset_is_generated_again(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
+    first = named_dataset("hopper-medium", num_transitions=200, seed=1, num_envs=2, progress=False)
+    path = dataset_path("hopper-medium", 200, 1, 2)
+    _truncate(path)
+    with pytest.warns(UserWarning, match="is corrupt .* generating it again"):
+        again = named_dataset("hopper-medium", num_transitions=200, seed=1, num_envs=2, progress=False)
+    assert torch.equal(again.data["observation"], first.data["observation"])  # the same seed gives the same data
+    load_dataset(path)  # the file is whole again
+
+
+def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
+    data = make_toy_dataset(num_episodes=4, episode_length=25)
+    fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
+    cfg = {"seed": 0, "dataset": {"val_ratio": 0.2}, "ensemble": {"num_models": 2, "hidden_sizes": [8], "loss": "l1", "fit": fit},
+           "cvae": {"hidden_sizes": [8], "kl_weight": 0.05, "fit": fit}}
+    _, _, info = fit_or_load_models(cfg, data, progress=False)
+    e_path = tmp_path / "models" / info["model_dir"].rsplit("/", 1)[1] / "ensemble.pt"
+    _truncate(e_path)
+    with pytest.raises(CorruptFileError, match=r"ensemble\.pt: the DynamicsEnsemble checkpoint is corrupt"):
+        DynamicsEnsemble.load(e_path)
+    with pytest.warns(UserWarning, match=r"model cache entry is corrupt, fitting the model again: .*ensemble\.pt"):
+        _, _, info = fit_or_load_models(cfg, data, progress=False)
+    assert info["ensemble"] == "fitted" and info["cvae"] == "loaded"
+    DynamicsEnsemble.load(e_path)
