@@ -398,3 +398,26 @@ def test_a_run_directory_holds_one_run_at_a_time(tmp_path):
     holder.wait()
     with run.locked():
         pass
+
+
+def test_a_dataset_replaced_at_the_same_path_is_not_mistaken_for_the_old_one(hopper_file, cache, tmp_path, capsys):
+    """Issue 14's probe 1: another file of the same length at the same path gets new models and does not resume the old run."""
+    import shutil
+
+    from torchrl_offhrl.data import collect_dataset, load_dataset, save_dataset
+
+    path = tmp_path / "mydata.hdf5"
+    shutil.copyfile(hopper_file, path)
+    first = train(_cfg("ppo", path, tmp_path / "runs"), progress=False)
+    (run,) = (tmp_path / "runs").glob("ppo-*")
+    old = load_dataset(path)
+    save_dataset(collect_dataset("Hopper-v5", len(old), num_envs=4, seed=1, progress=False), path)  # same length, other data
+    assert len(load_dataset(path)) == len(old)
+    with pytest.raises(ValueError, match="holds a run trained on other data"):
+        train(_cfg("ppo", path, tmp_path / "runs", ["train.total_frames=384"]), progress=False)
+    out = capsys.readouterr().out
+    assert f"the data at {path} is not what the cached models" in out and first["models"] in out
+    # elsewhere, the new data trains with its own models
+    second = train(_cfg("ppo", path, tmp_path / "runs2"), progress=False)
+    assert second["models"] != first["models"]
+    assert json.loads((run / "config.json").read_text())["data_hash"] == old.content_hash() != load_dataset(path).content_hash()

@@ -312,6 +312,34 @@ class OfflineDataset:
             "complete": complete,
         }
 
+    def content_hash(self) -> str:
+        """A SHA-256 (hex, 16 digits) of the transitions' content: every key's bytes, dtype and shape, in key order.
+
+        Caches and run resumption key on it, so a file replaced at the same
+        path by other data is never mistaken for the old one. Computed once
+        per dataset object (about 0.3 s per 1M Hopper transitions).
+
+        Example:
+            >>> from torchrl_offhrl.data import make_toy_dataset
+            >>> a, b = make_toy_dataset(num_episodes=2, episode_length=5), make_toy_dataset(num_episodes=2, episode_length=5)
+            >>> a.content_hash() == b.content_hash()
+            True
+            >>> b.data["next", "reward"][0] += 1.0
+            >>> b._content_hash = None  # (edits in place are not tracked: a changed copy is a new dataset)
+            >>> a.content_hash() == b.content_hash()
+            False
+        """
+        if getattr(self, "_content_hash", None) is None:
+            import hashlib
+
+            h = hashlib.sha256()
+            for key in sorted(self.data.keys(include_nested=True, leaves_only=True), key=str):
+                t = self.data.get(key).detach().cpu().contiguous()
+                h.update(f"{key}|{t.dtype}|{tuple(t.shape)}|".encode())
+                h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+            self._content_hash = h.hexdigest()[:16]
+        return self._content_hash
+
     def to(self, device) -> "OfflineDataset":
         """A new dataset with the transitions and action bounds on ``device``.
 

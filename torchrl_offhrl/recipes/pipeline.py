@@ -10,6 +10,7 @@ import json
 import logging
 import warnings
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -18,7 +19,7 @@ from torchrl.envs import TransformedEnv
 from ..data import OfflineDataset, make_gym_env
 from ..envs import LatentActionTransform, PessimisticModelEnv
 from ..models import ConditionalVAE, DynamicsEnsemble
-from ..utils import CorruptFileError, cache_dir, to_plain
+from ..utils import CorruptFileError, atomic_write, cache_dir, to_plain
 
 __all__ = [
     "GaussianLatentPolicy",
@@ -32,6 +33,24 @@ log = logging.getLogger(__name__)
 
 def _digest(obj: Any) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def _entries_for_other_data(source, ident: dict) -> list[Path]:
+    """Cache entries with the same settings for a dataset from the same ``source`` but with other content."""
+    if not source:
+        return []
+    rest = {k: v for k, v in ident.items() if k != "data"}
+    found = []
+    for meta in sorted((cache_dir() / "models").glob("*/ident.json")):
+        try:
+            other = json.loads(meta.read_text())
+        except (OSError, ValueError):
+            continue
+        if other.get("source") == source and other.get("data") != ident["data"] and json.loads(json.dumps(rest, default=str)) == {
+            k: v for k, v in other.items() if k not in ("data", "source")
+        }:
+            found.append(meta.parent)
+    return found
 
 
 def _load_cached(cls, path):
@@ -52,15 +71,14 @@ def fit_or_load_models(
     """Fit the ensemble and the CVAE on ``data``, or load them from the cache.
 
     Checkpoints live in ``cache_dir()/models/<key>/`` where the key hashes the
-    dataset's identity and the model and fit configs: change either and the
-    models are fitted again. Returns ``(ensemble, cvae, info)``.
+    dataset's content (:meth:`~torchrl_offhrl.data.OfflineDataset.content_hash`)
+    and the model and fit configs: change either and the models are fitted
+    again (a file replaced by other data at the same path is reported). Returns ``(ensemble, cvae, info)``.
     """
     device = torch.device(cfg.get("device", "cpu"))
     ecfg, ccfg = to_plain(cfg["ensemble"]), to_plain(cfg["cvae"])
     ident = {
-        "source": data.metadata.get("source"),
-        "n": len(data),
-        "returns": data.metadata.get("returns"),
+        "data": data.content_hash(),  # the content, not the path: a file replaced by other data gets new models
         "ensemble": ecfg,
         "cvae": ccfg,
         "val_ratio": cfg["dataset"].get("val_ratio", 0.1),
@@ -69,6 +87,12 @@ def fit_or_load_models(
     folder = cache_dir() / "models" / _digest(ident)
     info = {"model_dir": str(folder)}
     e_path, c_path = folder / "ensemble.pt", folder / "cvae.pt"
+    source = data.metadata.get("source")
+    if not (e_path.is_file() and c_path.is_file()):
+        stale = _entries_for_other_data(source, ident)
+        if stale:
+            print(f"the data at {source} is not what the cached models {', '.join(map(str, stale))} were fitted on "
+                  f"(content hash {ident['data']} now): fitting models for it")
     val_ratio = cfg["dataset"].get("val_ratio", 0.1)
     torch.manual_seed(cfg["seed"])
     ensemble = _load_cached(DynamicsEnsemble, e_path)
@@ -91,6 +115,9 @@ def fit_or_load_models(
         cvae.save(c_path)
         info["cvae"] = "fitted"
         info["cvae_history"] = cvae.training_history
+    if not (folder / "ident.json").is_file():
+        with atomic_write(folder / "ident.json") as tmp:
+            Path(tmp).write_text(json.dumps({**ident, "source": source}, indent=1, default=str))
     return ensemble.to(device), cvae.to(device), info
 
 

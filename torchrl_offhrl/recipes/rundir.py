@@ -45,6 +45,7 @@ class RunDirectory:
         self.fingerprint = fingerprint
         self.checkpoint_path = self.path / "checkpoint.pt"
         self.previous_path = self.path / "checkpoint.prev.pt"
+        self.data_hash: str | None = None  # the training data's content hash: set it before resume() to check it
         self.frames = 0
         self.updates = 0
         self.records: list[dict] = []
@@ -101,6 +102,12 @@ class RunDirectory:
                 f"{self.path} holds a checkpoint of a run with a different configuration (only {', '.join(RESUMABLE_KEYS)} "
                 f"may change when resuming); give another run_dir= or out_root=, or delete {self.checkpoint_path} to start over"
             )
+        saved_data = state.get("data_hash")
+        if None not in (saved_data, self.data_hash) and saved_data != self.data_hash:
+            raise ValueError(
+                f"{self.path} holds a run trained on other data (content hash {saved_data}; the dataset given now has {self.data_hash}): "
+                f"the file was replaced or changed. Give another run_dir=, or restore the data the run was trained on"
+            )
         agent.load_state_dict(state["agent"])
         self.frames, self.updates, self.records = int(state["frames"]), int(state["updates"]), list(state["records"])
         torch.set_rng_state(state["rng"])
@@ -132,7 +139,7 @@ class RunDirectory:
             rb.dumps(self.path / new_replay)
         state = {
             "agent": agent.state_dict(), "frames": self.frames, "updates": self.updates, "records": self.records,
-            "rng": torch.get_rng_state(), "replay": new_replay, "fingerprint": self.fingerprint,
+            "rng": torch.get_rng_state(), "replay": new_replay, "fingerprint": self.fingerprint, "data_hash": self.data_hash,
         }
         if self.checkpoint_path.is_file():  # the one before stays, for a checkpoint damaged later (resume falls back to it)
             with atomic_write(self.previous_path) as tmp:

@@ -100,8 +100,9 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     title = f"{env_cfg['env_id']}, {cfg['dataset']}"
 
     # 4. resume, log, train, evaluate, checkpoint
+    run.data_hash = data.content_hash()  # a run never resumes on other data found at the same path
     run.resume(agent, device)
-    run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "resolved_reward_scale": pcfg["env"].get("reward_scale", 1.0), "model_dir": model_info["model_dir"]})
+    run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "resolved_reward_scale": pcfg["env"].get("reward_scale", 1.0), "model_dir": model_info["model_dir"], "data_hash": run.data_hash})
     logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
 
     def evaluate(final: bool = False) -> dict:
