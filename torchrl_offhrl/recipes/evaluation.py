@@ -18,7 +18,7 @@ from ..scores import normalized_score
 from ..utils import load_torch_file
 from .pipeline import make_real_env
 
-__all__ = ["Evaluator", "evaluate_run", "render_episode"]
+__all__ = ["Evaluator", "evaluate_run", "load_run", "render_episode"]
 
 
 class Evaluator:
@@ -73,14 +73,12 @@ class Evaluator:
         return rec
 
 
-def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None, deterministic: bool = True) -> dict:
-    """Evaluate a run's checkpoint in the real env: returns, normalised scores, optional PNG frames.
+def load_run(run_dir, num_envs: int = 1):
+    """``(cfg, env, agent, state, cvae)``: a run's agent rebuilt from ``config.json`` and ``checkpoint.pt``, acting in the real env.
 
-    Rebuilds the agent from ``run_dir/config.json``, loads ``checkpoint.pt``
-    and the run's CVAE from the model cache, and rolls ``episodes`` episodes
-    out in the real Gymnasium env through the same decoder. With
-    ``frames_dir``, the first episode is rendered (``rgb_array``; headless
-    machines need ``MUJOCO_GL=egl`` or ``osmesa``) and saved as PNG frames.
+    The env (``num_envs`` side by side) decodes through the run's CVAE, loaded
+    from the model cache (``cvae``, None for a run without it); ``state`` is
+    the checkpoint (frames, records, ...).
     """
     run = Path(run_dir)
     cfg_path, ckpt_path = run / "config.json", run / "checkpoint.pt"
@@ -102,11 +100,26 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
             raise FileNotFoundError(f"the run's CVAE {cvae_path} is not in the model cache any more; rerun `offhrl fit` with the run's config")
         cvae = ConditionalVAE.load(cvae_path)
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
-    env = make_real_env(env_id, cvae, num_envs=episodes, latent_bound=bound)
+    env = make_real_env(env_id, cvae, num_envs=num_envs, latent_bound=bound)
     agent = make_agent(cfg["algo"]["name"], env, cfg["algo"], action_key="latent_action" if latent else "action")
     agent.attach(env)
     state = load_torch_file(ckpt_path, "run checkpoint", f"its previous checkpoint is {run / 'checkpoint.prev.pt'} (rename it to evaluate that one)")
     agent.load_state_dict(state["agent"])
+    return cfg, env, agent, state, cvae
+
+
+def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None, deterministic: bool = True) -> dict:
+    """Evaluate a run's checkpoint in the real env: returns, normalised scores, optional PNG frames.
+
+    Rebuilds the agent (:func:`load_run`) and rolls ``episodes`` episodes out
+    in the real Gymnasium env through the run's decoder. With
+    ``frames_dir``, the first episode is rendered (``rgb_array``; headless
+    machines need ``MUJOCO_GL=egl`` or ``osmesa``) and saved as PNG frames.
+    """
+    run = Path(run_dir)
+    cfg, env, agent, state, cvae = load_run(run, num_envs=episodes)
+    env_id = cfg["env"]["env_id"]
+    bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
     rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)
     env.close()
     res = {
