@@ -28,10 +28,10 @@ import torch
 def check(run: Path, n_states: int = 20_000) -> dict:
     from torchrl_offhrl.agents import make_agent
     from torchrl_offhrl.recipes.config import resolve_dataset
-    from torchrl_offhrl.recipes.evaluation import load_run
+    from torchrl_offhrl.recipes.evaluation import load_run_agent
     from torchrl_offhrl.recipes.report import logged_tail_mean
 
-    cfg, env, agent, state, _ = load_run(run)
+    cfg, env, agent, state, _ = load_run_agent(run)
     if cfg["algo"]["name"] != "moc":
         raise SystemExit(f"{run}: a {cfg['algo']['name']} run, not a MOC one")
     torch.manual_seed(int(cfg["seed"]))

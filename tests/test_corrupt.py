@@ -81,3 +81,42 @@ def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
         _, _, info = fit_or_load_models(cfg, data, progress=False)
     assert info["ensemble"] == "fitted" and info["cvae"] == "loaded"
     DynamicsEnsemble.load(e_path)
+
+
+def test_stale_tmp_files_are_removed_and_fresh_ones_kept(tmp_path):
+    import os
+    import time
+
+    from torchrl_offhrl.utils import remove_stale_tmp
+
+    (tmp_path / "a").mkdir()
+    old, fresh, keep = tmp_path / "a" / "ensemble.pt.x1.tmp", tmp_path / "fresh.pt.x2.tmp", tmp_path / "cvae.pt"
+    for p in (old, fresh, keep):
+        p.write_bytes(b"x")
+    two_hours_ago = time.time() - 7200
+    os.utime(old, (two_hours_ago, two_hours_ago))
+    assert remove_stale_tmp(tmp_path) == [old]
+    assert not old.exists() and fresh.exists() and keep.exists()
+
+
+def test_a_failed_dataset_load_leaves_no_run_directory(tmp_path, capsys):
+    from torchrl_offhrl.cli import main
+
+    bad = tmp_path / "bad.hdf5"
+    bad.write_bytes(b"not hdf5")
+    assert main(["train", f"dataset={bad}", f"out_root={tmp_path / 'runs'}"]) == 2
+    assert "is not an HDF5 file" in capsys.readouterr().err
+    assert not any((tmp_path / "runs").glob("*"))
+
+
+def test_aggregate_names_an_empty_or_damaged_evals_file(tmp_path):
+    from torchrl_offhrl.recipes.report import load_run
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "evals.json").write_text("[]")
+    with pytest.raises(ValueError, match=r"run/evals\.json holds no evaluation records"):
+        load_run(run)
+    (run / "evals.json").write_text('[{"frames": 0, ')
+    with pytest.raises(ValueError, match=r"run/evals\.json is not valid JSON .* damaged"):
+        load_run(run)

@@ -6,7 +6,7 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "load_torch_file", "one_thread", "to_plain"]
+__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "load_torch_file", "one_thread", "remove_stale_tmp", "to_plain"]
 
 
 class CorruptFileError(ValueError):
@@ -36,6 +36,28 @@ def load_torch_file(path: str | os.PathLike, what: str, fix: str, map_location="
             raise
         reason = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
         raise CorruptFileError(f"{path}: the {what} is corrupt or truncated ({reason}); {fix}") from None
+
+
+def remove_stale_tmp(folder: str | os.PathLike, max_age_s: float = 3600.0) -> list[Path]:
+    """Delete the ``*.tmp`` files :func:`atomic_write` left under ``folder`` when its process was killed; returns them.
+
+    Only files older than ``max_age_s`` go: a younger one may belong to a
+    save in progress in another process (a save takes seconds).
+    """
+    import time
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    now, removed = time.time(), []
+    for tmp in folder.rglob("*.tmp"):
+        try:
+            if tmp.is_file() and now - tmp.stat().st_mtime > max_age_s:
+                tmp.unlink()
+                removed.append(tmp)
+        except OSError:  # gone meanwhile, or not ours to remove
+            continue
+    return removed
 
 
 @contextmanager

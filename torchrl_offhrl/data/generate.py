@@ -33,7 +33,7 @@ from tensordict.nn import TensorDictModuleBase
 from ..registry import ENV_IDS, LEVELS, resolve_env
 from ..rollouts import evaluate_policy
 from ..scores import normalized_score
-from ..utils import cache_dir, one_thread
+from ..utils import cache_dir, one_thread, remove_stale_tmp
 from .collect import collect_dataset, make_gym_env
 from .dataset import DatasetError, OfflineDataset
 from .io import load_dataset, save_dataset
@@ -422,6 +422,7 @@ def named_dataset(
     """
     env_id, short, level, n = _resolve_size(name, num_transitions)
     path = dataset_path(f"{short}-{level}", n, seed, num_envs)
+    remove_stale_tmp(path.parent)  # left by generations that were killed while saving
     if path.is_file():
         try:
             return load_dataset(path)

@@ -18,7 +18,7 @@ from ..scores import normalized_score
 from ..utils import load_torch_file
 from .pipeline import make_real_env
 
-__all__ = ["Evaluator", "evaluate_run", "load_run", "render_episode"]
+__all__ = ["Evaluator", "evaluate_run", "load_run_agent", "render_episode"]
 
 
 class Evaluator:
@@ -73,7 +73,7 @@ class Evaluator:
         return rec
 
 
-def load_run(run_dir, num_envs: int = 1):
+def load_run_agent(run_dir, num_envs: int = 1):
     """``(cfg, env, agent, state, cvae)``: a run's agent rebuilt from ``config.json`` and ``checkpoint.pt``, acting in the real env.
 
     The env (``num_envs`` side by side) decodes through the run's CVAE, loaded
@@ -111,13 +111,13 @@ def load_run(run_dir, num_envs: int = 1):
 def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None, deterministic: bool = True) -> dict:
     """Evaluate a run's checkpoint in the real env: returns, normalised scores, optional PNG frames.
 
-    Rebuilds the agent (:func:`load_run`) and rolls ``episodes`` episodes out
+    Rebuilds the agent (:func:`load_run_agent`) and rolls ``episodes`` episodes out
     in the real Gymnasium env through the run's decoder. With
     ``frames_dir``, the first episode is rendered (``rgb_array``; headless
     machines need ``MUJOCO_GL=egl`` or ``osmesa``) and saved as PNG frames.
     """
     run = Path(run_dir)
-    cfg, env, agent, state, cvae = load_run(run, num_envs=episodes)
+    cfg, env, agent, state, cvae = load_run_agent(run, num_envs=episodes)
     env_id = cfg["env"]["env_id"]
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
     rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)

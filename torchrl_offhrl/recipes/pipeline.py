@@ -19,7 +19,7 @@ from torchrl.envs import TransformedEnv
 from ..data import OfflineDataset, make_gym_env
 from ..envs import LatentActionTransform, PessimisticModelEnv
 from ..models import ConditionalVAE, DynamicsEnsemble
-from ..utils import CorruptFileError, atomic_write, cache_dir, to_plain
+from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, to_plain
 
 __all__ = [
     "GaussianLatentPolicy",
@@ -84,6 +84,7 @@ def fit_or_load_models(
         "val_ratio": cfg["dataset"].get("val_ratio", 0.1),
         "seed": cfg["seed"],
     }
+    remove_stale_tmp(cache_dir() / "models")  # left by saves that were killed
     folder = cache_dir() / "models" / _digest(ident)
     info = {"model_dir": str(folder)}
     e_path, c_path = folder / "ensemble.pt", folder / "cvae.pt"

@@ -77,9 +77,20 @@ def load_run(run_dir) -> dict:
     evals_path = d / "evals.json"
     if not evals_path.is_file():
         raise FileNotFoundError(f"{d} has no evals.json: not a run directory written by offline_train")
-    cfg = json.loads((d / "config.json").read_text()) if (d / "config.json").is_file() else {}
-    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").is_file() else None
-    return {"dir": str(d), "config": cfg, "evals": json.loads(evals_path.read_text()), "summary": summary}
+    cfg = _read_json(d / "config.json") if (d / "config.json").is_file() else {}
+    summary = _read_json(d / "summary.json") if (d / "summary.json").is_file() else None
+    evals = _read_json(evals_path)
+    if not isinstance(evals, list) or not evals:
+        raise ValueError(f"{evals_path} holds no evaluation records ({evals!r}): the run has not evaluated yet; "
+                         "let it run to its first evaluation, or leave it out")
+    return {"dir": str(d), "config": cfg, "evals": evals, "summary": summary}
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON ({err}): the file is damaged; rerun or resume the run to write it again") from None
 
 
 def _group_key(run: dict) -> tuple:

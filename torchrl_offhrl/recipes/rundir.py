@@ -51,6 +51,16 @@ class RunDirectory:
         self.records: list[dict] = []
         self._replay: str | None = None
 
+    def remove_if_empty(self) -> bool:
+        """Delete the directory if it holds nothing but its lock file (a run that failed before writing); True if deleted."""
+        try:
+            if {p.name for p in self.path.iterdir()} <= {".lock"}:
+                shutil.rmtree(self.path)
+                return True
+        except OSError:
+            pass
+        return False
+
     @contextlib.contextmanager
     def locked(self):
         """Hold an exclusive lock on the directory (``.lock``) while the block runs; refuse if another run holds it.
