@@ -80,7 +80,8 @@ def report(scale: str) -> str:
     table = aggregate(runs, out)
     lines = [f"# Offline results, `{scale}` scale", "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
              f"Made by `python scripts/results.py report --scale {scale}` from the finished runs under `outputs/results/{scale}/`.",
-             "Scores are D4RL-normalised; final and best are separate columns (the best is never reported as the result).", "",
+             "Scores are D4RL-normalised; final and best are separate columns (best: the best evaluation after training began; "
+             "it is never reported as the result).", "",
              *([NOTES[scale], ""] if scale in NOTES else []),
              table, "", "## MOC option diagnostics at the end of training (mean over seeds of the last 5 logged batches)", "",
              "| env | seeds | " + " | ".join(DIAG) + " |", "|---|---|" + "---|" * len(DIAG)]
@@ -98,7 +99,7 @@ def report(scale: str) -> str:
     lines += ["", "Per seed (final / best D4RL score, frames):", ""]
     for d in runs:
         ev = json.loads((d / "evals.json").read_text())
-        best = max(ev, key=lambda e: e.get("normalized_d4rl") or float("-inf"))
+        best = max([e for e in ev if e["frames"] > 0] or ev, key=lambda e: e.get("normalized_d4rl") or float("-inf"))
         lines.append(f"- `{d.name}`: start {ev[0]['normalized_d4rl']:.1f}, final {ev[-1]['normalized_d4rl']:.1f}, "
                      f"best {best['normalized_d4rl']:.1f} at {best['frames']} frames")
     text = "\n".join(lines) + "\n"

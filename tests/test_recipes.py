@@ -319,6 +319,15 @@ def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
     table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
     # final 3, 6 -> 4.5 ± 2.1; best 9, 8 -> 8.5 ± 0.7; untrained 5, 7 -> 6.0
     assert "| ppo | Hopper-v5 | medium | - | 2 | 200 | 45.0 ± 21.2 | 4.5 ± 2.1 | 8.5 ± 0.7 | 6.0 | n/a |" in table
+    # a seed whose untrained start is its highest score: the best counts evaluations after training began only
+    d = tmp_path / "ppo-hopper-medium-seed2"
+    d.mkdir()
+    evals = [{"frames": f, "return_mean": 10 * s, "return_std": 0.0, "normalized_d4rl": s} for f, s in zip((0, 100, 200), (20.0, 4.0, 5.0))]
+    (d / "evals.json").write_text(json.dumps(evals))
+    (d / "config.json").write_text((tmp_path / "ppo-hopper-medium-seed0" / "config.json").read_text())
+    table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
+    # final 3, 6, 5 -> 4.67 ± 1.53; best 9, 8, 5 -> 7.33 ± 2.08; untrained 5, 7, 20 -> 10.7
+    assert "| ppo | Hopper-v5 | medium | - | 3 | 200 | 46.7 ± 15.3 | 4.7 ± 1.5 | 7.3 ± 2.1 | 10.7 | n/a |" in table
 
 
 def test_logged_tail_mean_reads_the_csv_logs(tmp_path):

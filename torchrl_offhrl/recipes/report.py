@@ -117,9 +117,10 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
         sc = torch.tensor([s for s in scores if s is not None], dtype=torch.float64)
         frames = min(r["evals"][-1]["frames"] for r in rs)
         beh = [r["summary"]["behaviour_normalized_d4rl"] for r in rs if r["summary"] and r["summary"].get("behaviour_normalized_d4rl") is not None]
-        # the best evaluation of each seed (reported apart from the final one, never instead of it) and the untrained start
-        best = [max(e["normalized_d4rl"] for e in r["evals"] if e.get("normalized_d4rl") is not None) for r in rs
-                if any(e.get("normalized_d4rl") is not None for e in r["evals"])]
+        # the best evaluation of each seed after training began (reported apart from the final one, never instead of
+        # it; the untrained start has its own column) and the untrained start
+        trained = [[e["normalized_d4rl"] for e in r["evals"] if e["frames"] > 0 and e.get("normalized_d4rl") is not None] for r in rs]
+        best = [max(t) for t in trained if t]
         start = [r["evals"][0]["normalized_d4rl"] for r in rs if r["evals"][0]["frames"] == 0 and r["evals"][0].get("normalized_d4rl") is not None]
         bt, st = torch.tensor(best, dtype=torch.float64), torch.tensor(start, dtype=torch.float64)
         rows.append(
