@@ -63,3 +63,10 @@ def test_null_head_step_sizes_and_booleans_pass():
         validate_config({"algo": {"termination_lr": 0}})
     with pytest.raises(ValueError, match="algo.anneal_lr: expected true or false, got 'yes'"):
         validate_config({"algo": {"anneal_lr": "yes"}})
+
+
+def test_fit_validates_too(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    assert main(["fit", "ensemble.fit.lr=0"]) == 2
+    assert "ensemble.fit.lr: expected a number > 0, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "cache").exists()

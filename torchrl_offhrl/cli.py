@@ -68,6 +68,7 @@ def cmd_fit(args) -> int:
     from .recipes.config import compose, model_config, resolve_dataset
     from .recipes.pipeline import fit_or_load_models
     from .recipes.schema import validate_config
+    from .utils import to_plain
 
     cfg = compose("offline_train", args.overrides, "fit")
     validate_config(to_plain(cfg))

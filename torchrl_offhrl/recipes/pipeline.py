@@ -35,6 +35,21 @@ def _digest(obj: Any) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def _record_source(path: Path, ident: dict, source) -> None:
+    """Keep, beside a cache entry, its identity and every data source it served (to say when a source's content changed)."""
+    try:
+        known = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):  # damaged: written again
+        known = {}
+    sources = list(known.get("sources", []))
+    if source and source not in sources:
+        sources.append(source)
+    elif known:
+        return
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text(json.dumps({**json.loads(json.dumps(ident, default=str)), "sources": sources}, indent=1))
+
+
 def _entries_for_other_data(source, ident: dict) -> list[Path]:
     """Cache entries with the same settings for a dataset from the same ``source`` but with other content."""
     if not source:
@@ -46,8 +61,8 @@ def _entries_for_other_data(source, ident: dict) -> list[Path]:
             other = json.loads(meta.read_text())
         except (OSError, ValueError):
             continue
-        if other.get("source") == source and other.get("data") != ident["data"] and json.loads(json.dumps(rest, default=str)) == {
-            k: v for k, v in other.items() if k not in ("data", "source")
+        if source in other.get("sources", []) and other.get("data") != ident["data"] and json.loads(json.dumps(rest, default=str)) == {
+            k: v for k, v in other.items() if k not in ("data", "sources")
         }:
             found.append(meta.parent)
     return found
@@ -116,9 +131,7 @@ def fit_or_load_models(
         cvae.save(c_path)
         info["cvae"] = "fitted"
         info["cvae_history"] = cvae.training_history
-    if not (folder / "ident.json").is_file():
-        with atomic_write(folder / "ident.json") as tmp:
-            Path(tmp).write_text(json.dumps({**ident, "source": source}, indent=1, default=str))
+    _record_source(folder / "ident.json", ident, source)
     return ensemble.to(device), cvae.to(device), info
 
 
