@@ -97,6 +97,9 @@ VARIANTS["default_std1"] = ("the default MOC, initial intra-option std e^-1", [*
 VARIANTS["default_std1_s10"] = ("default_std1 on development seed 10", [*VARIANTS["default_std1"][1], "seed=10"])
 VARIANTS["default_step_std1"] = ("default_step with initial intra-option std e^-1", [*VARIANTS["default_step"][1], "algo.init_log_std=-1.0"])
 VARIANTS["default_step_std1_s10"] = ("default_step_std1 on development seed 10", [*VARIANTS["default_step_std1"][1], "seed=10"])
+for _seed in (0, 20, 30):  # the initial std e^-1 on the other development seeds
+    VARIANTS[f"default_std1_s{_seed}" if _seed else "default_std1_s0"] = (f"default_std1 on development seed {_seed}",
+                                                                        [*VARIANTS["default_std1"][1], f"seed={_seed}"])
 for _seed in (20, 30):  # two more development seeds for the member_mode comparison
     VARIANTS[f"default_164k_s{_seed}"] = (f"default_164k on development seed {_seed}", [*VARIANTS["default_164k"][1], f"seed={_seed}"])
     VARIANTS[f"default_step_s{_seed}"] = (f"default_step on development seed {_seed}", [*VARIANTS["default_step"][1], f"seed={_seed}"])
@@ -167,7 +170,7 @@ GROUPS = {
     "default MOC (member_mode episode, reset_states initial)": ["default_164k", "default_164k_s10", "default_164k_s20", "default_164k_s30"],
     "member_mode step": ["default_step", "default_step_s10", "default_step_s20", "default_step_s30"],
     "reset_states any": ["default_any", "default_any_s10", "default_any_s20"],
-    "initial std e^-1": ["default_std1_s10"],
+    "initial std e^-1": ["default_std1_s0", "default_std1_s10", "default_std1_s20", "default_std1_s30"],
     "member_mode step, initial std e^-1": ["default_step_std1_s10"],
 }
 
