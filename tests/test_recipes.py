@@ -430,3 +430,23 @@ def test_a_dataset_replaced_at_the_same_path_is_not_mistaken_for_the_old_one(hop
     second = train(_cfg("ppo", path, tmp_path / "runs2"), progress=False)
     assert second["models"] != first["models"]
     assert json.loads((run / "config.json").read_text())["data_hash"] == old.content_hash() != load_dataset(path).content_hash()
+
+
+def test_tensorboard_logs_after_the_checkpoint_are_not_repeated_on_resume(tmp_path):
+    """A resumed run re-logs the steps after its checkpoint; TensorBoard readers must see each step once, with the new value."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = rundir.RunDirectory(tmp_path / "run", "fp")
+    first = run.logger("tensorboard")
+    for step in (100, 200, 300, 400):
+        first.log_scalar("x", float(step), step=step)
+    first.experiment.close()
+    run.frames = 200  # the checkpoint the run resumes from
+    again = run.logger("tensorboard")
+    for step in (300, 400, 500):
+        again.log_scalar("x", -float(step), step=step)
+    again.experiment.close()
+    acc = EventAccumulator(again.experiment.log_dir)
+    acc.Reload()
+    assert [(e.step, e.value) for e in acc.Scalars("x")] == [(100, 100.0), (200, 200.0), (300, -300.0), (400, -400.0), (500, -500.0)]

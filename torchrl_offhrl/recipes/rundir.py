@@ -163,14 +163,27 @@ class RunDirectory:
         self._replay = new_replay
 
     def logger(self, backend: str | None, **kwargs):
-        """A TorchRL logger writing under ``logs/`` (None without a backend); CSV rows after the checkpoint are dropped first."""
+        """A TorchRL logger writing under ``logs/`` (None without a backend).
+
+        On resume, what was logged after the checkpoint is not repeated: CSV
+        rows after it are dropped; TensorBoard gets a writer with
+        ``purge_step`` (its readers discard the older events from that step
+        on). W&B keeps its own step counter and is left as it is.
+        """
         if not backend:
             return None
         from torchrl.record.loggers import get_logger
 
         if self.frames and backend == "csv":
             trim_csv_logs(self.path / "logs", self.frames)
-        return get_logger(backend, logger_name=str(self.path), experiment_name="logs", **kwargs)
+        logger = get_logger(backend, logger_name=str(self.path), experiment_name="logs", **kwargs)
+        if self.frames and backend == "tensorboard":
+            from torch.utils.tensorboard import SummaryWriter
+
+            log_dir = logger.experiment.log_dir
+            logger.experiment.close()
+            logger.experiment = SummaryWriter(log_dir=log_dir, purge_step=self.frames + 1)
+        return logger
 
 
 def trim_csv_logs(log_dir: Path, max_step: int) -> int:
