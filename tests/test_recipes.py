@@ -450,3 +450,15 @@ def test_tensorboard_logs_after_the_checkpoint_are_not_repeated_on_resume(tmp_pa
     acc = EventAccumulator(again.experiment.log_dir)
     acc.Reload()
     assert [(e.step, e.value) for e in acc.Scalars("x")] == [(100, 100.0), (200, 200.0), (300, -300.0), (400, -400.0), (500, -500.0)]
+
+
+def test_a_refused_run_leaves_the_running_one_alone(tmp_path):
+    """A run refused by the lock must not clean up the directory of the run that holds it, even while that one is still empty."""
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.utils import to_plain
+
+    run = rundir.RunDirectory(tmp_path / "run", "fp")
+    with run.locked():  # a run that has just started: nothing but its lock yet
+        with pytest.raises(RuntimeError, match="in use by a run"):
+            train(to_plain(compose("offline_train", [f"run_dir={tmp_path / 'run'}"])), progress=False)
+        assert (tmp_path / "run" / ".lock").is_file()

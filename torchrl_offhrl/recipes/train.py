@@ -48,12 +48,12 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     validate_config(cfg)  # every bad value named before any data or model work
     t_start = time.time()
     run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
-    try:
-        with run.locked():
+    with run.locked():  # refused here, a run leaves the directory alone: it belongs to the run holding the lock
+        try:
             return _train(cfg, run, t_start, progress)
-    except BaseException:
-        run.remove_if_empty()  # a run that failed before writing anything (say, on a bad dataset) leaves no folder
-        raise
+        except BaseException:
+            run.remove_if_empty()  # a run that failed before writing anything (say, on a bad dataset) leaves no folder
+            raise
 
 
 def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict:
