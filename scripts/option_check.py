@@ -31,11 +31,11 @@ def check(run: Path, n_states: int = 20_000) -> dict:
     from torchrl_offhrl.recipes.evaluation import load_run_agent
     from torchrl_offhrl.recipes.report import logged_tail_mean
 
-    cfg, env, agent, state, _ = load_run_agent(run)
+    cfg, env, agent, state, cvae = load_run_agent(run)
     if cfg["algo"]["name"] != "moc":
         raise SystemExit(f"{run}: a {cfg['algo']['name']} run, not a MOC one")
     torch.manual_seed(int(cfg["seed"]))
-    fresh = make_agent("moc", env, cfg["algo"], action_key=agent.policy.action_key if hasattr(agent.policy, "action_key") else "latent_action")
+    fresh = make_agent("moc", env, cfg["algo"], action_key="latent_action" if cvae is not None else "action")  # as load_run_agent
     data = resolve_dataset(cfg)
     g = torch.Generator().manual_seed(0)
     obs = data.data["observation"][torch.randint(len(data), (n_states,), generator=g)].float()

@@ -35,6 +35,11 @@ def _digest(obj: Any) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def _as_json(obj: Any):
+    """``obj`` as it reads back from ``ident.json`` (tuples as lists, other objects as strings), to compare with it."""
+    return json.loads(json.dumps(obj, default=str))
+
+
 def _record_source(path: Path, ident: dict, source) -> None:
     """Keep, beside a cache entry, its identity and every data source it served (to say when a source's content changed)."""
     try:
@@ -47,23 +52,22 @@ def _record_source(path: Path, ident: dict, source) -> None:
     elif known:
         return
     with atomic_write(path) as tmp:
-        Path(tmp).write_text(json.dumps({**json.loads(json.dumps(ident, default=str)), "sources": sources}, indent=1))
+        Path(tmp).write_text(json.dumps({**_as_json(ident), "sources": sources}, indent=1))
 
 
 def _entries_for_other_data(source, ident: dict) -> list[Path]:
     """Cache entries with the same settings for a dataset from the same ``source`` but with other content."""
     if not source:
         return []
-    rest = {k: v for k, v in ident.items() if k != "data"}
+    rest = _as_json({k: v for k, v in ident.items() if k != "data"})
     found = []
     for meta in sorted((cache_dir() / "models").glob("*/ident.json")):
         try:
             other = json.loads(meta.read_text())
         except (OSError, ValueError):
             continue
-        if source in other.get("sources", []) and other.get("data") != ident["data"] and json.loads(json.dumps(rest, default=str)) == {
-            k: v for k, v in other.items() if k not in ("data", "sources")
-        }:
+        same_settings = rest == {k: v for k, v in other.items() if k not in ("data", "sources")}
+        if source in other.get("sources", []) and other.get("data") != ident["data"] and same_settings:
             found.append(meta.parent)
     return found
 
