@@ -23,7 +23,9 @@ from torchrl.envs import RewardScaling, RewardSum
 from tqdm.auto import tqdm
 
 from torchrl_offhrl.agents import make_agent
-from torchrl_offhrl.recipes.config import config_fingerprint, default_run_dir, model_config, model_env_config, resolve_dataset
+from torchrl_offhrl.recipes.config import (
+    algo_label, config_fingerprint, default_run_dir, learns_from_dataset, model_config, model_env_config, resolve_dataset,
+)
 from torchrl_offhrl.recipes.evaluation import Evaluator
 from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env, make_real_env
 from torchrl_offhrl.recipes.report import format_summary, plot_curve, run_summary
@@ -36,6 +38,9 @@ from torchrl_offhrl.utils import to_plain
 def main(cfg: DictConfig) -> None:
     # config
     cfg = to_plain(cfg)
+    if learns_from_dataset(cfg):  # this script is the model-env loop; iql / cql / td3bc / bc learn from the dataset itself
+        raise SystemExit(f"algo={algo_label(cfg['algo'])} learns from the dataset, not from the model env: run "
+                         f"`offhrl train algo={cfg['algo']['name']} ...` (the same overrides), or examples/offline_baseline.py")
     t_start = time.time()
     algo, env_cfg = cfg["algo"], cfg["env"]
     run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))

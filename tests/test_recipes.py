@@ -214,7 +214,7 @@ def test_aggregate_seeds(tmp_path):
     table = aggregate(sorted(tmp_path.glob("moc-*")), tmp_path / "agg")
     # final returns 20 and 30: mean 25, std 7.07; scores 2 and 12: mean 7
     # best per seed: 2 and 12 (the last evaluation here); no frame-0 evaluation: untrained n/a; no summary: behaviour n/a
-    assert "| moc | Hopper-v5 | medium | - | 2 | 200 | 25.0 ± 7.1 | 7.0 ± 7.1 | 7.0 ± 7.1 | n/a | n/a |" in table
+    assert "| moc | Hopper-v5 | medium | - | 2 | 200 frames | 25.0 ± 7.1 | 7.0 ± 7.1 | 7.0 ± 7.1 | n/a | n/a |" in table
     assert (tmp_path / "agg" / "curves.png").is_file() and (tmp_path / "agg" / "results.csv").is_file()
 
 
@@ -318,7 +318,7 @@ def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
         (d / "config.json").write_text(json.dumps({"algo": {"name": "ppo"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {}}))
     table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
     # final 3, 6 -> 4.5 ± 2.1; best 9, 8 -> 8.5 ± 0.7; untrained 5, 7 -> 6.0
-    assert "| ppo | Hopper-v5 | medium | - | 2 | 200 | 45.0 ± 21.2 | 4.5 ± 2.1 | 8.5 ± 0.7 | 6.0 | n/a |" in table
+    assert "| ppo | Hopper-v5 | medium | - | 2 | 200 frames | 45.0 ± 21.2 | 4.5 ± 2.1 | 8.5 ± 0.7 | 6.0 | n/a |" in table
     # a seed whose untrained start is its highest score: the best counts evaluations after training began only
     d = tmp_path / "ppo-hopper-medium-seed2"
     d.mkdir()
@@ -327,7 +327,7 @@ def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
     (d / "config.json").write_text((tmp_path / "ppo-hopper-medium-seed0" / "config.json").read_text())
     table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
     # final 3, 6, 5 -> 4.67 ± 1.53; best 9, 8, 5 -> 7.33 ± 2.08; untrained 5, 7, 20 -> 10.7
-    assert "| ppo | Hopper-v5 | medium | - | 3 | 200 | 46.7 ± 15.3 | 4.7 ± 1.5 | 7.3 ± 2.1 | 10.7 | n/a |" in table
+    assert "| ppo | Hopper-v5 | medium | - | 3 | 200 frames | 46.7 ± 15.3 | 4.7 ± 1.5 | 7.3 ± 2.1 | 10.7 | n/a |" in table
 
 
 def test_logged_tail_mean_reads_the_csv_logs(tmp_path):

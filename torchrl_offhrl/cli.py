@@ -18,9 +18,11 @@ EPILOG = """examples:
   offhrl policies                                     # shipped behaviour policies and their returns
   offhrl collect hopper medium -n 1000000             # D4RL-protocol dataset, cached
   offhrl fit env=hopper dataset=medium                # ensemble + CVAE, cached
-  offhrl train algo=moc env=hopper dataset=medium     # any recipe: algo=sac|ppo|moc
+  offhrl train algo=moc env=hopper dataset=medium     # on the model env: algo=moc|ppo|sac|morel
+  offhrl train algo=iql env=hopper dataset=medium     # on the dataset itself: algo=iql|cql|td3bc|bc
   offhrl evaluate outputs/runs/moc-hopper-medium-seed0 --episodes 10
   offhrl aggregate outputs/runs/moc-hopper-medium-seed* --out outputs/report
+  offhrl report outputs/runs/*-seed* --out docs/results/table1   # the paper's Table I
 """
 
 
@@ -107,6 +109,14 @@ def cmd_aggregate(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    from .recipes.report import paper_table
+
+    print(paper_table(args.runs, args.out))
+    print(f"\nwritten: {args.out}/table.md, table.csv, curves_<env>-<dataset>.png")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from .recipes.demo import run_demo
 
@@ -117,7 +127,8 @@ def cmd_demo(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="offhrl",
-        description="Offline hierarchical RL with TorchRL: datasets, pessimistic models, SAC / PPO / MOC recipes.",
+        description="Offline hierarchical RL with TorchRL: datasets, pessimistic models, MOC / PPO / SAC on the model env, "
+                    "IQL / CQL / TD3+BC / BC baselines on the data.",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -150,7 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml")
     s.set_defaults(func=cmd_fit)
 
-    s = sub.add_parser("train", help="train SAC, PPO or MOC offline (configs/offline_train.yaml, algo=sac|ppo|moc)",
+    s = sub.add_parser("train", help="train an agent offline (configs/offline_train.yaml): on the model env (algo=moc|ppo|sac|morel) "
+                                     "or on the dataset itself (algo=iql|cql|td3bc|bc)",
                        description="Same as examples/offline_train.py: e.g. `offhrl train algo=moc env=hopper dataset=medium seed=1`. "
                        "Rerunning the same command resumes from the run's checkpoint.")
     s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml")
@@ -168,6 +180,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("runs", nargs="+", help="run directories")
     s.add_argument("--out", default="outputs/report")
     s.set_defaults(func=cmd_aggregate)
+
+    s = sub.add_parser("report", help="the paper's Table I from run directories: env x dataset rows, one column per algorithm "
+                                      "(MOC, PPO, SAC, MOReL-style, IQL, CQL, TD3+BC, BC), the behaviour data, published scores apart")
+    s.add_argument("runs", nargs="+", help="run directories (every algorithm and seed)")
+    s.add_argument("--out", default="outputs/report")
+    s.set_defaults(func=cmd_report)
     return p
 
 

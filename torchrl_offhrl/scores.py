@@ -3,12 +3,29 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["D4RL_REF", "d4rl_reference", "normalized_score", "return_for_score"]
+__all__ = ["D4RL_REF", "PUBLISHED_SCORES", "d4rl_reference", "normalized_score", "return_for_score"]
 
 #: D4RL reference returns (the same for v0/v1/v2 and every dataset type).
 D4RL_REF: dict[str, tuple[float, float]] = {
     "hopper": (-20.272305, 3234.3),
     "halfcheetah": (-280.178953, 12135.0),
+}
+
+
+#: Published D4RL-normalised scores, measured on D4RL's own datasets (not ours), by method and ``<env>-<dataset>``:
+#: the paper's Table I (Offline MOC; MOReL, MOPO from their papers; CQL as the paper quotes it) and CORL's /
+#: OfflineRL-Kit's re-runs (IQL, TD3+BC: last evaluation; COMBO).
+PUBLISHED_SCORES: dict[str, dict[str, float]] = {
+    "Offline MOC (the paper)": {"hopper-medium": 76.8, "hopper-medium-expert": 107.4, "halfcheetah-medium": 45.04, "halfcheetah-medium-expert": 90.6},
+    "MOReL (its paper)": {"hopper-medium": 95.4, "hopper-medium-expert": 108.7, "halfcheetah-medium": 42.1, "halfcheetah-medium-expert": 53.3},
+    "MOPO (its paper)": {"hopper-medium": 28.0, "hopper-medium-expert": 23.7, "halfcheetah-medium": 42.3, "halfcheetah-medium-expert": 63.3},
+    "CQL (as quoted by the paper)": {"hopper-medium": 86.6, "hopper-medium-expert": 111.0, "halfcheetah-medium": 44.4,
+                                     "halfcheetah-medium-expert": 62.4},
+    "IQL (CORL re-run, last)": {"hopper-medium": 67.5, "hopper-medium-expert": 107.4, "halfcheetah-medium": 48.3, "halfcheetah-medium-expert": 94.7},
+    "TD3+BC (CORL re-run, last)": {"hopper-medium": 60.4, "hopper-medium-expert": 101.2, "halfcheetah-medium": 48.1,
+                                   "halfcheetah-medium-expert": 90.8},
+    "COMBO (OfflineRL-Kit re-run)": {"hopper-medium": 84.7, "hopper-medium-expert": 108.8, "halfcheetah-medium": 71.9,
+                                     "halfcheetah-medium-expert": 98.2},
 }
 
 

@@ -11,18 +11,18 @@ code, just defining it: registration happens at class creation); see
 Examples:
     >>> from torchrl_offhrl.agents import AGENTS
     >>> sorted(AGENTS)
-    ['moc', 'ppo', 'sac']
+    ['bc', 'cql', 'iql', 'moc', 'ppo', 'sac', 'td3bc']
 """
 from __future__ import annotations
 
 from collections.abc import Mapping
 
 from ..utils import to_plain
-from .base import Agent, MetricMeans, OnPolicyAgent, action_box, adam, sum_losses
+from .base import Agent, DatasetAgent, MetricMeans, OnPolicyAgent, action_box, adam, sum_losses
 from .registry import AGENTS, agent_class, agent_defaults, register_agent
 
 __all__ = [
-    "AGENTS", "Agent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "make_agent", "register_agent",
+    "AGENTS", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "make_agent", "register_agent",
     "sum_losses",
 ]
 
@@ -50,4 +50,4 @@ def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_
 
 
 # the algorithms shipped with the library register themselves on import
-from . import moc, ppo, sac  # noqa: E402,F401
+from . import bc, cql, iql, moc, ppo, sac, td3bc  # noqa: E402,F401

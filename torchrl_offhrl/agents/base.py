@@ -18,7 +18,9 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-__all__ = ["Agent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "sum_losses"]
+__all__ = [
+    "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "deterministic_actor", "gaussian_actor", "q_network", "sum_losses",
+]
 
 
 def sum_losses(out: Mapping) -> torch.Tensor:
@@ -109,6 +111,10 @@ class Agent:
     """
 
     name: str = ""
+    #: where the loop takes training batches from: ``"model_env"`` (collected on the composed model env: the
+    #: budget is ``train.total_frames``) or ``"dataset"`` (minibatches of the dataset itself: the budget is
+    #: ``train.total_updates``; no models are fitted, the agent acts in real actions)
+    data_source: str = "model_env"
     policy: nn.Module
     loss: nn.Module
     optimizer: torch.optim.Optimizer
@@ -235,3 +241,96 @@ class OnPolicyAgent(Agent):
                 optim.step()
                 metrics.add(out)
         return {**metrics.means(), "updates": metrics.count}
+
+
+def gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, default_scale: float = 1.0, scale_lb: float = 0.1):
+    """A tanh-Gaussian :class:`~torchrl.modules.ProbabilisticActor` on ``env``'s action box, state-dependent scale.
+
+    The scale is ``biased_softplus_<default_scale>`` of the network's output,
+    at least ``scale_lb`` (TorchRL's IQL / CQL sota scripts: 1.0 and 0.1).
+    """
+    from tensordict.nn import NormalParamExtractor, TensorDictModule
+
+    from ..nets import NormalizedMLP, tanh_gaussian_actor
+
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim, low, high = action_box(env, action_key)
+    net = nn.Sequential(
+        NormalizedMLP(obs_dim, 0, 2 * act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale),
+        NormalParamExtractor(scale_mapping=f"biased_softplus_{float(default_scale)}", scale_lb=float(scale_lb)),
+    )
+    return tanh_gaussian_actor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]), low, high, action_key)
+
+
+def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None):
+    """A deterministic actor: an MLP squashed into ``env``'s action box by TorchRL's ``TanhModule`` (TD3+BC, BC)."""
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+    from torchrl.modules import TanhModule
+
+    from ..nets import NormalizedMLP
+
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim, low, high = action_box(env, action_key)
+    net = TensorDictModule(NormalizedMLP(obs_dim, 0, act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=["observation"], out_keys=["param"])
+    return TensorDictSequential(net, TanhModule(in_keys=["param"], out_keys=[action_key], low=low, high=high))
+
+
+def q_network(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None):
+    """``Q(observation, action)`` as a TorchRL ``ValueOperator`` writing ``state_action_value``."""
+    from torchrl.modules import ValueOperator
+
+    from ..nets import NormalizedMLP
+
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim, _, _ = action_box(env, action_key)
+    return ValueOperator(NormalizedMLP(obs_dim, act_dim, 1, list(hidden_sizes), "relu", obs_loc, obs_scale),
+                         in_keys=["observation", action_key], out_keys=["state_action_value"])
+
+
+class DatasetAgent(Agent):
+    """Model-free offline agents: every update is gradient steps on minibatches drawn from the dataset itself.
+
+    The loop gives :meth:`update` a batch of :attr:`batch_size` transitions
+    sampled uniformly from the dataset (TorchRL's offline layout: ``observation``,
+    ``action``, ``("next", "observation" | "reward" | "done" | "terminated")``);
+    no model is fitted and the agent acts in the real action space. The
+    rewards the agent learns from are multiplied by :attr:`reward_scale`
+    (resolved by the loop from the algorithm's config: a number, ``"auto"``
+    or ``"return_range"``, see
+    :func:`torchrl_offhrl.recipes.config.resolve_reward_scale`). Target
+    networks' updaters go in :attr:`target_updater` so that checkpoints keep
+    them.
+    """
+
+    data_source = "dataset"
+    batch_size: int = 256
+    reward_scale: float = 1.0
+    target_updater: Any = None
+
+    def set_sampling(self, batch_size: int, reward_scale: float) -> None:
+        """Set :attr:`batch_size` and :attr:`reward_scale` (a positive number: names such as ``"return_range"`` are resolved by the loop)."""
+        if isinstance(reward_scale, str) or isinstance(reward_scale, bool) or not float(reward_scale) > 0:
+            raise ValueError(f"{type(self).__name__}: reward_scale must be a positive number, got {reward_scale!r}; the names 'auto' and "
+                             "'return_range' of the configs are resolved from the data by torchrl_offhrl.recipes.config.resolve_reward_scale")
+        if int(batch_size) < 1:
+            raise ValueError(f"{type(self).__name__}: batch_size must be >= 1, got {batch_size}")
+        self.batch_size, self.reward_scale = int(batch_size), float(reward_scale)
+
+    def scaled(self, batch: TensorDictBase) -> TensorDictBase:
+        """``batch`` with its rewards multiplied by :attr:`reward_scale` (a new tensordict: ``batch`` is untouched)."""
+        if self.reward_scale == 1.0:
+            return batch
+        out = batch.exclude(("next", "reward"))
+        out.set(("next", "reward"), batch.get(("next", "reward")) * self.reward_scale)
+        return out
+
+    def state_dict(self) -> dict:
+        out = super().state_dict()
+        if self.target_updater is not None:
+            out["target_updater"] = self.target_updater.state_dict()
+        return out
+
+    def load_state_dict(self, state: Mapping) -> None:
+        super().load_state_dict(state)
+        if self.target_updater is not None and "target_updater" in state:
+            self.target_updater.load_state_dict(state["target_updater"])

@@ -17,7 +17,7 @@ from ..registry import LEVELS
 from ..utils import to_plain
 
 __all__ = [
-    "RESUMABLE_KEYS", "algo_label", "auto_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "model_config", "model_env_config",
+    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "model_config", "model_env_config",
     "pessimism_for", "resolve_dataset",
 ]
 
@@ -119,13 +119,37 @@ def model_env_config(cfg: Mapping, level: str | None, data: OfflineDataset | Non
         pess = {"threshold": float("inf"), "penalty": 0.0}
     menv = {k: v for k, v in cfg.get("model_env", {}).items() if k != "pessimism"}
     scale = menv.get("reward_scale", 1.0)
-    if scale == "auto":
-        if data is None:
-            raise ValueError("model_env.reward_scale=auto is computed from the dataset: pass data to model_env_config")
-        menv["reward_scale"] = auto_reward_scale(data, float(cfg.get("algo", {}).get("gamma", 0.99)))
-    elif not isinstance(scale, (int, float)) or isinstance(scale, bool) or not scale > 0:
-        raise ValueError(f"model_env.reward_scale must be a positive number or 'auto', got {scale!r}")
+    if scale == "auto" and data is None:
+        raise ValueError("model_env.reward_scale=auto is computed from the dataset: pass data to model_env_config")
+    menv["reward_scale"] = resolve_reward_scale(scale, data, float(cfg.get("algo", {}).get("gamma", 0.99)), key="model_env.reward_scale")
     return {**menv, **pess}, pess
+
+
+def resolve_reward_scale(spec, data: OfflineDataset | None, gamma: float = 0.99, key: str = "algo.reward_scale") -> float:
+    """A reward scale from its config value: a positive number, ``"auto"`` (:func:`auto_reward_scale`) or ``"return_range"`` (:func:`return_range_reward_scale`)."""
+    if spec in ("auto", "return_range"):
+        if data is None:
+            raise ValueError(f"{key}={spec} is computed from the dataset: pass the data")
+        return auto_reward_scale(data, gamma) if spec == "auto" else return_range_reward_scale(data)
+    if not isinstance(spec, (int, float)) or isinstance(spec, bool) or not spec > 0:
+        raise ValueError(f"{key} must be a positive number, 'auto' or 'return_range', got {spec!r}")
+    return float(spec)
+
+
+def return_range_reward_scale(data: OfflineDataset) -> float:
+    """``1000 / (max - min)`` of the dataset's complete episode returns: IQL's reward normalisation for locomotion.
+
+    As the IQL paper (Kostrikov et al., 2022) and CORL do for the D4RL
+    locomotion datasets: the spread of episode returns becomes 1000, which
+    is what IQL's temperature (3.0) was tuned against.
+    """
+    returns = data.episode_returns(complete_only=True)
+    if returns.numel() == 0:
+        returns = data.episode_returns()
+    spread = float(returns.max() - returns.min()) if returns.numel() else 0.0
+    if not spread > 0:
+        raise ValueError("reward_scale=return_range: the dataset's episode returns have zero spread (one episode?); set algo.reward_scale to a number")
+    return 1000.0 / spread
 
 
 def auto_reward_scale(data: OfflineDataset, gamma: float = 0.99) -> float:
@@ -161,6 +185,18 @@ def default_run_dir(cfg: Mapping) -> Path:
         ds = f"{Path(spec).stem}-{digest}"
     abl = "".join(f"-{k}" for k, v in to_plain(cfg.get("ablation", {})).items() if v)
     return Path(cfg.get("out_root", "outputs/runs")) / f"{algo_label(cfg['algo'])}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
+
+
+def learns_from_dataset(cfg: Mapping) -> bool:
+    """Whether the config's agent is a model-free offline agent (``data_source = "dataset"``: IQL, CQL, TD3+BC, BC)."""
+    from ..agents import agent_class
+
+    return agent_class(cfg["algo"]["name"]).data_source == "dataset"
+
+
+def acts_in_latent_space(cfg: Mapping) -> bool:
+    """Whether the config's agent acts through the CVAE decoder: model-env agents unless ``ablation.no_cvae``; never a dataset agent."""
+    return not cfg.get("ablation", {}).get("no_cvae", False) and not learns_from_dataset(cfg)
 
 
 def algo_label(algo_cfg: Mapping) -> str:

@@ -16,6 +16,7 @@ from ..models import ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
+from .config import acts_in_latent_space
 from .pipeline import make_real_env
 
 __all__ = ["Evaluator", "evaluate_run", "load_run_agent", "render_episode"]
@@ -87,7 +88,7 @@ def load_run_agent(run_dir, num_envs: int = 1):
             raise FileNotFoundError(f"{p} is missing: {run} is not a (checkpointed) run directory of `offhrl train`")
     cfg = json.loads(cfg_path.read_text())
     env_id = cfg["env"]["env_id"]
-    latent = not cfg.get("ablation", {}).get("no_cvae", False)
+    latent = acts_in_latent_space(cfg)
     cvae = None
     if latent:
         model_dir = cfg.get("model_dir")

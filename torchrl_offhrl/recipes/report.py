@@ -20,8 +20,9 @@ import torch
 from ..scores import normalized_score
 
 __all__ = [
-    "aggregate", "fmt_number", "format_summary", "load_run", "logged_tail_mean", "plot_curve", "plot_training_metrics", "read_scalar_logs",
-    "run_summary",
+    "TABLE_COLUMNS", "UNIT_LABELS", "aggregate", "fmt_number", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
+    "plot_curve", "plot_training_metrics",
+    "read_scalar_logs", "run_summary", "run_unit",
 ]
 
 
@@ -34,17 +35,32 @@ def _plt():
     return plt
 
 
+#: how the x-axis of a run's curves is labelled, by the unit of its budget (``summary["unit"]``)
+UNIT_LABELS = {"frames": "model-env frames", "updates": "gradient steps on the dataset"}
+
+
+def _step(record: dict) -> int:
+    """Where an evaluation record sits on its run's x-axis: ``step`` (frames, or updates for dataset agents); older records: frames."""
+    return record.get("step", record["frames"])
+
+
+def run_unit(run: dict) -> str:
+    """The unit of a loaded run's budget: ``"frames"`` or ``"updates"`` (older runs: frames)."""
+    return ((run.get("summary") or {}).get("unit") or (run.get("config") or {}).get("unit") or "frames")
+
+
 def _curve_stats(runs: Sequence[Sequence[dict]], key: str):
     """Mean and std over runs at the evaluation points every run has."""
-    common = sorted(set.intersection(*[{r["frames"] for r in recs} for recs in runs])) if runs else []
+    common = sorted(set.intersection(*[{_step(r) for r in recs} for recs in runs])) if runs else []
     if not common:
         return [], torch.zeros(0), torch.zeros(0)
-    vals = torch.tensor([[next(r[key] for r in recs if r["frames"] == f) for f in common] for recs in runs], dtype=torch.float64)
+    vals = torch.tensor([[next(r[key] for r in recs if _step(r) == f) for f in common] for recs in runs], dtype=torch.float64)
     std = vals.std(0) if vals.shape[0] > 1 else torch.zeros(vals.shape[1], dtype=torch.float64)
     return common, vals.mean(0), std
 
 
-def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", behaviour: float | None = None, key: str = "return_mean", ax=None):
+def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", behaviour: float | None = None, key: str = "return_mean", ax=None,
+               xlabel: str = UNIT_LABELS["frames"]):
     """Learning curve(s): the mean over runs, shaded ± one std over runs.
 
     With a single run, the band is the std over its evaluation episodes.
@@ -55,12 +71,12 @@ def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str
         fig, ax = plt.subplots(figsize=(6, 4))
     frames, mean, std = _curve_stats(runs, key)
     if len(runs) == 1 and key == "return_mean":
-        std = torch.tensor([r.get("return_std", 0.0) for r in runs[0] if r["frames"] in frames], dtype=torch.float64)
+        std = torch.tensor([r.get("return_std", 0.0) for r in runs[0] if _step(r) in frames], dtype=torch.float64)
     ax.plot(frames, mean, marker="o", ms=3, label=f"{label} (n={len(runs)})" if label else None)
     ax.fill_between(frames, mean - std, mean + std, alpha=0.25)
     if behaviour is not None:
         ax.axhline(behaviour, color="gray", ls="--", label="behaviour (dataset)")
-    ax.set_xlabel("model-env frames")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("real-env return" if key == "return_mean" else key)
     ax.set_title(title)
     ax.legend(loc="best", fontsize=8)
@@ -100,6 +116,34 @@ def _group_key(run: dict) -> tuple:
     return (str(algo.get("label") or algo.get("name", "?")), cfg.get("env", {}).get("env_id", "?"), str(cfg.get("dataset", "?")), abl)
 
 
+def group_stats(rs: Sequence[dict]) -> dict:
+    """Statistics over the seeds of one group of loaded runs (:func:`load_run`): final, best and untrained scores, mean +- std.
+
+    The final evaluation is each run's last; the best is the best evaluation
+    after training began (reported apart from the final one, never instead
+    of it); the untrained score is the evaluation at step 0.
+    """
+    finals = torch.tensor([r["evals"][-1]["return_mean"] for r in rs], dtype=torch.float64)
+    scores = [r["evals"][-1].get("normalized_d4rl") for r in rs]
+    sc = torch.tensor([s for s in scores if s is not None], dtype=torch.float64)
+    unit = run_unit(rs[0])
+    beh = [r["summary"]["behaviour_normalized_d4rl"] for r in rs if r["summary"] and r["summary"].get("behaviour_normalized_d4rl") is not None]
+    trained = [[e["normalized_d4rl"] for e in r["evals"] if _step(e) > 0 and e.get("normalized_d4rl") is not None] for r in rs]
+    best = [max(t) for t in trained if t]
+    start = [r["evals"][0]["normalized_d4rl"] for r in rs if _step(r["evals"][0]) == 0 and r["evals"][0].get("normalized_d4rl") is not None]
+    bt, st = torch.tensor(best, dtype=torch.float64), torch.tensor(start, dtype=torch.float64)
+    return {
+        "seeds": len(rs), "budget": f"{min(_step(r['evals'][-1]) for r in rs)} {unit}",
+        "return_mean": float(finals.mean()), "return_std": float(finals.std()) if len(rs) > 1 else 0.0,
+        "score_mean": float(sc.mean()) if sc.numel() else None,
+        "score_std": float(sc.std()) if sc.numel() > 1 else 0.0,
+        "behaviour_score": float(sum(beh) / len(beh)) if beh else None,
+        "best_score_mean": float(bt.mean()) if bt.numel() else None,
+        "best_score_std": float(bt.std()) if bt.numel() > 1 else 0.0,
+        "untrained_score_mean": float(st.mean()) if st.numel() else None,
+    }
+
+
 def aggregate(run_dirs: Sequence, out_dir) -> str:
     """Aggregate seeds: writes ``out_dir/results.md``, ``results.csv`` and ``curves.png``; returns the Markdown table."""
     runs = [load_run(d) for d in run_dirs]
@@ -110,39 +154,15 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
         groups[_group_key(r)].append(r)
-    rows = []
-    for key, rs in sorted(groups.items()):
-        finals = torch.tensor([r["evals"][-1]["return_mean"] for r in rs], dtype=torch.float64)
-        scores = [r["evals"][-1].get("normalized_d4rl") for r in rs]
-        sc = torch.tensor([s for s in scores if s is not None], dtype=torch.float64)
-        frames = min(r["evals"][-1]["frames"] for r in rs)
-        beh = [r["summary"]["behaviour_normalized_d4rl"] for r in rs if r["summary"] and r["summary"].get("behaviour_normalized_d4rl") is not None]
-        # the best evaluation of each seed after training began (reported apart from the final one, never instead of
-        # it; the untrained start has its own column) and the untrained start
-        trained = [[e["normalized_d4rl"] for e in r["evals"] if e["frames"] > 0 and e.get("normalized_d4rl") is not None] for r in rs]
-        best = [max(t) for t in trained if t]
-        start = [r["evals"][0]["normalized_d4rl"] for r in rs if r["evals"][0]["frames"] == 0 and r["evals"][0].get("normalized_d4rl") is not None]
-        bt, st = torch.tensor(best, dtype=torch.float64), torch.tensor(start, dtype=torch.float64)
-        rows.append(
-            {
-                "algo": key[0], "env": key[1], "dataset": key[2], "ablation": key[3], "seeds": len(rs), "frames": frames,
-                "return_mean": float(finals.mean()), "return_std": float(finals.std()) if len(rs) > 1 else 0.0,
-                "score_mean": float(sc.mean()) if sc.numel() else None,
-                "score_std": float(sc.std()) if sc.numel() > 1 else 0.0,
-                "behaviour_score": float(sum(beh) / len(beh)) if beh else None,
-                "best_score_mean": float(bt.mean()) if bt.numel() else None,
-                "best_score_std": float(bt.std()) if bt.numel() > 1 else 0.0,
-                "untrained_score_mean": float(st.mean()) if st.numel() else None,
-            }
-        )
-    header = ("| algo | env | dataset | ablation | seeds | frames | final return (mean ± std) | final D4RL score (mean ± std) | "
+    rows = [{"algo": key[0], "env": key[1], "dataset": key[2], "ablation": key[3], **group_stats(rs)} for key, rs in sorted(groups.items())]
+    header = ("| algo | env | dataset | ablation | seeds | budget | final return (mean ± std) | final D4RL score (mean ± std) | "
               "best D4RL score (mean ± std) | untrained score | behaviour score |")
     lines = [header, "|" + "---|" * 11]
     for r in rows:
         score = "n/a" if r["score_mean"] is None else f"{r['score_mean']:.1f} ± {r['score_std']:.1f}"
         best = "n/a" if r["best_score_mean"] is None else f"{r['best_score_mean']:.1f} ± {r['best_score_std']:.1f}"
         lines.append(
-            f"| {r['algo']} | {r['env']} | {r['dataset']} | {r['ablation']} | {r['seeds']} | {r['frames']} | "
+            f"| {r['algo']} | {r['env']} | {r['dataset']} | {r['ablation']} | {r['seeds']} | {r['budget']} | "
             f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {score} | {best} | {fmt_number(r['untrained_score_mean'])} | "
             f"{fmt_number(r['behaviour_score'])} |"
         )
@@ -154,12 +174,14 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
         w.writerows(rows)
     plt = _plt()
     envs = sorted({k[1] for k in groups})
-    fig, axes = plt.subplots(1, len(envs), figsize=(6 * len(envs), 4), squeeze=False)
-    for ax, env_id in zip(axes[0], envs):
-        for key, rs in sorted(groups.items()):
-            if key[1] == env_id:
-                label = f"{key[0]} {key[2]}" + ("" if key[3] == "-" else f" [{key[3]}]")
-                plot_curve([r["evals"] for r in rs], None, label=label, title=env_id, ax=ax)
+    units = sorted({run_unit(rs[0]) for rs in groups.values()})  # one row of panels per x-axis unit: frames, gradient steps
+    fig, axes = plt.subplots(len(units), len(envs), figsize=(6 * len(envs), 4 * len(units)), squeeze=False)
+    for row, unit in zip(axes, units):
+        for ax, env_id in zip(row, envs):
+            for key, rs in sorted(groups.items()):
+                if key[1] == env_id and run_unit(rs[0]) == unit:
+                    label = f"{key[0]} {key[2]}" + ("" if key[3] == "-" else f" [{key[3]}]")
+                    plot_curve([r["evals"] for r in rs], None, label=label, title=env_id, ax=ax, xlabel=UNIT_LABELS.get(unit, unit))
     fig.tight_layout()
     fig.savefig(out / "curves.png", dpi=110)
     plt.close(fig)
@@ -175,14 +197,14 @@ def format_summary(summary) -> str:
     """The one-paragraph result of a run, as printed by ``offhrl train`` and ``examples/offline_train.py``."""
     f = summary["final"]
     return (
-        f"{summary['algo']} on {summary['env_id']} ({summary['dataset']}), {summary['frames']} frames: real return "
+        f"{summary['algo']} on {summary['env_id']} ({summary['dataset']}), {summary.get('step', summary['frames'])} {summary.get('unit', 'frames')}: real return "
         f"{f['return_mean']:.1f} ± {f['return_std']:.1f}, D4RL-normalised {fmt_number(f['normalized_d4rl'])} "
         f"(behaviour data: {fmt_number(summary['behaviour_normalized_d4rl'])}); outputs in {summary['run_dir']}"
     )
 
 
 def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimism, threshold, frames: int, updates: int,
-                frames_per_s, updates_per_s, timing: dict, models, run_dir, evaluation_files=()) -> dict:
+                frames_per_s, updates_per_s, timing: dict, models, run_dir, evaluation_files=(), unit: str = "frames") -> dict:
     """The ``summary.json`` of a training run: the final (and initial) evaluation, the behaviour data's score, sizes and timings."""
     env_id, level = cfg["env"]["env_id"], data.metadata.get("level")
     return {
@@ -196,8 +218,10 @@ def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimi
         "threshold": threshold,
         "frames": frames,
         "updates": updates,
+        "unit": unit,
+        "step": updates if unit == "updates" else frames,
         "final": records[-1],
-        "initial": records[0] if records[0]["frames"] == 0 else None,
+        "initial": records[0] if _step(records[0]) == 0 else None,
         "behaviour_return_mean": behaviour["mean"],
         "behaviour_return_std": behaviour["std"],
         "behaviour_episodes": behaviour["episodes"],
@@ -242,8 +266,8 @@ def logged_tail_mean(run_dir, key: str, n: int = 5) -> float | None:
     return sum(tail) / len(tail)
 
 
-def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None):
-    """One panel per logged scalar of a run's CSV logs (``logs/scalars/{train,eval}/*.csv``), against frames.
+def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None, xlabel: str = "frames"):
+    """One panel per logged scalar of a run's CSV logs (``logs/scalars/{train,eval}/*.csv``), against the run's steps (``xlabel``).
 
     Shows whether options are alive (termination rate, option duration, pi_O
     and usage entropies, the termination advantage), whether the model is
@@ -273,7 +297,7 @@ def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None):
                 ax.legend(fontsize=7)
         for ax in list(axes.flat)[len(panels):]:
             ax.axis("off")
-        fig.supxlabel("frames", fontsize=9)
+        fig.supxlabel(xlabel, fontsize=9)
         fig.tight_layout()
         fig.savefig(path, dpi=100)
         plt.close(fig)
@@ -281,3 +305,98 @@ def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None):
         warnings.warn(f"could not draw {path}: {err!r}", stacklevel=2)
         return None
     return Path(path)
+
+
+#: Table I's columns: run label -> column title, in the paper's order (ours on the P-MDP, then the peers)
+TABLE_COLUMNS: dict[str, str] = {
+    "moc": "MOC", "ppo": "PPO", "sac": "SAC", "morel": "MOReL-style", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC",
+}
+
+
+def _env_name(env_id: str) -> str:
+    return env_id.split("-v")[0].lower()
+
+
+def _cell(mean, std, n) -> str:
+    return "—" if mean is None else f"{mean:.1f} ± {std:.1f} ({n})"
+
+
+def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets") -> str:
+    """The paper's Table I from run directories: rows env x dataset, one column per algorithm, the behaviour data last.
+
+    Writes ``out_dir/table.md`` (the final evaluations, the best evaluations
+    in a second table, and the published scores, measured on D4RL's own data,
+    in a separate block), ``table.csv`` (one row per env, dataset and
+    algorithm) and ``curves_<env>-<dataset>.png`` (mean +- std over seeds; one
+    panel per budget unit: model-env frames, gradient steps). Cells are
+    ``mean ± std (seeds)`` of the D4RL-normalised score; ``—`` marks an
+    algorithm with no run for that dataset. Runs with an ablation get their
+    own column (``label [ablation]``), except MOReL-style runs, whose config
+    is that ablation.
+    """
+    from ..scores import PUBLISHED_SCORES
+
+    runs = [load_run(d) for d in run_dirs]
+    if not runs:
+        raise ValueError("paper_table: no run directories given")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for r in runs:
+        label, env_id, dataset, abl = _group_key(r)
+        column = label if abl == "-" or label == "morel" else f"{label} [{abl}]"
+        groups[(env_id, dataset, column)].append(r)
+    stats = {key: group_stats(rs) for key, rs in groups.items()}
+    datasets = sorted({(k[0], k[1]) for k in groups})
+    present = {k[2] for k in groups}
+    columns = [*TABLE_COLUMNS, *sorted(present - set(TABLE_COLUMNS))]  # every standard column (missing ones shown as —), then others
+    titles = [TABLE_COLUMNS.get(c, c) for c in columns]
+
+    def table(kind: str) -> list[str]:
+        lines = ["| dataset | " + " | ".join(titles) + " | behaviour data |", "|" + "---|" * (len(columns) + 2)]
+        for env_id, dataset in datasets:
+            cells, beh = [], []
+            for c in columns:
+                st = stats.get((env_id, dataset, c))
+                if st is None:
+                    cells.append("—")
+                    continue
+                cells.append(_cell(st[f"{kind}_mean"], st[f"{kind}_std"], st["seeds"]))
+                if st["behaviour_score"] is not None:
+                    beh.append(st["behaviour_score"])
+            lines.append(f"| {_env_name(env_id)}-{dataset} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
+        return lines
+
+    budgets = sorted({f"{TABLE_COLUMNS.get(k[2], k[2])}: {st['budget']}" for k, st in stats.items()})
+    md = [f"# {title}", "",
+          "D4RL-normalised real-env return, deterministic evaluation, mean ± std over seeds (number of seeds).", "",
+          "## Final evaluation", "", *table("score"), "",
+          "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
+          *table("best_score"), "",
+          "Budgets: " + "; ".join(budgets) + ".", "",
+          "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
+          "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
+          "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),
+          *[f"| {m} | " + " | ".join(f"{v:g}" for v in row.values()) + " |" for m, row in PUBLISHED_SCORES.items()], ""]
+    text = "\n".join(md)
+    (out / "table.md").write_text(text)
+    with open(out / "table.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["env", "dataset", "algo", *next(iter(stats.values())).keys()])
+        w.writeheader()
+        for (env_id, dataset, c), st in sorted(stats.items()):
+            w.writerow({"env": env_id, "dataset": dataset, "algo": c, **st})
+    plt = _plt()
+    for env_id, dataset in datasets:
+        keys = [k for k in sorted(groups) if k[:2] == (env_id, dataset)]
+        units = sorted({run_unit(groups[k][0]) for k in keys})
+        fig, axes = plt.subplots(1, len(units), figsize=(6 * len(units), 4), squeeze=False)
+        for ax, unit in zip(axes[0], units):
+            for k in keys:
+                if run_unit(groups[k][0]) == unit:
+                    plot_curve([r["evals"] for r in groups[k]], None, label=TABLE_COLUMNS.get(k[2], k[2]), key="normalized_d4rl", ax=ax,
+                               title=f"{_env_name(env_id)}-{dataset}", xlabel=UNIT_LABELS.get(unit, unit))
+            ax.set_ylabel("D4RL-normalised score")
+        fig.tight_layout()
+        fig.savefig(out / f"curves_{_env_name(env_id)}-{dataset}.png", dpi=110)
+        plt.close(fig)
+    return text

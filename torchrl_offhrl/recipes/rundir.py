@@ -48,8 +48,14 @@ class RunDirectory:
         self.data_hash: str | None = None  # the training data's content hash: set it before resume() to check it
         self.frames = 0
         self.updates = 0
+        self.unit = "frames"  # what the run's budget counts: "frames" (collected) or "updates" (gradient steps, dataset agents)
         self.records: list[dict] = []
         self._replay: str | None = None
+
+    @property
+    def step(self) -> int:
+        """The run's progress in its :attr:`unit`: the x-axis of its logs and curves."""
+        return self.updates if self.unit == "updates" else self.frames
 
     def remove_if_empty(self) -> bool:
         """Delete the directory if it holds nothing but its lock file (a run that failed before writing); True if deleted."""
@@ -131,7 +137,7 @@ class RunDirectory:
             if not (self.path / self._replay).is_dir():
                 raise FileNotFoundError(f"the checkpoint's replay buffer {self.path / self._replay} is missing; delete {self.checkpoint_path} to start over")
             agent.replay_buffer.loads(self.path / self._replay)
-        print(f"resuming {self.path} from its checkpoint at {self.frames} frames")
+        print(f"resuming {self.path} from its checkpoint at {self.step} {self.unit}")
         return True
 
     def write_json(self, name: str, obj) -> Path:
@@ -174,15 +180,15 @@ class RunDirectory:
             return None
         from torchrl.record.loggers import get_logger
 
-        if self.frames and backend == "csv":
-            trim_csv_logs(self.path / "logs", self.frames)
+        if self.step and backend == "csv":
+            trim_csv_logs(self.path / "logs", self.step)
         logger = get_logger(backend, logger_name=str(self.path), experiment_name="logs", **kwargs)
         if self.frames and backend == "tensorboard":
             from torch.utils.tensorboard import SummaryWriter
 
             log_dir = logger.experiment.log_dir
             logger.experiment.close()
-            logger.experiment = SummaryWriter(log_dir=log_dir, purge_step=self.frames + 1)
+            logger.experiment = SummaryWriter(log_dir=log_dir, purge_step=self.step + 1)
         return logger
 
 

@@ -86,7 +86,9 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "collector.num_envs": _int(1),
     "torch_threads": _int(1, optional=True),
     "train.total_frames": _int(1),
+    "train.total_updates": _int(1),
     "eval.every_frames": _int(1),
+    "eval.every_updates": _int(1),
     "eval.episodes": _int(1),
     "eval.max_steps": _int(1),
     "logger.backend": _choice("csv", "tensorboard", "wandb", "mlflow", None),
@@ -106,6 +108,11 @@ ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "hidden_sizes": _sizes(),
     "adam_eps": _num(0, lo_open=True),
     "lr": _num(0, lo_open=True),
+    "actor_lr": _num(0, lo_open=True),
+    "critic_lr": _num(0, lo_open=True),
+    "tau": _num(0, 1, lo_open=True),
+    "expectile": _num(0, 1, lo_open=True, hi_open=True),
+    "reward_scale": ("a positive number, 'auto' or 'return_range'", lambda v: v in ("auto", "return_range") or (_is_num(v) and v > 0)),
     "anneal_lr": ("true or false", lambda v: isinstance(v, bool)),
 }
 

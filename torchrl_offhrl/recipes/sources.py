@@ -1,13 +1,12 @@
-"""Where training batches come from: today a TorchRL collector on the composed model env.
+"""Where training batches come from: a TorchRL collector on the composed model env, or the dataset itself.
 
 The loop only iterates over batches and hands them to ``agent.update``; a
-later source (the dataset itself for model-free offline agents, the real env
-for online fine-tuning) is another function here returning an iterable of
-batches.
+later source (the real env for online fine-tuning) is another function here
+returning an iterable of batches.
 """
 from __future__ import annotations
 
-__all__ = ["model_env_collector", "model_env_metrics"]
+__all__ = ["dataset_batches", "model_env_collector", "model_env_metrics"]
 
 
 def model_env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu"):
@@ -41,3 +40,16 @@ def model_env_metrics(batch) -> dict[str, float]:
     out["train/penalized_rate"] = float(batch["next", "penalized"].float().mean()) if ("next", "penalized") in keys else float("nan")
     return out
 
+
+
+def dataset_batches(data, agent, updates: int, device="cpu"):
+    """``updates`` minibatches of ``agent.batch_size`` transitions drawn uniformly (with replacement) from ``data``.
+
+    The dataset goes once into a TorchRL replay buffer
+    (:meth:`~torchrl_offhrl.data.OfflineDataset.to_replay_buffer`) on
+    ``device``; sampling uses torch's global RNG, which a resumed run restores
+    from its checkpoint.
+    """
+    rb = data.to_replay_buffer(batch_size=min(int(agent.batch_size), len(data)), device=device)
+    for _ in range(int(updates)):
+        yield rb.sample()

@@ -1,0 +1,277 @@
+"""Model-free offline agents (IQL, CQL, TD3+BC, BC): trained on the dataset itself, evaluated like every agent."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_offhrl.recipes import evaluation as evaluation_mod
+from torchrl_offhrl.recipes.config import compose
+from torchrl_offhrl.recipes.train import train
+from torchrl_offhrl.utils import to_plain
+
+ROOT = Path(__file__).resolve().parents[1]
+DATASET_ALGOS = ["bc", "iql", "td3bc", "cql"]
+TINY = ["eval.episodes=2", "eval.max_steps=30", "algo.batch_size=16", "algo.hidden_sizes=[16,16]"]
+
+
+@pytest.fixture(scope="module")
+def hopper_file(tmp_path_factory):
+    from torchrl_offhrl.data import collect_dataset, save_dataset
+
+    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
+    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
+    return path
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
+def _cfg(algo, data, out, *extra):
+    return to_plain(compose("offline_train", [f"algo={algo}", f"dataset={data}", f"out_root={out}", *TINY, *extra]))
+
+
+def _params(run_dir):
+    return torch.load(Path(run_dir) / "checkpoint.pt", weights_only=True)["agent"]["loss"]
+
+
+@pytest.mark.parametrize("algo", DATASET_ALGOS)
+def test_dataset_agent_trains_end_to_end_without_models(algo, hopper_file, cache, tmp_path):
+    summary = train(_cfg(algo, hopper_file, tmp_path, "train.total_updates=40", "eval.every_updates=20"), progress=False)
+    run = Path(summary["run_dir"])
+    assert run.name.startswith(f"{algo}-hopper-hopper_random-")
+    assert summary["unit"] == "updates" and summary["updates"] == summary["step"] == 40
+    assert summary["frames"] == 40 * 16  # transitions drawn from the dataset
+    evals = json.loads((run / "evals.json").read_text())
+    assert [(e["step"], e["updates"]) for e in evals] == [(0, 0), (20, 20), (40, 40)]
+    assert all("model_return_mean" not in e for e in evals)  # no model env: no model-real gap
+    assert summary["models"] is None and not (cache / "models").exists()  # nothing fitted
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["unit"] == "updates" and cfg["threshold"] is None
+    for f in ("checkpoint.pt", "summary.json", "learning_curve.png", "training_metrics.png"):
+        assert (run / f).is_file(), f
+    # it learned: the trained parameters moved from the untrained agent's
+    fresh = train(_cfg(algo, hopper_file, tmp_path / "zero", "train.total_updates=1", "eval.every_updates=1", "eval.at_start=false"), progress=False)
+    moved = [k for k, v in _params(fresh["run_dir"]).items() if v.is_floating_point() and "params" in k and not torch.equal(v, _params(run)[k])]
+    assert moved
+
+
+@pytest.mark.parametrize("algo", ["iql", "td3bc"])
+def test_an_interrupted_dataset_run_resumes_to_the_same_agent(algo, hopper_file, cache, tmp_path):
+    """40 updates then 20 more from the checkpoint give the same networks as 60 in one go (targets, delay counter and sampling RNG restored)."""
+    straight = train(_cfg(algo, hopper_file, tmp_path / "a", "train.total_updates=60", "eval.every_updates=20"), progress=False)
+    train(_cfg(algo, hopper_file, tmp_path / "b", "train.total_updates=40", "eval.every_updates=20"), progress=False)
+    resumed = train(_cfg(algo, hopper_file, tmp_path / "b", "train.total_updates=60", "eval.every_updates=20"), progress=False)
+    a, b = _params(straight["run_dir"]), _params(resumed["run_dir"])
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], msg=k)
+    evals = json.loads((Path(resumed["run_dir"]) / "evals.json").read_text())
+    assert [e["step"] for e in evals] == [0, 20, 40, 60]
+    assert [e["return_mean"] for e in evals] == [e["return_mean"] for e in json.loads((Path(straight["run_dir"]) / "evals.json").read_text())]
+
+
+def test_every_agent_is_evaluated_on_the_same_episodes(hopper_file, cache, tmp_path, monkeypatch):
+    """Same config, any algorithm (model env or dataset, latent or real actions): the same evaluation episodes from the same start states."""
+    from torchrl_offhrl.agents import AGENTS
+
+    starts: dict[str, list] = {}
+    real = evaluation_mod.evaluate_policy
+
+    def spy(env, policy, episodes, **kw):
+        out = real(env, policy, episodes, **kw)
+        if kw.get("return_rollout"):  # the real-env evaluation (the model-env one does not keep its rollout)
+            starts.setdefault(current["algo"], []).append((episodes, kw["max_steps"], kw["seed"], out[1]["observation"][:, 0].clone()))
+        return out
+
+    monkeypatch.setattr(evaluation_mod, "evaluate_policy", spy)
+    current = {}
+    tiny_model = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=20",
+                  "collector.num_envs=4", "train.total_frames=64", "eval.every_frames=64", "algo.frames_per_batch=64", "eval.model_env=false"]
+    extra = {"sac": ["algo.init_random_frames=32", "algo.utd_ratio=0.05"], "ppo": ["algo.epochs=1"], "moc": ["algo.epochs=1"]}
+    for algo in sorted(AGENTS):
+        current["algo"] = algo
+        overrides = ["train.total_updates=2", "eval.every_updates=2"] if algo in DATASET_ALGOS else [*tiny_model, *extra.get(algo, [])]
+        train(to_plain(compose("offline_train", [f"algo={algo}", f"dataset={hopper_file}", f"out_root={tmp_path}", "eval.episodes=3",
+                                                 "eval.max_steps=15", "algo.hidden_sizes=[16,16]", *overrides])), progress=False)
+    assert set(starts) == set(AGENTS) >= {"moc", "ppo", "sac", *DATASET_ALGOS}
+    reference = starts["moc"][0]
+    for algo, evals in starts.items():
+        assert len(evals) == 2, algo  # at the start and at the end
+        for episodes, max_steps, seed, obs in evals:
+            assert (episodes, max_steps, seed) == reference[:3], algo
+            torch.testing.assert_close(obs, reference[3], msg=algo)
+
+
+def test_return_range_reward_scale_hand_computed():
+    from torchrl_offhrl.data import OfflineDataset
+    from torchrl_offhrl.recipes.config import resolve_reward_scale, return_range_reward_scale
+
+    # two episodes: returns 1 + 2 = 3 and 4 + 1 = 5 (range 2), 1000 / 2 = 500
+    td = TensorDict({"observation": torch.zeros(4, 1), "action": torch.zeros(4, 1), "next": {
+        "observation": torch.zeros(4, 1), "reward": torch.tensor([[1.0], [2.0], [4.0], [1.0]]),
+        "terminated": torch.tensor([[False], [True], [False], [True]]), "truncated": torch.zeros(4, 1, dtype=torch.bool)}}, batch_size=[4])
+    data = OfflineDataset(td)
+    assert return_range_reward_scale(data) == pytest.approx(500.0)
+    assert resolve_reward_scale("return_range", data) == pytest.approx(500.0)
+    assert resolve_reward_scale(0.25, data) == 0.25
+    with pytest.raises(ValueError, match="positive number, 'auto' or 'return_range'"):
+        resolve_reward_scale("max", data)
+
+
+def test_dataset_agents_learn_from_scaled_rewards_and_leave_the_batch_alone():
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    agent = make_agent("iql", env, {"reward_scale": 0.5, "hidden_sizes": [8], "batch_size": 4}, action_key="action")
+    batch = TensorDict({"observation": torch.zeros(4, 3), "next": {"reward": torch.ones(4, 1)}}, batch_size=[4])
+    scaled = agent.scaled(batch)
+    torch.testing.assert_close(scaled["next", "reward"], torch.full((4, 1), 0.5))
+    torch.testing.assert_close(batch["next", "reward"], torch.ones(4, 1))
+    with pytest.raises(ValueError, match="resolved from the data"):
+        make_agent("iql", env, {"reward_scale": "return_range"}, action_key="action")
+
+
+def test_td3bc_steps_its_actor_every_second_update():
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    agent = make_agent("td3bc", env, {"hidden_sizes": [8], "batch_size": 8}, action_key="action")
+    td = env.rollout(16, break_when_any_done=False).reshape(-1)
+    actor = [p.detach().clone() for p in agent.loss.actor_network_params.flatten_keys().values()]
+    first = agent.update(td[:8])
+    assert "train/loss_actor" not in first
+    assert all(torch.equal(a, p) for a, p in zip(actor, agent.loss.actor_network_params.flatten_keys().values()))
+    second = agent.update(td[8:])
+    assert "train/loss_actor" in second
+    assert any(not torch.equal(a, p) for a, p in zip(actor, agent.loss.actor_network_params.flatten_keys().values()))
+
+
+def test_cql_clones_the_behaviour_before_policy_eval_start():
+    """CQL's actor follows loss_actor_bc for the first policy_eval_start updates, then loss_actor."""
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    agent = make_agent("cql", env, {"hidden_sizes": [8], "batch_size": 8, "policy_eval_start": 1}, action_key="action")
+    td = env.rollout(16, break_when_any_done=False).reshape(-1)
+    assert agent.update(td[:8])["train/bc_phase"] == 1.0
+    assert agent.update(td[8:])["train/bc_phase"] == 0.0
+
+
+def test_dataset_agents_refuse_the_model_env_ablations(hopper_file, cache, tmp_path):
+    with pytest.raises(ValueError, match="do not apply"):
+        train(_cfg("bc", hopper_file, tmp_path, "ablation.no_cvae=true", "train.total_updates=2"), progress=False)
+
+
+def test_offline_baseline_example(hopper_file, cache, tmp_path):
+    """examples/offline_baseline.py: the same recipe as a script, through hydra's command line."""
+    args = [sys.executable, str(ROOT / "examples" / "offline_baseline.py"), "algo=iql", f"dataset={hopper_file}", f"out_root={tmp_path}",
+            "train.total_updates=20", "eval.every_updates=10", *TINY]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=300, env={**os.environ})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "20 updates: real return" in proc.stdout
+    run = next(tmp_path.glob("iql-hopper-hopper_random-*-seed0"))
+    assert [e["step"] for e in json.loads((run / "evals.json").read_text())] == [0, 10, 20]
+
+
+def test_aggregate_counts_dataset_runs_in_gradient_steps(tmp_path):
+    """A table mixing model-env runs (frames) and dataset runs (updates): each budget in its own unit, best after step 0."""
+    import matplotlib.image
+
+    from torchrl_offhrl.recipes.report import aggregate
+
+    for algo, unit, steps, scores in (("moc", "frames", (0, 2048, 4096), (3.0, 5.0, 4.0)), ("iql", "updates", (0, 50, 100), (1.0, 9.0, 7.0))):
+        d = tmp_path / f"{algo}-hopper-medium-seed0"
+        d.mkdir()
+        evals = [{"frames": s * (16 if unit == "updates" else 1), "updates": s, "step": s, "return_mean": 10 * v, "return_std": 0.0,
+                  "normalized_d4rl": v} for s, v in zip(steps, scores)]
+        (d / "evals.json").write_text(json.dumps(evals))
+        (d / "config.json").write_text(json.dumps({"algo": {"name": algo}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {},
+                                                   "unit": unit}))
+    table = aggregate(sorted(tmp_path.glob("*-seed0")), tmp_path / "agg")
+    assert "| iql | Hopper-v5 | medium | - | 1 | 100 updates | 70.0 ± 0.0 | 7.0 ± 0.0 | 9.0 ± 0.0 | 1.0 | n/a |" in table
+    assert "| moc | Hopper-v5 | medium | - | 1 | 4096 frames | 40.0 ± 0.0 | 4.0 ± 0.0 | 5.0 ± 0.0 | 3.0 | n/a |" in table
+    height, width = matplotlib.image.imread(tmp_path / "agg" / "curves.png").shape[:2]
+    assert height > width  # one row of panels per unit (frames, gradient steps), one column per env
+
+
+def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, ablation=None):
+    d = base / f"{algo}-{env_id}-{dataset}-seed{seed}"
+    d.mkdir(parents=True)
+    steps = (0, 100, 200)
+    (d / "evals.json").write_text(json.dumps([{"frames": s, "updates": s, "step": s, "return_mean": 10 * v, "return_std": 0.0, "normalized_d4rl": v}
+                                              for s, v in zip(steps, scores)]))
+    cfg = {"algo": {"name": "ppo" if algo == "morel" else algo, **({"label": "morel"} if algo == "morel" else {})}, "env": {"env_id": env_id},
+           "dataset": dataset, "ablation": ablation or {}, "unit": unit}
+    (d / "config.json").write_text(json.dumps(cfg))
+    (d / "summary.json").write_text(json.dumps({"unit": unit, "behaviour_normalized_d4rl": behaviour}))
+    return d
+
+
+def test_paper_table_layout(tmp_path):
+    """Rows env x dataset, the paper's columns in order (missing ones as —), final and best apart, published scores apart."""
+    from torchrl_offhrl.recipes.report import paper_table
+
+    runs = [
+        _fake_run(tmp_path, "moc", 0, "Hopper-v5", "medium", "frames", (10.0, 50.0, 40.0), behaviour=37.0),
+        _fake_run(tmp_path, "moc", 1, "Hopper-v5", "medium", "frames", (10.0, 30.0, 60.0), behaviour=37.0),
+        _fake_run(tmp_path, "iql", 0, "Hopper-v5", "medium", "updates", (1.0, 45.0, 42.0), behaviour=37.0),
+        _fake_run(tmp_path, "morel", 0, "Hopper-v5", "medium", "frames", (5.0, 20.0, 25.0), behaviour=37.0, ablation={"no_cvae": True}),
+        _fake_run(tmp_path, "moc", 0, "HalfCheetah-v5", "medium", "frames", (30.0, 40.0, 41.0), behaviour=38.0),
+        _fake_run(tmp_path, "ppo", 0, "Hopper-v5", "medium", "frames", (8.0, 9.0, 7.0), behaviour=37.0, ablation={"no_cvae": True}),
+    ]
+    text = paper_table(runs, tmp_path / "t")
+    final = text.split("## Final evaluation")[1].split("## Best")[0]
+    best = text.split("## Best")[1].split("## Published")[0]
+    header = "| dataset | MOC | PPO | SAC | MOReL-style | IQL | CQL | TD3+BC | BC | ppo [no_cvae] | behaviour data |"
+    assert header in final and header in best
+    # MOC hopper: finals 40, 60 -> 50.0 ± 14.1; best after step 0: 50, 60 -> 55.0 ± 7.1
+    assert "| hopper-medium | 50.0 ± 14.1 (2) | — | — | 25.0 ± 0.0 (1) | 42.0 ± 0.0 (1) | — | — | — | 7.0 ± 0.0 (1) | 37.0 |" in final
+    assert "| hopper-medium | 55.0 ± 7.1 (2) | — | — | 25.0 ± 0.0 (1) | 45.0 ± 0.0 (1) | — | — | — | 9.0 ± 0.0 (1) | 37.0 |" in best
+    assert "| halfcheetah-medium | 41.0 ± 0.0 (1) | — |" in final
+    published = text.split("## Published")[1]
+    assert "not ours" in published.split("\n")[0] and "| Offline MOC (the paper) | 76.8 | 107.4 | 45.04 | 90.6 |" in published
+    assert "IQL: 200 updates" in text and "MOC: 200 frames" in text
+    rows = (tmp_path / "t" / "table.csv").read_text().splitlines()
+    assert len(rows) == 1 + 5 and rows[0].startswith("env,dataset,algo,seeds,budget")
+    assert (tmp_path / "t" / "curves_hopper-medium.png").is_file() and (tmp_path / "t" / "curves_halfcheetah-medium.png").is_file()
+
+
+def test_morel_is_one_named_config():
+    """algo=morel: PPO in real actions on the P-MDP with MOReL's max-pairwise discrepancy and threshold rule (max / 3)."""
+    cfg = to_plain(compose("offline_train", ["algo=morel", "env=hopper", "dataset=medium"]))
+    assert cfg["algo"]["name"] == "ppo" and cfg["algo"]["label"] == "morel"
+    assert cfg["ablation"]["no_cvae"] is True and cfg["model_env"]["discrepancy"] == "max_pairwise"
+    assert cfg["model_env"]["pessimism"]["fraction"] == pytest.approx(1 / 3)
+    # the command line still wins over the named config, and the other algorithms keep the defaults
+    assert to_plain(compose("offline_train", ["algo=morel", "model_env.discrepancy=variance"]))["model_env"]["discrepancy"] == "variance"
+    plain = to_plain(compose("offline_train", ["algo=ppo"]))
+    assert plain["ablation"]["no_cvae"] is False and plain["model_env"]["discrepancy"] == "variance"
+
+
+def test_morel_trains_end_to_end(hopper_file, cache, tmp_path):
+    tiny = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=20", "collector.num_envs=4",
+            "train.total_frames=64", "eval.every_frames=64", "algo.frames_per_batch=64", "algo.epochs=1", "eval.episodes=2", "eval.max_steps=15"]
+    summary = train(to_plain(compose("offline_train", ["algo=morel", f"dataset={hopper_file}", f"out_root={tmp_path}", *tiny])), progress=False)
+    run = Path(summary["run_dir"])
+    assert run.name.startswith("morel-hopper-hopper_random-") and run.name.endswith("-no_cvae-seed0")
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["resolved_pessimism"] == {"fraction": pytest.approx(1 / 3), "penalty": 100.0}
+    from torchrl_offhrl.models import DynamicsEnsemble
+
+    ensemble = DynamicsEnsemble.load(Path(cfg["model_dir"]) / "ensemble.pt")
+    from torchrl_offhrl.data import load_dataset
+    from torchrl_offhrl.envs.calibration import dataset_discrepancy
+
+    d = dataset_discrepancy(ensemble, load_dataset(hopper_file), "max_pairwise")
+    assert cfg["threshold"] == pytest.approx(float(d.max()) / 3, rel=1e-4)

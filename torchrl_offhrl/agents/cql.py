@@ -1,0 +1,108 @@
+"""Conservative Q-Learning (TorchRL :class:`~torchrl.objectives.CQLLoss`): model-free offline RL on the dataset itself."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torchrl.objectives import CQLLoss, SoftUpdate, group_optimizers
+
+from .base import DatasetAgent, MetricMeans, adam, gaussian_actor, q_network
+from .registry import register_agent
+
+__all__ = ["CQLAgent"]
+
+
+@register_agent("cql")
+class CQLAgent(DatasetAgent):
+    """CQL (Kumar et al., 2020): SAC whose critics are pushed down on sampled actions and up on the data's.
+
+    One update steps the actor, the twin critics (TD loss plus the CQL
+    penalty), the entropy temperature and, with ``with_lagrange``, the CQL
+    weight, then the Polyak step of the target critics. For the first
+    ``policy_eval_start`` updates the actor is trained by behaviour cloning
+    (``loss_actor_bc``), as the official CQL code and TorchRL's
+    ``sota-implementations/cql/cql_offline.py`` do. Hyper-parameters
+    (``configs/algo/cql.yaml``) are that script's for ``hopper-medium``:
+    actor and critic lr 3e-4, batch 256, tau 0.005, 10 random actions,
+    min_q_weight 1 with the Lagrange rule at threshold 5, stochastic backup,
+    MLP(256, 256).
+
+    Examples:
+        >>> from torchrl_offhrl.data import make_gym_env
+        >>> agent = CQLAgent(make_gym_env("Pendulum-v1"), hidden_sizes=(32,), batch_size=8)
+        >>> agent.policy_eval_start
+        40000
+    """
+
+    def __init__(
+        self,
+        env,
+        *,
+        obs_loc=None,
+        obs_scale=None,
+        action_key: str = "action",
+        device="cpu",
+        hidden_sizes: Sequence[int] = (256, 256),
+        actor_lr: float = 3e-4,
+        critic_lr: float = 3e-4,
+        gamma: float = 0.99,
+        tau: float = 0.005,
+        temperature: float = 1.0,
+        min_q_weight: float = 1.0,
+        max_q_backup: bool = False,
+        deterministic_backup: bool = False,
+        num_random: int = 10,
+        with_lagrange: bool = True,
+        lagrange_thresh: float = 5.0,
+        policy_eval_start: int = 40_000,
+        loss_function: str = "l2",
+        batch_size: int = 256,
+        reward_scale: float = 1.0,
+        default_policy_scale: float = 1.0,
+        scale_lb: float = 0.1,
+        fused_adam: bool = True,
+    ):
+        self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
+        qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
+        self.loss = CQLLoss(
+            self.policy, qvalue, loss_function=loss_function, temperature=temperature, min_q_weight=min_q_weight, max_q_backup=max_q_backup,
+            deterministic_backup=deterministic_backup, num_random=num_random, with_lagrange=with_lagrange, lagrange_thresh=lagrange_thresh,
+            action_spec=env.full_action_spec_unbatched[action_key],
+        )
+        self.loss.set_keys(action=action_key)
+        self.loss.make_value_estimator(gamma=gamma)
+        self.target_updater = SoftUpdate(self.loss, tau=tau)
+        optimizers = [
+            adam(self.loss.actor_network_params.flatten_keys().values(), lr=actor_lr, fused=fused_adam),
+            adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=critic_lr, fused=fused_adam),
+            adam([self.loss.log_alpha], lr=actor_lr, fused=fused_adam),
+        ]
+        if with_lagrange:
+            optimizers.append(adam([self.loss.log_alpha_prime], lr=critic_lr, fused=fused_adam))
+        self.optimizer = group_optimizers(*optimizers)
+        self.policy_eval_start = int(policy_eval_start)
+        self.action_key = action_key
+        self.set_sampling(batch_size, reward_scale)
+        self.steps = 0
+
+    def update(self, batch):
+        out = self.loss(self.scaled(batch))
+        actor = out["loss_actor"] if self.steps >= self.policy_eval_start else out["loss_actor_bc"]
+        total = actor + out["loss_qvalue"] + out["loss_cql"] + out["loss_alpha"]
+        if out.get("loss_alpha_prime", None) is not None:
+            total = total + out["loss_alpha_prime"]
+        self.optimizer.zero_grad()
+        total.backward()
+        self.optimizer.step()
+        self.target_updater.step()
+        self.steps += 1
+        metrics = MetricMeans()
+        metrics.add(out)
+        return {**metrics.means(), "train/bc_phase": float(self.steps <= self.policy_eval_start), "updates": 1}
+
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "steps": self.steps}
+
+    def load_state_dict(self, state) -> None:
+        super().load_state_dict(state)
+        self.steps = int(state.get("steps", 0))
