@@ -275,3 +275,12 @@ def test_morel_trains_end_to_end(hopper_file, cache, tmp_path):
 
     d = dataset_discrepancy(ensemble, load_dataset(hopper_file), "max_pairwise")
     assert cfg["threshold"] == pytest.approx(float(d.max()) / 3, rel=1e-4)
+
+
+def test_offhrl_evaluate_rebuilds_a_dataset_agent(hopper_file, cache, tmp_path):
+    """A dataset agent's checkpoint is evaluated like any run's: real actions, no CVAE, its resolved reward scale."""
+    from torchrl_offhrl.recipes.evaluation import evaluate_run
+
+    summary = train(_cfg("iql", hopper_file, tmp_path, "train.total_updates=10", "eval.every_updates=10"), progress=False)
+    res = evaluate_run(summary["run_dir"], episodes=2, seed=summary["seed"] * 1000 + 7)
+    assert res["return_mean"] == pytest.approx(summary["final"]["return_mean"], rel=1e-5)  # the same episodes as the run's evaluation
