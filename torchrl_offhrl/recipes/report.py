@@ -144,13 +144,19 @@ def group_stats(rs: Sequence[dict]) -> dict:
     }
 
 
-def aggregate(run_dirs: Sequence, out_dir) -> str:
-    """Aggregate seeds: writes ``out_dir/results.md``, ``results.csv`` and ``curves.png``; returns the Markdown table."""
+def _load_runs(run_dirs: Sequence, out_dir, who: str) -> tuple[list[dict], Path]:
+    """The loaded runs (:func:`load_run`) and the output folder, created."""
     runs = [load_run(d) for d in run_dirs]
     if not runs:
-        raise ValueError("aggregate: no run directories given")
+        raise ValueError(f"{who}: no run directories given")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    return runs, out
+
+
+def aggregate(run_dirs: Sequence, out_dir) -> str:
+    """Aggregate seeds: writes ``out_dir/results.md``, ``results.csv`` and ``curves.png``; returns the Markdown table."""
+    runs, out = _load_runs(run_dirs, out_dir, "aggregate")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
         groups[_group_key(r)].append(r)
@@ -336,11 +342,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     """
     from ..scores import PUBLISHED_SCORES
 
-    runs = [load_run(d) for d in run_dirs]
-    if not runs:
-        raise ValueError("paper_table: no run directories given")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    runs, out = _load_runs(run_dirs, out_dir, "paper_table")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
         label, env_id, dataset, abl = _group_key(r)
