@@ -284,3 +284,23 @@ def test_offhrl_evaluate_rebuilds_a_dataset_agent(hopper_file, cache, tmp_path):
     summary = train(_cfg("iql", hopper_file, tmp_path, "train.total_updates=10", "eval.every_updates=10"), progress=False)
     res = evaluate_run(summary["run_dir"], episodes=2, seed=summary["seed"] * 1000 + 7)
     assert res["return_mean"] == pytest.approx(summary["final"]["return_mean"], rel=1e-5)  # the same episodes as the run's evaluation
+
+
+def test_offhrl_report_on_real_runs(hopper_file, cache, tmp_path, capsys):
+    """Runs written by `train` (a dataset agent and a model-env agent) go straight into `offhrl report` and `offhrl aggregate`."""
+    from torchrl_offhrl.cli import main
+
+    bc = train(_cfg("bc", hopper_file, tmp_path / "runs", "train.total_updates=4", "eval.every_updates=2"), progress=False)
+    tiny = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=10", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=10", "collector.num_envs=4",
+            "train.total_frames=64", "eval.every_frames=64", "algo.frames_per_batch=64", "algo.epochs=1", "eval.episodes=2", "eval.max_steps=30",
+            "eval.model_env=false"]
+    ppo = train(to_plain(compose("offline_train", ["algo=ppo", f"dataset={hopper_file}", f"out_root={tmp_path / 'runs'}", *tiny])), progress=False)
+    assert main(["report", bc["run_dir"], ppo["run_dir"], "--out", str(tmp_path / "t")]) == 0
+    table = (tmp_path / "t" / "table.md").read_text()
+    row = next(line for line in table.split("## Best")[0].splitlines() if line.startswith("| hopper-hopper_random"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2].endswith("(1)") and cells[8].endswith("(1)") and cells[1] == "—"  # PPO and BC filled, MOC missing
+    assert f"{bc['final']['normalized_d4rl']:.1f} ± 0.0 (1)" == cells[8]
+    assert "BC: 4 updates" in table and "PPO: 64 frames" in table
+    assert main(["aggregate", bc["run_dir"], ppo["run_dir"], "--out", str(tmp_path / "a")]) == 0
+    assert "| bc | Hopper-v5 |" in (tmp_path / "a" / "results.md").read_text()

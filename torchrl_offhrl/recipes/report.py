@@ -323,6 +323,11 @@ def _env_name(env_id: str) -> str:
     return env_id.split("-v")[0].lower()
 
 
+def _dataset_name(dataset: str) -> str:
+    """A level name as it is; a file path or Minari id by its last part without suffix (for row labels and file names)."""
+    return Path(dataset).stem if "/" in dataset or Path(dataset).suffix else dataset
+
+
 def _cell(mean, std, n) -> str:
     return "—" if mean is None else f"{mean:.1f} ± {std:.1f} ({n})"
 
@@ -366,7 +371,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                 cells.append(_cell(st[f"{kind}_mean"], st[f"{kind}_std"], st["seeds"]))
                 if st["behaviour_score"] is not None:
                     beh.append(st["behaviour_score"])
-            lines.append(f"| {_env_name(env_id)}-{dataset} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
+            lines.append(f"| {_env_name(env_id)}-{_dataset_name(dataset)} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
         return lines
 
     budgets = sorted({f"{TABLE_COLUMNS.get(k[2], k[2])}: {st['budget']}" for k, st in stats.items()})
@@ -396,9 +401,9 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             for k in keys:
                 if run_unit(groups[k][0]) == unit:
                     plot_curve([r["evals"] for r in groups[k]], None, label=TABLE_COLUMNS.get(k[2], k[2]), key="normalized_d4rl", ax=ax,
-                               title=f"{_env_name(env_id)}-{dataset}", xlabel=UNIT_LABELS.get(unit, unit))
+                               title=f"{_env_name(env_id)}-{_dataset_name(dataset)}", xlabel=UNIT_LABELS.get(unit, unit))
             ax.set_ylabel("D4RL-normalised score")
         fig.tight_layout()
-        fig.savefig(out / f"curves_{_env_name(env_id)}-{dataset}.png", dpi=110)
+        fig.savefig(out / f"curves_{_env_name(env_id)}-{_dataset_name(dataset)}.png", dpi=110)
         plt.close(fig)
     return text
