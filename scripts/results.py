@@ -56,6 +56,10 @@ NOTES = {"demo": ("Seeds 4-6 were run once, with the defaults as they stood afte
                   "`docs/results/demo_noanneal/`); nothing was chosen by looking at them. One evaluation is 10 deterministic "
                   "episodes that hardly differ (see the return std), so on Hopper a run's final score is essentially which gait "
                   "its last policy settled in: a fall within a few hundred steps (scores 15-45) or a full episode (80-95).")}
+NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. On the 2-core CPU machine the runs go "
+                 "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
+                 "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
+                 "one core; CQL ~8 h per seed: it needs a GPU, `benchmarks/offline_updates.py`).")
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy")
 
 
