@@ -266,7 +266,7 @@ def test_morel_trains_end_to_end(hopper_file, cache, tmp_path):
     run = Path(summary["run_dir"])
     assert run.name.startswith("morel-hopper-hopper_random-") and run.name.endswith("-no_cvae-seed0")
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["resolved_pessimism"] == {"fraction": pytest.approx(1 / 3), "penalty": 100.0}
+    assert cfg["resolved_pessimism"] == {"fraction": pytest.approx(1 / 3), "penalty": 20.0}  # the env group's penalty
     from torchrl_offhrl.models import DynamicsEnsemble
 
     ensemble = DynamicsEnsemble.load(Path(cfg["model_dir"]) / "ensemble.pt")
