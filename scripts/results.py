@@ -55,7 +55,12 @@ NOTES = {"demo": ("Seeds 4-6 were run once, with the defaults as they stood afte
                   "`scripts/moc_experiments.py` (seeds 0, 10, 20, 30) and the first results seeds 1-3 (`docs/results/demo_seeds1-3/`, "
                   "`docs/results/demo_noanneal/`); nothing was chosen by looking at them. One evaluation is 10 deterministic "
                   "episodes that hardly differ (see the return std), so on Hopper a run's final score is essentially which gait "
-                  "its last policy settled in: a fall within a few hundred steps (scores 15-45) or a full episode (80-95).")}
+                  "its last policy settled in: a fall within a few hundred steps (scores 15-45) or a full episode (80-95). "
+                  "`morel` (MOReL-style: PPO in real actions, max-pairwise discrepancy, threshold max / 3, the env group's penalty) "
+                  "was first run on hopper seeds 4-5 with a HALT penalty of 100 (scores 2.2 at the end of seed 4: it learned to end "
+                  "episodes at once; those runs are kept in `outputs/results/demo_morel_penalty100/`); the penalty was set to the "
+                  "env group's, so that MOReL's discrepancy and threshold are its only differences from PPO without the CVAE, and "
+                  "all its seeds were run again.")}
 NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
                  "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
