@@ -397,7 +397,10 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         keys = [k for k in sorted(groups) if k[:2] == (env_id, dataset)]
         units = sorted({run_unit(groups[k][0]) for k in keys})
         fig, axes = plt.subplots(1, len(units), figsize=(6 * len(units), 4), squeeze=False)
+        beh = next((stats[k]["behaviour_score"] for k in keys if stats[k]["behaviour_score"] is not None), None)
         for ax, unit in zip(axes[0], units):
+            if beh is not None:
+                ax.axhline(beh, color="gray", ls="--", label="behaviour data")
             for k in keys:
                 if run_unit(groups[k][0]) == unit:
                     plot_curve([r["evals"] for r in groups[k]], None, label=TABLE_COLUMNS.get(k[2], k[2]), key="normalized_d4rl", ax=ax,
