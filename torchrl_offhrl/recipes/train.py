@@ -98,18 +98,19 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     latent = acts_in_latent_space(cfg)
     episodes = int(cfg["eval"]["episodes"])
     stats = data.stats()
-    env = model_eval_env = None
+    env = model_eval_env = eval_env = None
+    bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
     if from_dataset:
         pess, threshold = None, None
         pcfg["env"] = {}
         if "reward_scale" in agent_defaults(algo["name"]):  # the rewards it learns from: a number, or a name resolved from the data
             algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), data, float(algo.get("gamma", 0.99)))}
             pcfg["env"]["reward_scale"] = algo["reward_scale"]
+        eval_env = make_real_env(env_cfg["env_id"], None, num_envs=episodes)  # the env whose specs the agent is built for
     else:
         pcfg["env"], pess = model_env_config(cfg, level, data)
         env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=int(cfg["collector"]["num_envs"]), latent=latent)
         threshold = env.base_env.threshold
-    eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=pcfg["env"].get("latent_bound", 2.0))
 
     # 3. the agent, and the envs it acts in
     agent = make_agent(
@@ -121,6 +122,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         env.append_transform(RewardSum())  # ("next", "episode_reward"): model returns in the logs
         if pcfg["env"].get("reward_scale", 1.0) != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
             env.append_transform(RewardScaling(loc=0.0, scale=float(pcfg["env"]["reward_scale"])))
+    if eval_env is None:  # built after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
+        eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=bound)
     agent.attach(eval_env)
     if env is not None and cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
         model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold,
