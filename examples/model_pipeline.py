@@ -2,7 +2,7 @@
 
     python examples/model_pipeline.py                       # embedded default (Hopper-v5, random data)
     python examples/model_pipeline.py dataset=my.hdf5       # your own D4RL-style file
-    python examples/model_pipeline.py dataset=medium model_env.pessimism.fraction=1.08
+    python examples/model_pipeline.py dataset=medium 'model_env.pessimism={fraction: 1.08}'
     python examples/model_pipeline.py env=halfcheetah num_transitions=20000
 
 Steps: collect (or load) a dataset, fit the dynamics ensemble and the CVAE

@@ -304,3 +304,16 @@ def test_offhrl_report_on_real_runs(hopper_file, cache, tmp_path, capsys):
     assert "BC: 4 updates" in table and "PPO: 64 frames" in table
     assert main(["aggregate", bc["run_dir"], ppo["run_dir"], "--out", str(tmp_path / "a")]) == 0
     assert "| bc | Hopper-v5 |" in (tmp_path / "a" / "results.md").read_text()
+
+
+def test_pessimism_overrides_from_the_command_line_and_resume_fingerprint():
+    """`model_env.pessimism={...}` overrides the env group's table (it failed while the default was {}); null and {} are the same run."""
+    from torchrl_offhrl.recipes.config import config_fingerprint, model_env_config
+
+    cfg = to_plain(compose("offline_train", ["env=hopper", "model_env.pessimism={quantile: 0.95, penalty: 30}"]))
+    _, pess = model_env_config({**cfg, "model_env": {**cfg["model_env"], "reward_scale": 1.0}}, "medium")
+    assert pess == {"quantile": 0.95, "penalty": 30}  # the quantile replaces the table's fraction 1.08
+    plain = to_plain(compose("offline_train", []))
+    assert plain["model_env"]["pessimism"] is None
+    assert config_fingerprint(plain) == config_fingerprint({**plain, "model_env": {**plain["model_env"], "pessimism": {}}})
+    assert config_fingerprint(plain) != config_fingerprint(cfg)

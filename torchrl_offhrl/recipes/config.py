@@ -206,4 +206,8 @@ def algo_label(algo_cfg: Mapping) -> str:
 
 def config_fingerprint(cfg: Mapping) -> str:
     """The config minus :data:`RESUMABLE_KEYS`, as canonical JSON: a checkpoint resumes only under the same fingerprint."""
-    return json.dumps({k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS}, sort_keys=True, default=str)
+    kept = {k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS}
+    if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
+        # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
+        kept["model_env"] = {**kept["model_env"], "pessimism": {}}
+    return json.dumps(kept, sort_keys=True, default=str)
