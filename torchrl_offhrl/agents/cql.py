@@ -3,7 +3,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import torch
 from torchrl.objectives import CQLLoss, SoftUpdate, group_optimizers
 
 from .base import DatasetAgent, MetricMeans, adam, gaussian_actor, q_network

@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 from torchrl.objectives import SoftUpdate, TD3BCLoss
 
-from .base import DatasetAgent, action_box, adam, deterministic_actor, q_network
+from .base import DatasetAgent, adam, deterministic_actor, q_network
 from .registry import register_agent
 
 __all__ = ["TD3BCAgent"]
@@ -53,7 +53,6 @@ class TD3BCAgent(DatasetAgent):
         reward_scale: float = 1.0,
         fused_adam: bool = True,
     ):
-        _, low, high = action_box(env, action_key)
         self.policy = deterministic_actor(env, action_key, hidden_sizes, obs_loc, obs_scale)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         self.loss = TD3BCLoss(self.policy, qvalue, action_spec=env.full_action_spec_unbatched[action_key], num_qvalue_nets=2, alpha=alpha,
