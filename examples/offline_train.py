@@ -30,7 +30,7 @@ from torchrl_offhrl.recipes.evaluation import Evaluator
 from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env, make_real_env
 from torchrl_offhrl.recipes.report import format_summary, plot_curve, run_summary
 from torchrl_offhrl.recipes.rundir import RunDirectory
-from torchrl_offhrl.recipes.sources import model_env_collector, model_env_metrics
+from torchrl_offhrl.recipes.sources import env_collector, model_env_metrics
 from torchrl_offhrl.utils import to_plain
 
 
@@ -99,7 +99,7 @@ def main(cfg: DictConfig) -> None:
     # collect -> update -> evaluate -> log / checkpoint
     t_train, frames0, train_time = time.time(), run.frames, 0.0
     if run.frames < total:
-        collector = model_env_collector(env, agent, total - run.frames, frames_done=run.frames, device=device)
+        collector = env_collector(env, agent, total - run.frames, frames_done=run.frames, device=device)
         bar = tqdm(total=total, initial=run.frames, unit="frame", desc=algo["name"])
         next_eval = (run.frames // every + 1) * every
         for batch in collector:

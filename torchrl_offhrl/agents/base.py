@@ -94,7 +94,8 @@ class Agent:
       built per network are merged with TorchRL's ``group_optimizers``:
       Adam steps each parameter on its own, so this changes nothing);
 
-    and implements :meth:`update`. Optional: :meth:`env_transforms`
+    and implements :meth:`update`. Optional: :meth:`new_task` (the transfer
+setting's switch), :meth:`env_transforms`
     (transforms the policy needs on every env it acts in, e.g. an
     ``InitTracker``), :meth:`evaluation_metrics` / :meth:`save_evaluation`
     (extra numbers and files of a real-env evaluation), ``replay_buffer``
@@ -127,6 +128,13 @@ class Agent:
 
     def set_progress(self, fraction: float) -> None:
         """Called before each update with the fraction of the frame budget done (``[0, 1]``); default: nothing."""
+
+    def new_task(self) -> None:
+        """Called once when the task changes (the transfer setting's switch to online fine-tuning); default: nothing.
+
+        Off-policy agents start a fresh replay buffer here: the transitions
+        collected before were rewarded for the old task (and came from the model).
+        """
 
     def env_transforms(self) -> list:
         """Transforms to append to every env the policy acts in (collection and evaluation)."""

@@ -85,6 +85,16 @@ class SACAgent(Agent):
                 metrics.add(out)
         return {**metrics.means(), "updates": metrics.count}
 
+    def new_task(self) -> None:
+        """A fresh, empty replay buffer; updates resume once ``init_random_frames`` frames of the new task are in it.
+
+        Those frames are collected by the agent's own (fine-tuned) policy,
+        not by random actions: the loop asks for random actions only when a
+        run starts from scratch.
+        """
+        self.replay_buffer.empty()
+        self.frames = 0
+
     def state_dict(self) -> dict:
         return {**super().state_dict(), "target_updater": self.target_updater.state_dict(), "frames": self.frames}
 

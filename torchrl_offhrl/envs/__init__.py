@@ -1,17 +1,22 @@
-"""Environments: the pessimistic model env, the latent action transform, terminations."""
+"""Environments: the pessimistic model env, the latent action transform, terminations, the transfer tasks."""
 from .calibration import CalibrationReport, calibrate_threshold, dataset_discrepancy
-from .latent import LatentActionTransform
+from .latent import AffineActionMap, LatentActionTransform
 from .pessimistic import PessimisticModelEnv
+from .tasks import TASKS, make_task_env, task_kwargs
 from .termination import TERMINATION_FNS, hopper_termination, never_terminates, termination_fn_for
 
 __all__ = [
+    "AffineActionMap",
     "CalibrationReport",
     "LatentActionTransform",
     "PessimisticModelEnv",
+    "TASKS",
     "TERMINATION_FNS",
     "calibrate_threshold",
     "dataset_discrepancy",
     "hopper_termination",
+    "make_task_env",
     "never_terminates",
+    "task_kwargs",
     "termination_fn_for",
 ]

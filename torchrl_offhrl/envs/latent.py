@@ -8,7 +8,50 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded
 from torchrl.envs.transforms import Compose, Transform
 
-__all__ = ["LatentActionTransform"]
+__all__ = ["AffineActionMap", "LatentActionTransform"]
+
+
+class AffineActionMap(torch.nn.Module):
+    """The decoder discarded: the latent box ``[-latent_bound, latent_bound]^d`` mapped affinely onto the action box.
+
+    The transfer setting's fine-tuning acts in real actions (the paper: "the
+    decoder is discarded, and the agent is made to plan using the actual
+    actions"). The agent's policy keeps its outputs (a tanh-squashed
+    distribution on the latent box, ``latent_dim == action_dim``), and
+    :class:`LatentActionTransform` with this map in place of the decoder
+    turns them into actions: ``low + (z + b) / (2 b) * (high - low)``.
+
+    Rescaling rather than clipping: the policy's whole output range stays
+    usable (clipping a ``[-2, 2]`` box to ``[-1, 1]`` would put every latent
+    beyond ``+-1`` on the box's faces, where the policy's log-probabilities no
+    longer describe the actions taken), and the map is invertible, so the
+    policy's distribution over actions is its latent distribution scaled
+    (its entropy shifted by a constant). The observation is ignored.
+
+    Examples:
+        >>> import torch
+        >>> m = AffineActionMap(latent_bound=2.0, low=torch.tensor([-1.0, 0.0]), high=torch.tensor([1.0, 4.0]))
+        >>> m(None, torch.tensor([[-2.0, -2.0], [0.0, 0.0], [2.0, 1.0]]))
+        tensor([[-1.,  0.],
+                [ 0.,  2.],
+                [ 1.,  3.]])
+    """
+
+    def __init__(self, latent_bound: float, low: torch.Tensor, high: torch.Tensor):
+        super().__init__()
+        if latent_bound <= 0:
+            raise ValueError(f"latent_bound must be > 0, got {latent_bound}.")
+        low, high = torch.as_tensor(low, dtype=torch.float32).reshape(-1), torch.as_tensor(high, dtype=torch.float32).reshape(-1)
+        if low.shape != high.shape or not bool((high > low).all()):
+            raise ValueError(f"the action box needs low < high elementwise, got low {low.tolist()} and high {high.tolist()}")
+        self.latent_bound = float(latent_bound)
+        self.latent_dim = self.action_dim = int(low.numel())
+        self.register_buffer("low", low)
+        self.register_buffer("high", high)
+
+    def forward(self, observation, latent: torch.Tensor, goal=None) -> torch.Tensor:
+        frac = (latent + self.latent_bound) / (2 * self.latent_bound)
+        return self.low + frac * (self.high - self.low)
 
 
 class LatentActionTransform(Transform):

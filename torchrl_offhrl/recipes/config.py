@@ -18,11 +18,11 @@ from ..utils import to_plain
 
 __all__ = [
     "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "model_config", "model_env_config",
-    "pessimism_for", "resolve_dataset",
+    "pessimism_for", "resolve_dataset", "transfer_config", "transfer_label",
 ]
 
 #: Settings that may change between a run and its resumption; anything else must match the checkpoint.
-RESUMABLE_KEYS = ("train", "eval", "logger", "run_dir", "out_root", "torch_threads", "device")
+RESUMABLE_KEYS = ("train", "eval", "logger", "run_dir", "out_root", "torch_threads", "device")  # and transfer.online_frames / eval_every_frames
 
 
 def config_dir() -> Path:
@@ -173,7 +173,7 @@ def auto_reward_scale(data: OfflineDataset, gamma: float = 0.99) -> float:
 
 
 def default_run_dir(cfg: Mapping) -> Path:
-    """``<out_root>/<algo label>-<env>-<dataset>[-<ablations>]-seed<seed>``.
+    """``<out_root>/<algo label>-<env>-<dataset>[-<ablations>][-<transfer label>]-seed<seed>``.
 
     A dataset given as a file or a Minari id is named by its stem plus a short
     hash of the full path, so two files with the same name never share a run.
@@ -184,6 +184,8 @@ def default_run_dir(cfg: Mapping) -> Path:
         digest = hashlib.sha1(str(Path(spec).expanduser().resolve()).encode()).hexdigest()[:6]
         ds = f"{Path(spec).stem}-{digest}"
     abl = "".join(f"-{k}" for k, v in to_plain(cfg.get("ablation", {})).items() if v)
+    transfer = transfer_label(cfg)
+    abl += f"-{transfer}" if transfer else ""
     return Path(cfg.get("out_root", "outputs/runs")) / f"{algo_label(cfg['algo'])}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
 
 
@@ -199,6 +201,30 @@ def acts_in_latent_space(cfg: Mapping) -> bool:
     return not cfg.get("ablation", {}).get("no_cvae", False) and not learns_from_dataset(cfg)
 
 
+def transfer_config(cfg: Mapping) -> dict | None:
+    """The run's transfer settings (``transfer.*``, defaults filled in), or None for an offline-only run (``transfer.task`` null).
+
+    Examples:
+        >>> transfer_config({"transfer": {"task": None}}) is None
+        True
+        >>> t = transfer_config({"transfer": {"task": "backward", "online_frames": 1000}})
+        >>> t["task"], t["online_frames"], t["decoder"], t["from_scratch"]
+        ('backward', 1000, 'discard', False)
+    """
+    t = dict(to_plain(cfg.get("transfer") or {}))
+    if t.get("task") is None:
+        return None
+    return {"online_frames": 300_000, "num_envs": 8, "decoder": "discard", "from_scratch": False, "eval_every_frames": 10_000, **t}
+
+
+def transfer_label(cfg: Mapping) -> str:
+    """How a transfer run is named and grouped: ``"to-backward"``, ``"scratch-backward"`` (+ ``"-keepdecoder"``); ``""`` without transfer."""
+    t = transfer_config(cfg)
+    if t is None:
+        return ""
+    return ("scratch-" if t["from_scratch"] else "to-") + str(t["task"]) + ("-keepdecoder" if t["decoder"] == "keep" else "")
+
+
 def algo_label(algo_cfg: Mapping) -> str:
     """How runs of an algorithm config are named and grouped: its ``label`` (e.g. ``moc_official``), else its agent ``name``."""
     return str(algo_cfg.get("label") or algo_cfg["name"])
@@ -210,4 +236,9 @@ def config_fingerprint(cfg: Mapping) -> str:
     if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}
+    t = transfer_config(cfg)
+    if t is None:  # an offline-only run is the same run whatever the (unused) transfer settings, and as before they existed
+        kept.pop("transfer", None)
+    else:  # the online budget and evaluation period may change on resume, as train and eval may
+        kept["transfer"] = {k: v for k, v in t.items() if k not in ("online_frames", "eval_every_frames")}
     return json.dumps(kept, sort_keys=True, default=str)

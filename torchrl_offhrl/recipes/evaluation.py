@@ -16,10 +16,10 @@ from ..models import ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
-from .config import acts_in_latent_space
+from .config import acts_in_latent_space, transfer_config
 from .pipeline import make_real_env
 
-__all__ = ["Evaluator", "evaluate_run", "load_run_agent", "render_episode"]
+__all__ = ["Evaluator", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
 
 
 class Evaluator:
@@ -39,6 +39,10 @@ class Evaluator:
             ``model_real_gap`` (model minus real mean return; an agent that
             exploits model errors shows a large positive gap). The global RNG
             is restored afterwards, so training is not changed by it.
+        task: the task the env rewards (transfer runs: ``"forward"`` or
+            ``"backward"``, written into each record), or None (an offline
+            run: no ``task`` key). D4RL's normalisation is defined for the
+            forward task only: on another task ``normalized_*`` are None.
 
     ``evaluator(agent)`` returns ``return_mean``, ``return_std``,
     ``normalized_d4rl``, ``normalized_dataset`` and the agent's
@@ -46,21 +50,24 @@ class Evaluator:
     ``save_to=run_dir`` it also has the agent write its evaluation files.
     """
 
-    def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None, model_env=None):
+    def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None, model_env=None, task: str | None = None):
         self.env, self.env_id, self.episodes, self.max_steps, self.seed, self.ref = env, env_id, episodes, max_steps, seed, ref
         self.model_env = model_env
+        self.task = task
 
     def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
         rets, td = evaluate_policy(
             self.env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True,
         )
         mean = float(rets.mean())
-        rec = {
+        forward = self.task in (None, "forward")
+        rec = {} if self.task is None else {"task": self.task}
+        rec.update({
             "return_mean": mean,
             "return_std": float(rets.std()),
-            "normalized_d4rl": normalized_score(self.env_id, mean),
-            "normalized_dataset": normalized_score(self.env_id, mean, ref=self.ref) if self.ref else None,
-        }
+            "normalized_d4rl": normalized_score(self.env_id, mean) if forward else None,
+            "normalized_dataset": normalized_score(self.env_id, mean, ref=self.ref) if self.ref and forward else None,
+        })
         if self.model_env is not None:  # the same policy in the pessimistic model: a large gap means it exploits model errors
             with torch.random.fork_rng():
                 model_rets = evaluate_policy(self.model_env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed)
@@ -70,8 +77,18 @@ class Evaluator:
         alive = first_episode_mask(td["next", "done"].reshape(self.episodes, -1))
         rec.update(agent.evaluation_metrics(td, alive))
         if save_to is not None:
-            agent.save_evaluation(td, alive, save_to, title)
+            Path(save_to).mkdir(parents=True, exist_ok=True)
+            agent.save_evaluation(td, alive, Path(save_to), title)
         return rec
+
+
+def acting_task(cfg: dict, state: dict) -> tuple[str, bool]:
+    """``(task, decoder discarded)`` of a run's checkpointed agent: a transfer run past its switch acts on the new task."""
+    tcfg = transfer_config(cfg)
+    online = tcfg is not None and any(r.get("phase") == "online" for r in state.get("records", []))
+    if not online:
+        return "forward", False
+    return tcfg["task"], acts_in_latent_space(cfg) and tcfg["decoder"] == "discard"
 
 
 def load_run_agent(run_dir, num_envs: int = 1):
@@ -79,7 +96,9 @@ def load_run_agent(run_dir, num_envs: int = 1):
 
     The env (``num_envs`` side by side) decodes through the run's CVAE, loaded
     from the model cache (``cvae``, None for a run without it); ``state`` is
-    the checkpoint (frames, records, ...).
+    the checkpoint (frames, records, ...). A transfer run checkpointed in its
+    online phase acts as it was fine-tuned: on the new task, through the
+    affine action map when the decoder was discarded (``cvae`` is then None).
     """
     run = Path(run_dir)
     cfg_path, ckpt_path = run / "config.json", run / "checkpoint.pt"
@@ -89,8 +108,10 @@ def load_run_agent(run_dir, num_envs: int = 1):
     cfg = json.loads(cfg_path.read_text())
     env_id = cfg["env"]["env_id"]
     latent = acts_in_latent_space(cfg)
+    state = load_torch_file(ckpt_path, "run checkpoint", f"its previous checkpoint is {run / 'checkpoint.prev.pt'} (rename it to evaluate that one)")
+    task, discard = acting_task(cfg, state)
     cvae = None
-    if latent:
+    if latent and not discard:
         model_dir = cfg.get("model_dir")
         if model_dir is None and (run / "summary.json").is_file():
             model_dir = json.loads((run / "summary.json").read_text()).get("models")
@@ -101,13 +122,12 @@ def load_run_agent(run_dir, num_envs: int = 1):
             raise FileNotFoundError(f"the run's CVAE {cvae_path} is not in the model cache any more; rerun `offhrl fit` with the run's config")
         cvae = ConditionalVAE.load(cvae_path)
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
-    env = make_real_env(env_id, cvae, num_envs=num_envs, latent_bound=bound)
+    env = make_real_env(env_id, cvae, num_envs=num_envs, latent_bound=bound, task=task, discard_decoder=discard)
     algo = dict(cfg["algo"])
     if isinstance(algo.get("reward_scale"), str):  # a name resolved from the data at training time (e.g. IQL's return_range)
         algo["reward_scale"] = float(cfg.get("resolved_reward_scale") or 1.0)
     agent = make_agent(algo["name"], env, algo, action_key="latent_action" if latent else "action")
     agent.attach(env)
-    state = load_torch_file(ckpt_path, "run checkpoint", f"its previous checkpoint is {run / 'checkpoint.prev.pt'} (rename it to evaluate that one)")
     agent.load_state_dict(state["agent"])
     return cfg, env, agent, state, cvae
 
@@ -124,29 +144,33 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     cfg, env, agent, state, cvae = load_run_agent(run, num_envs=episodes)
     env_id = cfg["env"]["env_id"]
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
+    task, discard = acting_task(cfg, state)
     rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)
     env.close()
     res = {
         "run_dir": str(run),
         "frames": int(state["frames"]),
+        "task": task,
         "episodes": episodes,
         "deterministic": deterministic,
         "return_mean": float(rets.mean()),
         "return_std": float(rets.std()),
-        "normalized_d4rl": normalized_score(env_id, float(rets.mean())),
+        "normalized_d4rl": normalized_score(env_id, float(rets.mean())) if task == "forward" else None,  # D4RL's scale is the forward task's
         "returns": [round(float(r), 2) for r in rets],
     }
     if frames_dir is not None:
-        res["frames_dir"] = str(render_episode(env_id, cvae, bound, agent, Path(frames_dir), int(cfg["eval"]["max_steps"]), seed, deterministic))
+        res["frames_dir"] = str(render_episode(env_id, cvae, bound, agent, Path(frames_dir), int(cfg["eval"]["max_steps"]), seed, deterministic,
+                                                    task=task, discard_decoder=discard))
     return res
 
 
-def render_episode(env_id, cvae, bound, agent, out: Path, max_steps: int, seed: int, deterministic: bool) -> Path:
+def render_episode(env_id, cvae, bound, agent, out: Path, max_steps: int, seed: int, deterministic: bool, task: str = "forward",
+                   discard_decoder: bool = False) -> Path:
     import matplotlib.pyplot as plt
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     try:
-        env = make_real_env(env_id, cvae, num_envs=1, latent_bound=bound, render_mode="rgb_array")
+        env = make_real_env(env_id, cvae, num_envs=1, latent_bound=bound, task=task, discard_decoder=discard_decoder, render_mode="rgb_array")
         agent.attach(env)
         env.set_seed(seed)
         base = env.base_env._env  # the gymnasium vector env

@@ -16,8 +16,8 @@ from typing import Any
 import torch
 from torchrl.envs import TransformedEnv
 
-from ..data import OfflineDataset, make_gym_env
-from ..envs import LatentActionTransform, PessimisticModelEnv
+from ..data import OfflineDataset
+from ..envs import AffineActionMap, LatentActionTransform, PessimisticModelEnv, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, to_plain
 
@@ -185,10 +185,22 @@ def make_model_env(
     return TransformedEnv(base, LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", 2.0)))
 
 
-def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = 2.0, device="cpu", **gym_kwargs):
-    """The real Gymnasium env (batched, float32), through the decoder when ``cvae`` is given."""
-    env = make_gym_env(env_id, num_envs=num_envs, device=device, **gym_kwargs)
-    if cvae is not None:
+def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = 2.0, device="cpu",
+                  task: str = "forward", discard_decoder: bool = False, **gym_kwargs):
+    """The real Gymnasium env (batched, float32) of ``task`` (:data:`~torchrl_offhrl.envs.TASKS`), through the decoder when ``cvae`` is given.
+
+    ``discard_decoder=True`` (transfer fine-tuning) keeps the latent action
+    space but maps it onto the action box with
+    :class:`~torchrl_offhrl.envs.AffineActionMap` instead of the decoder
+    (``cvae`` is then not used).
+    """
+    env = make_task_env(env_id, task, num_envs=num_envs, device=device, **gym_kwargs)
+    if discard_decoder:
+        spec = env.action_spec
+        dim = spec.shape[-1]
+        low, high = spec.space.low.reshape(-1, dim)[0], spec.space.high.reshape(-1, dim)[0]
+        env.append_transform(LatentActionTransform(AffineActionMap(latent_bound, low, high).to(device), latent_bound=latent_bound))
+    elif cvae is not None:
         env.append_transform(LatentActionTransform(cvae.decoder, latent_bound=latent_bound))
     return env
 

@@ -18,11 +18,12 @@ from pathlib import Path
 import torch
 
 from ..scores import normalized_score
+from .config import transfer_config, transfer_label
 
 __all__ = [
-    "TABLE_COLUMNS", "UNIT_LABELS", "aggregate", "fmt_number", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
+    "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "fmt_number", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
     "plot_curve", "plot_training_metrics",
-    "read_scalar_logs", "run_summary", "run_unit",
+    "plot_transfer", "read_scalar_logs", "run_summary", "run_unit", "transfer_stats",
 ]
 
 
@@ -36,7 +37,8 @@ def _plt():
 
 
 #: how the x-axis of a run's curves is labelled, by the unit of its budget (``summary["unit"]``)
-UNIT_LABELS = {"frames": "model-env frames", "updates": "gradient steps on the dataset"}
+UNIT_LABELS = {"frames": "model-env frames", "updates": "gradient steps on the dataset",
+               "transfer": "frames (model env offline, then real env online)"}
 
 
 def _step(record: dict) -> int:
@@ -87,6 +89,93 @@ def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str
     return path
 
 
+def plot_transfer(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", key: str = "return_mean", ax=None, x_offset: int = 0,
+                  xlabel: str = UNIT_LABELS["transfer"]):
+    """Learning curves of transfer runs: the offline phase (old task) then the online phase (new task), one x-axis of frames.
+
+    Each phase is drawn as its own segment (mean over runs, shaded ± one std;
+    one run: ± the std over its evaluation episodes), in one colour, so the
+    drop at the switch shows: both tasks are evaluated there. A dotted line
+    marks the switch. ``x_offset`` shifts runs without an offline phase
+    (trained from scratch) to start at another run's switch.
+    """
+    plt = _plt()
+    own = ax is None
+    if own:
+        fig, ax = plt.subplots(figsize=(6, 4))
+    color, switch = None, None
+    for phase in ("offline", "online"):
+        recs = [[r for r in rs if r.get("phase") == phase] for rs in runs]
+        if not recs or not all(recs):
+            continue
+        steps, mean, std = _curve_stats(recs, key)
+        if len(runs) == 1 and key == "return_mean":
+            std = torch.tensor([r.get("return_std", 0.0) for r in recs[0] if _step(r) in steps], dtype=torch.float64)
+        x = [f + x_offset for f in steps]
+        line, = ax.plot(x, mean, marker="o", ms=3, color=color, label=(f"{label} (n={len(runs)})" if label else None) if color is None else None)
+        color = line.get_color()
+        ax.fill_between(x, mean - std, mean + std, alpha=0.25, color=color)
+        if phase == "online" and steps and x_offset == 0:
+            switch = steps[0]
+    if switch:
+        ax.axvline(switch, color="k", ls=":", lw=1)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("real-env return on the current task" if key == "return_mean" else key)
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    if own:
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return path
+
+
+#: online frames after the switch at which :func:`transfer_stats` reports the return on the new task
+TRANSFER_MARKS = (50_000, 100_000, 300_000)
+
+
+def transfer_stats(rs: Sequence[dict], marks: Sequence[int] = TRANSFER_MARKS) -> dict:
+    """Statistics over the seeds of one group of transfer runs: the new task's return at the switch, after each mark, final, best, area.
+
+    Per run, the online records (``phase == "online"``) are read relative to
+    the switch (the first online record): ``at_<k>`` is the return of the
+    evaluation at ``switch + k`` frames (None where a run did not get that
+    far or did not evaluate there), ``area`` is the mean return over the
+    online phase (the trapezoid area under the online curve divided by its
+    length), ``best`` the best online evaluation after the switch (apart from
+    the final one, never instead of it). ``offline_final`` is the last
+    offline evaluation's return on the old task (None from scratch). Each
+    entry is ``(mean, std, n)`` over the runs that have it.
+    """
+    def stat(vals):
+        vals = [v for v in vals if v is not None]
+        if not vals:
+            return (None, None, 0)
+        t = torch.tensor(vals, dtype=torch.float64)
+        return (float(t.mean()), float(t.std()) if len(vals) > 1 else 0.0, len(vals))
+
+    per_run = []
+    for r in rs:
+        online = [e for e in r["evals"] if e.get("phase") == "online"]
+        offline = [e for e in r["evals"] if e.get("phase") == "offline"]
+        if not online:
+            continue
+        sw = _step(online[0])
+        xs = torch.tensor([_step(e) - sw for e in online], dtype=torch.float64)
+        ys = torch.tensor([e["return_mean"] for e in online], dtype=torch.float64)
+        row = {
+            "switch": sw, "online_frames": int(xs[-1]), "offline_final": offline[-1]["return_mean"] if offline else None,
+            "at_switch": float(ys[0]), "final": float(ys[-1]), "best": float(ys[1:].max()) if len(ys) > 1 else None,
+            "area": float(torch.trapezoid(ys, xs) / xs[-1]) if xs[-1] > 0 else None,
+        }
+        for k in marks:
+            row[f"at_{k}"] = next((float(y) for x, y in zip(xs, ys) if int(x) == k), None)
+        per_run.append(row)
+    keys = ["offline_final", "at_switch", *[f"at_{k}" for k in marks], "final", "best", "area"]
+    return {"seeds": len(per_run), "online_frames": min((p["online_frames"] for p in per_run), default=0),
+            **{k: stat([p[k] for p in per_run]) for k in keys}}
+
+
 def load_run(run_dir) -> dict:
     """``{"dir", "config", "evals", "summary"}`` of a run directory (summary may be missing for unfinished runs)."""
     d = Path(run_dir)
@@ -111,7 +200,9 @@ def _read_json(path: Path):
 
 def _group_key(run: dict) -> tuple:
     cfg = run["config"]
-    abl = ",".join(k for k, v in sorted((cfg.get("ablation") or {}).items()) if v) or "-"
+    abl = ",".join(k for k, v in sorted((cfg.get("ablation") or {}).items()) if v)
+    transfer = transfer_label(cfg)
+    abl = ",".join(x for x in (abl, transfer) if x) or "-"
     algo = cfg.get("algo", {})
     return (str(algo.get("label") or algo.get("name", "?")), cfg.get("env", {}).get("env_id", "?"), str(cfg.get("dataset", "?")), abl)
 
@@ -154,40 +245,92 @@ def _load_runs(run_dirs: Sequence, out_dir, who: str) -> tuple[list[dict], Path]
     return runs, out
 
 
+def _panel(rs: Sequence[dict]) -> str:
+    """Which row of ``curves.png`` a group of runs goes to: its budget's unit, or ``"transfer"`` for two-phase runs."""
+    return "transfer" if transfer_config(rs[0]["config"]) is not None else run_unit(rs[0])
+
+
+def _mstd(stat: tuple, spec: str = ".1f") -> str:
+    mean, std, _ = stat
+    return "n/a" if mean is None else f"{mean:{spec}} ± {std:{spec}}"
+
+
+def transfer_table(groups: dict[tuple, list[dict]], marks: Sequence[int] = TRANSFER_MARKS) -> tuple[str, list[dict]]:
+    """The Markdown table (and its CSV rows) of the transfer groups: returns on the new task, mean ± std over seeds."""
+    header = ("| algo | env | dataset | runs | seeds | online frames | offline final (old task) | at the switch | "
+              + " | ".join(f"after {k // 1000}k" for k in marks) + " | final | best | mean over the online phase |")
+    lines = [header, "|" + "---|" * (10 + len(marks))]
+    rows = []
+    for key, rs in sorted(groups.items()):
+        st = transfer_stats(rs, marks)
+        rows.append({"algo": key[0], "env": key[1], "dataset": key[2], "runs": key[3], "seeds": st["seeds"], "online_frames": st["online_frames"],
+                     **{f"{k}_{w}": v for k in st if isinstance(st[k], tuple) for w, v in zip(("mean", "std", "n"), st[k])}})
+        lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {key[3]} | {st['seeds']} | {st['online_frames']} | {_mstd(st['offline_final'])} | "
+                     f"{_mstd(st['at_switch'])} | " + " | ".join(_mstd(st[f"at_{k}"]) for k in marks)
+                     + f" | {_mstd(st['final'])} | {_mstd(st['best'])} | {_mstd(st['area'])} |")
+    return "\n".join(lines), rows
+
+
 def aggregate(run_dirs: Sequence, out_dir) -> str:
-    """Aggregate seeds: writes ``out_dir/results.md``, ``results.csv`` and ``curves.png``; returns the Markdown table."""
+    """Aggregate seeds: writes ``out_dir/results.md``, ``results.csv`` and ``curves.png``; returns the Markdown table(s).
+
+    Transfer runs (two phases, ``transfer.task`` set) get their own table
+    (:func:`transfer_table`: returns on the new task, also in ``transfer.csv``)
+    and their own row of curves (:func:`plot_transfer`; from-scratch runs
+    start at the switch of the transfer runs of the same env).
+    """
     runs, out = _load_runs(run_dirs, out_dir, "aggregate")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
         groups[_group_key(r)].append(r)
-    rows = [{"algo": key[0], "env": key[1], "dataset": key[2], "ablation": key[3], **group_stats(rs)} for key, rs in sorted(groups.items())]
-    header = ("| algo | env | dataset | ablation | seeds | budget | final return (mean ± std) | final D4RL score (mean ± std) | "
-              "best D4RL score (mean ± std) | untrained score | behaviour score |")
-    lines = [header, "|" + "---|" * 11]
-    for r in rows:
-        score = "n/a" if r["score_mean"] is None else f"{r['score_mean']:.1f} ± {r['score_std']:.1f}"
-        best = "n/a" if r["best_score_mean"] is None else f"{r['best_score_mean']:.1f} ± {r['best_score_std']:.1f}"
-        lines.append(
-            f"| {r['algo']} | {r['env']} | {r['dataset']} | {r['ablation']} | {r['seeds']} | {r['budget']} | "
-            f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {score} | {best} | {fmt_number(r['untrained_score_mean'])} | "
-            f"{fmt_number(r['behaviour_score'])} |"
-        )
-    table = "\n".join(lines)
+    standard = {k: rs for k, rs in groups.items() if _panel(rs) != "transfer"}
+    transfer = {k: rs for k, rs in groups.items() if _panel(rs) == "transfer"}
+    tables = []
+    if standard:
+        rows = [{"algo": key[0], "env": key[1], "dataset": key[2], "ablation": key[3], **group_stats(rs)} for key, rs in sorted(standard.items())]
+        header = ("| algo | env | dataset | ablation | seeds | budget | final return (mean ± std) | final D4RL score (mean ± std) | "
+                  "best D4RL score (mean ± std) | untrained score | behaviour score |")
+        lines = [header, "|" + "---|" * 11]
+        for r in rows:
+            score = "n/a" if r["score_mean"] is None else f"{r['score_mean']:.1f} ± {r['score_std']:.1f}"
+            best = "n/a" if r["best_score_mean"] is None else f"{r['best_score_mean']:.1f} ± {r['best_score_std']:.1f}"
+            lines.append(
+                f"| {r['algo']} | {r['env']} | {r['dataset']} | {r['ablation']} | {r['seeds']} | {r['budget']} | "
+                f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {score} | {best} | {fmt_number(r['untrained_score_mean'])} | "
+                f"{fmt_number(r['behaviour_score'])} |"
+            )
+        tables.append("\n".join(lines))
+        with open(out / "results.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+            w.writeheader()
+            w.writerows(rows)
+    if transfer:
+        ttable, trows = transfer_table(transfer)
+        tables.append("Transfer runs: real-env return on the new task (online phase), mean ± std over seeds; "
+                      "'offline final' is the last evaluation on the old task.\n\n" + ttable)
+        with open(out / "transfer.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(trows[0].keys()))
+            w.writeheader()
+            w.writerows(trows)
+    table = "\n\n".join(tables)
     (out / "results.md").write_text(table + "\n")
-    with open(out / "results.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
-        w.writeheader()
-        w.writerows(rows)
     plt = _plt()
     envs = sorted({k[1] for k in groups})
-    units = sorted({run_unit(rs[0]) for rs in groups.values()})  # one row of panels per x-axis unit: frames, gradient steps
-    fig, axes = plt.subplots(len(units), len(envs), figsize=(6 * len(envs), 4 * len(units)), squeeze=False)
-    for row, unit in zip(axes, units):
+    panels = sorted({_panel(rs) for rs in groups.values()})  # one row of panels per x-axis: frames, gradient steps, transfer
+    fig, axes = plt.subplots(len(panels), len(envs), figsize=(6 * len(envs), 4 * len(panels)), squeeze=False)
+    for row, panel in zip(axes, panels):
         for ax, env_id in zip(row, envs):
+            switches = [next(e["frames"] for e in r["evals"] if e.get("phase") == "online") for key, rs in transfer.items() if key[1] == env_id
+                        for r in rs if any(e.get("phase") == "online" for e in r["evals"])]
             for key, rs in sorted(groups.items()):
-                if key[1] == env_id and run_unit(rs[0]) == unit:
-                    label = f"{key[0]} {key[2]}" + ("" if key[3] == "-" else f" [{key[3]}]")
-                    plot_curve([r["evals"] for r in rs], None, label=label, title=env_id, ax=ax, xlabel=UNIT_LABELS.get(unit, unit))
+                if key[1] != env_id or _panel(rs) != panel:
+                    continue
+                label = f"{key[0]} {key[2]}" + ("" if key[3] == "-" else f" [{key[3]}]")
+                if panel == "transfer":
+                    scratch = transfer_config(rs[0]["config"])["from_scratch"]
+                    plot_transfer([r["evals"] for r in rs], None, label=label, title=env_id, ax=ax, x_offset=max(switches, default=0) if scratch else 0)
+                else:
+                    plot_curve([r["evals"] for r in rs], None, label=label, title=env_id, ax=ax, xlabel=UNIT_LABELS.get(panel, panel))
     fig.tight_layout()
     fig.savefig(out / "curves.png", dpi=110)
     plt.close(fig)
@@ -202,6 +345,15 @@ def fmt_number(x, spec: str = ".1f") -> str:
 def format_summary(summary) -> str:
     """The one-paragraph result of a run, as printed by ``offhrl train`` and ``examples/offline_train.py``."""
     f = summary["final"]
+    t = summary.get("transfer")
+    if t:
+        off = summary.get("offline_final")
+        before = "" if off is None else (f"offline on the forward task: return {off['return_mean']:.1f} "
+                                         f"(D4RL-normalised {fmt_number(off['normalized_d4rl'])}); ")
+        return (f"{summary['algo']} on {summary['env_id']} ({summary['dataset']}), transfer to the {t['task']} task "
+                f"({'from scratch' if t['from_scratch'] else 'decoder ' + ('kept' if t['decoder'] == 'keep' else 'discarded')}): {before}"
+                f"after {summary['frames'] - t['switch_frame']} online frames on the {t['task']} task: return {f['return_mean']:.1f} ± "
+                f"{f['return_std']:.1f}; outputs in {summary['run_dir']}")
     return (
         f"{summary['algo']} on {summary['env_id']} ({summary['dataset']}), {summary.get('step', summary['frames'])} {summary.get('unit', 'frames')}: real return "
         f"{f['return_mean']:.1f} ± {f['return_std']:.1f}, D4RL-normalised {fmt_number(f['normalized_d4rl'])} "
@@ -348,6 +500,9 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     from ..scores import PUBLISHED_SCORES
 
     runs, out = _load_runs(run_dirs, out_dir, "paper_table")
+    runs = [r for r in runs if transfer_config(r["config"]) is None]  # transfer runs end on another task: `offhrl aggregate` reports them
+    if not runs:
+        raise ValueError("paper_table: every run given is a transfer run (transfer.task set); report those with `offhrl aggregate`")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
         label, env_id, dataset, abl = _group_key(r)

@@ -17,6 +17,8 @@ from typing import Any
 
 import torch
 
+from ..envs import TASKS
+
 __all__ = ["validate_config"]
 
 _MISSING = object()
@@ -91,6 +93,12 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "eval.every_updates": _int(1),
     "eval.episodes": _int(1),
     "eval.max_steps": _int(1),
+    "transfer.task": (f"null or a task of torchrl_offhrl.envs.TASKS ({', '.join(map(repr, TASKS))})", lambda v: v is None or v in TASKS),
+    "transfer.online_frames": _int(1),
+    "transfer.num_envs": _int(1),
+    "transfer.decoder": _choice("discard", "keep"),
+    "transfer.from_scratch": ("true or false", lambda v: isinstance(v, bool)),
+    "transfer.eval_every_frames": _int(1),
     "logger.backend": _choice("csv", "tensorboard", "wandb", "mlflow", None),
 }
 

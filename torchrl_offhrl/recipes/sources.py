@@ -1,29 +1,31 @@
-"""Where training batches come from: a TorchRL collector on the composed model env, or the dataset itself.
+"""Where training batches come from: a TorchRL collector on an env (the composed model env offline, the real env
+while fine-tuning online in the transfer setting), or the dataset itself.
 
-The loop only iterates over batches and hands them to ``agent.update``; a
-later source (the real env for online fine-tuning) is another function here
-returning an iterable of batches.
+The loop only iterates over batches and hands them to ``agent.update``.
 """
 from __future__ import annotations
 
-__all__ = ["dataset_batches", "model_env_collector", "model_env_metrics"]
+__all__ = ["dataset_batches", "env_collector", "model_env_metrics", "online_metrics"]
 
 
-def model_env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu"):
-    """A :class:`~torchrl.collectors.Collector` of ``frames`` frames of ``agent.policy`` on the model env.
+def env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu", random_frames: int | None = None):
+    """A :class:`~torchrl.collectors.Collector` of ``frames`` frames of ``agent.policy`` on ``env`` (model env or real env).
 
     Batches of ``agent.frames_per_batch`` frames (``[envs, steps]``); the first
-    ``agent.init_random_frames`` frames of the run (those not yet collected
-    before ``frames_done``) use uniformly random actions.
+    ``random_frames`` frames (default: ``agent.init_random_frames`` when the
+    run starts, ``frames_done == 0``; none when resuming) use uniformly random
+    actions.
     """
     from torchrl.collectors import Collector
 
+    if random_frames is None:
+        random_frames = 0 if frames_done else agent.init_random_frames
     return Collector(
         env,
         agent.policy,
         frames_per_batch=agent.frames_per_batch,
         total_frames=frames,
-        init_random_frames=0 if frames_done else agent.init_random_frames,
+        init_random_frames=int(random_frames),
         split_trajs=False,
         auto_register_policy_transforms=False,  # the envs are built with the transforms they need
         device=device,
@@ -40,6 +42,13 @@ def model_env_metrics(batch) -> dict[str, float]:
     out["train/penalized_rate"] = float(batch["next", "penalized"].float().mean()) if ("next", "penalized") in keys else float("nan")
     return out
 
+
+def online_metrics(batch) -> dict[str, float]:
+    """What a real-env batch of the online phase says: the mean return of the episodes that ended in it (on the task trained on)."""
+    done = batch["next", "done"]
+    if done.any() and ("next", "episode_reward") in batch.keys(True):
+        return {"train/online_episode_return": float(batch["next", "episode_reward"][done].mean())}
+    return {}
 
 
 def dataset_batches(data, agent, updates: int, device="cpu"):

@@ -34,13 +34,14 @@ from ..agents import agent_defaults, make_agent
 from ..utils import to_plain
 from .config import (
     acts_in_latent_space, config_fingerprint, default_run_dir, learns_from_dataset, model_config, model_env_config, resolve_dataset, resolve_reward_scale,
+    transfer_config,
 )
 from .evaluation import Evaluator
 from .pipeline import fit_or_load_models, make_model_env, make_real_env
-from .report import UNIT_LABELS, plot_curve, plot_training_metrics, run_summary
+from .report import UNIT_LABELS, fmt_number, plot_curve, plot_training_metrics, plot_transfer, run_summary
 from .rundir import RunDirectory
 from .schema import validate_config
-from .sources import dataset_batches, model_env_collector, model_env_metrics
+from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 
 __all__ = ["train"]
 
@@ -78,13 +79,20 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     if from_dataset and any(cfg.get("ablation", {}).values()):
         raise ValueError(f"algo={algo['name']} learns from the dataset itself, with no model env or CVAE: the ablations "
                          f"{[k for k, v in cfg['ablation'].items() if v]} do not apply to it; leave them false")
+    tcfg = transfer_config(cfg)  # None: offline training only
+    if from_dataset and tcfg is not None:
+        raise ValueError(f"algo={algo['name']} learns from the dataset itself; the transfer setting fine-tunes online an agent trained "
+                         "on the model env (moc, ppo, sac, ...): leave transfer.task null")
+    offline = tcfg is None or not tcfg["from_scratch"]  # from scratch: the online phase only (the transfer setting's baseline)
+    latent = acts_in_latent_space(cfg)
+    keep_decoder = latent and tcfg is not None and tcfg["decoder"] == "keep"
 
     # 1. data and models: one dataset for every training seed (its own seed is dataset_seed)
     data = resolve_dataset(cfg)
     level = data.metadata.get("level")
     t_data = time.time() - t_start
     pcfg = model_config(cfg)
-    if from_dataset:
+    if from_dataset or not (offline or keep_decoder):  # a from-scratch run without the decoder needs no model
         ensemble = cvae = None
         model_info = {"model_dir": None}
     else:
@@ -95,13 +103,22 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     torch.manual_seed(cfg["seed"])  # the agent's initial weights do not depend on whether the models were fitted or loaded
 
     # 2. the composed model env (no CVAE: the agent acts in real actions); none for an agent that learns from the dataset
-    latent = acts_in_latent_space(cfg)
     episodes = int(cfg["eval"]["episodes"])
     stats = data.stats()
-    env = model_eval_env = eval_env = None
+    env = model_eval_env = eval_env = online_env = None
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
+
+    def real_env(num_envs: int, task: str):  # the real env of the online phase, in the action space the agent acts in
+        return make_real_env(env_cfg["env_id"], cvae if keep_decoder else None, num_envs=num_envs, latent_bound=bound, task=task,
+                             discard_decoder=latent and not keep_decoder)
+
+    def add_reward_transforms(e):
+        e.append_transform(RewardSum())  # ("next", "episode_reward"): returns in the logs
+        if pcfg["env"].get("reward_scale", 1.0) != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
+            e.append_transform(RewardScaling(loc=0.0, scale=float(pcfg["env"]["reward_scale"])))
+
+    pess = threshold = None
     if from_dataset:
-        pess, threshold = None, None
         pcfg["env"] = {}
         if "reward_scale" in agent_defaults(algo["name"]):  # the rewards it learns from: a number, or a name resolved from the data
             algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), data, float(algo.get("gamma", 0.99)))}
@@ -109,118 +126,177 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         eval_env = make_real_env(env_cfg["env_id"], None, num_envs=episodes)  # the env whose specs the agent is built for
     else:
         pcfg["env"], pess = model_env_config(cfg, level, data)
-        env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=int(cfg["collector"]["num_envs"]), latent=latent)
-        threshold = env.base_env.threshold
+        if offline:
+            env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=int(cfg["collector"]["num_envs"]), latent=latent)
+            threshold = env.base_env.threshold
+        else:  # from scratch: the agent is built for the real env it trains in; no P-MDP
+            pess = None
+            online_env = real_env(int(tcfg["num_envs"]), tcfg["task"])
 
     # 3. the agent, and the envs it acts in
     agent = make_agent(
-        algo["name"], env if env is not None else eval_env, algo, obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
+        algo["name"], next(e for e in (env, online_env, eval_env) if e is not None), algo, obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
         action_key="latent_action" if latent else "action", device=device,
     )
-    if env is not None:
-        agent.attach(env)
-        env.append_transform(RewardSum())  # ("next", "episode_reward"): model returns in the logs
-        if pcfg["env"].get("reward_scale", 1.0) != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
-            env.append_transform(RewardScaling(loc=0.0, scale=float(pcfg["env"]["reward_scale"])))
-    if eval_env is None:  # built after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
+    for e in (env, online_env):
+        if e is not None:
+            agent.attach(e)
+            add_reward_transforms(e)
+    if eval_env is None and offline:  # built after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
         eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=bound)
-    agent.attach(eval_env)
+    if eval_env is not None:
+        agent.attach(eval_env)
     if env is not None and cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
         model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold,
                                          reset_states="initial")  # the real env's start states, whatever training uses
         agent.attach(model_eval_env)
     ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
-    evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=int(cfg["seed"]) * 1000 + 7,
-                          ref=ref if None not in ref else None, model_env=model_eval_env)
+    ref = ref if None not in ref else None
+    eval_seed = int(cfg["seed"]) * 1000 + 7
+    evaluator = online_evaluator = None
+    if eval_env is not None:
+        evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=eval_seed, ref=ref, model_env=model_eval_env,
+                              task=None if tcfg is None else "forward")
+    if tcfg is not None:
+        with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
+            if online_env is None:
+                online_env = agent.attach(real_env(int(tcfg["num_envs"]), tcfg["task"]))
+                add_reward_transforms(online_env)
+            online_eval_env = agent.attach(real_env(episodes, tcfg["task"]))
+        online_evaluator = Evaluator(online_eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=eval_seed, ref=ref,
+                                     task=tcfg["task"])
     title = f"{env_cfg['env_id']}, {cfg['dataset']}"
 
     # 4. resume, log, train, evaluate, checkpoint
     run.data_hash = data.content_hash()  # a run never resumes on other data found at the same path
     run.unit = unit
     run.resume(agent, device)
-    run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "resolved_reward_scale": pcfg["env"].get("reward_scale", 1.0), "model_dir": model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
+    run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "resolved_reward_scale": pcfg["env"].get("reward_scale", 1.0),
+                                   "model_dir": model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
     logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
 
-    def evaluate(final: bool = False) -> dict:
+    def evaluate(ev: Evaluator, save_to=None, phase: str | None = None) -> dict:
         rec = {"frames": run.frames, "updates": run.updates, "step": run.step, "wall_s": round(time.time() - t_start, 1)}
-        rec.update(evaluator(agent, save_to=run.path if final else None, title=title))
+        if phase is not None:
+            rec["phase"] = phase
+        rec.update(ev(agent, save_to=save_to, title=title))
         return rec
 
-    total, eval_every = int(cfg["train"][f"total_{unit}"]), int(cfg["eval"][f"every_{unit}"])
-    remaining = max(total - run.step, 0)
-    if env is not None:
-        env.set_seed(cfg["seed"] + run.frames)
-    t_train = time.time()
-    frames_at_start, updates_at_start, train_time = run.frames, run.updates, 0.0
-    if remaining > 0 and not run.records and cfg["eval"].get("at_start", True):
-        # the untrained agent: the start of the learning curve (with the CVAE: about the decoder's mean action)
-        run.records.append(evaluate())
-        run.checkpoint(agent)
-    if remaining > 0:
-        if from_dataset:  # the sampling continues from the run's restored RNG state
-            source = dataset_batches(data, agent, remaining, device=device)
-        else:
-            source = model_env_collector(env, agent, remaining, frames_done=run.frames, device=device)
-        bar = tqdm(total=total, initial=run.step, desc=f"{algo['name']} on {env_cfg['name']}-{level}", disable=not progress, unit=unit[:-1])
-        next_eval = (run.step // eval_every + 1) * eval_every
+    def train_phase(source, start: int, budget: int, every: int, ev: Evaluator, desc: str, batch_metrics, phase: str | None, final_dir) -> None:
+        """Update on every batch of ``source`` until ``start + budget``; evaluate with ``ev`` every ``every`` steps after ``start``."""
+        end = start + budget
+        bar = tqdm(total=budget, initial=min(run.step - start, budget), desc=desc, disable=not progress, unit=unit[:-1])
+        next_eval = start + ((run.step - start) // every + 1) * every
         pending, pending_n = {}, 0
         for batch in source:
             t0 = time.time()
-            agent.set_progress(run.step / total)  # before this batch counts: schedules (e.g. anneal_lr) follow the budget
+            agent.set_progress((run.step - start) / budget)  # before this batch counts: schedules (e.g. anneal_lr) follow the phase's budget
             before = run.step
             run.frames += batch.numel()
             metrics = agent.update(batch)
             run.updates += int(metrics.pop("updates"))
-            train_time += time.time() - t0
-            if env is not None:
-                metrics.update(model_env_metrics(batch))
+            timing["update_time_s"] += time.time() - t0
+            if batch_metrics is not None:
+                metrics.update(batch_metrics(batch))
             for k, v in metrics.items():  # (sum, count) per key: some metrics come with some updates only (e.g. a delayed actor)
                 total_k, n_k = pending.get(k, (0.0, 0))
                 pending[k] = (total_k + v, n_k + 1)
             pending_n += 1
-            if logger is not None and (env is not None or pending_n >= LOG_EVERY_UPDATES or run.step >= total):
+            if logger is not None and (not from_dataset or pending_n >= LOG_EVERY_UPDATES or run.step >= end):
                 for k, (v, n) in pending.items():  # dataset agents: the mean over LOG_EVERY_UPDATES updates
                     logger.log_scalar(k, v / n, step=run.step)
-            if env is not None or pending_n >= LOG_EVERY_UPDATES:
+            if not from_dataset or pending_n >= LOG_EVERY_UPDATES:
                 pending, pending_n = {}, 0
             bar.update(run.step - before)
-            if run.step >= next_eval or run.step >= total:
-                rec = evaluate(final=run.step >= total)
+            if run.step >= next_eval or run.step >= end:
+                rec = evaluate(ev, save_to=final_dir if run.step >= end else None, phase=phase)
                 run.records.append(rec)
                 if logger is not None:
                     for k in ("return_mean", "normalized_d4rl", "model_return_mean", "model_real_gap"):
                         if rec.get(k) is not None:
                             logger.log_scalar(f"eval/{k}", rec[k], step=run.step)
-                bar.set_postfix(ret=f"{rec['return_mean']:.0f}", score=f"{rec['normalized_d4rl'] or 0:.1f}")
-                bar.write(f"[{run.step} {unit}] real {env_cfg['env_id']} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f} "
-                          f"(D4RL-normalised {rec['normalized_d4rl'] or float('nan'):.1f})")
+                score = "" if rec["normalized_d4rl"] is None else f" (D4RL-normalised {rec['normalized_d4rl']:.1f})"
+                bar.set_postfix(ret=f"{rec['return_mean']:.0f}", score=fmt_number(rec["normalized_d4rl"]))
+                where = f"{env_cfg['env_id']}" + (f" ({rec['task']} task)" if "task" in rec else "")
+                bar.write(f"[{run.step} {unit}] real {where} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f}{score}")
                 run.checkpoint(agent)
-                next_eval = (run.step // eval_every + 1) * eval_every
-                if run.step >= total:
+                next_eval = start + ((run.step - start) // every + 1) * every
+                if run.step >= end:
                     break
         bar.close()
-        if not from_dataset:
+
+    frames_at_start, updates_at_start = run.frames, run.updates
+    timing = {"update_time_s": 0.0}
+    t_train = time.time()
+    phase_name = None if tcfg is None else "offline"
+    switch = None
+    if offline:  # the offline phase: on the model env, or on the dataset
+        total, eval_every = int(cfg["train"][f"total_{unit}"]), int(cfg["eval"][f"every_{unit}"])
+        done_offline = tcfg is not None and any(r.get("phase") == "online" for r in run.records)
+        remaining = 0 if done_offline else max(total - run.step, 0)
+        if env is not None:
+            env.set_seed(cfg["seed"] + run.frames)
+        if remaining > 0 and not run.records and cfg["eval"].get("at_start", True):
+            # the untrained agent: the start of the learning curve (with the CVAE: about the decoder's mean action)
+            run.records.append(evaluate(evaluator, phase=phase_name))
+            run.checkpoint(agent)
+        final_dir = run.path if tcfg is None else run.path / "offline"  # a transfer run's last files are its online phase's
+        if remaining > 0:
+            if from_dataset:  # the sampling continues from the run's restored RNG state
+                source = dataset_batches(data, agent, remaining, device=device)
+            else:
+                source = env_collector(env, agent, remaining, frames_done=run.frames, device=device)
+            train_phase(source, 0, total, eval_every, evaluator, f"{algo['name']} on {env_cfg['name']}-{level}", None if from_dataset else model_env_metrics,
+                        phase_name, final_dir)
+            if not from_dataset:
+                source.shutdown()
+        elif not run.records:
+            run.records.append(evaluate(evaluator, save_to=final_dir, phase=phase_name))
+            run.checkpoint(agent)
+    if tcfg is not None:  # the online phase: fine-tuning in the real env, on the new task
+        switch = next((r["frames"] for r in run.records if r.get("phase") == "online"), None)
+        if switch is None:  # the switch: the agent as it starts on the new task (after the offline phase's last evaluation, on the old task)
+            switch = run.frames
+            if offline:
+                agent.new_task()
+            run.records.append(evaluate(online_evaluator, phase="online"))
+            run.checkpoint(agent)
+        budget = int(tcfg["online_frames"])
+        remaining = max(switch + budget - run.frames, 0)
+        if remaining > 0:
+            online_env.set_seed(cfg["seed"] + run.frames)
+            random_frames = agent.init_random_frames if not offline and run.frames == 0 else 0  # a fine-tuned agent acts from the start
+            source = env_collector(online_env, agent, remaining, frames_done=run.frames, device=device, random_frames=random_frames)
+            train_phase(source, switch, budget, int(tcfg["eval_every_frames"]), online_evaluator,
+                        f"{algo['name']} on {env_cfg['name']} ({tcfg['task']}, online)", online_metrics, "online", run.path)
             source.shutdown()
-    elif not run.records:
-        run.records.append(evaluate(final=True))
-        run.checkpoint(agent)
+    last_evaluator = evaluator if tcfg is None else online_evaluator
     if not all((run.path / f).is_file() for f in agent.evaluation_files):
-        run.records[-1] = evaluate(final=True)
+        run.records[-1] = evaluate(last_evaluator, save_to=run.path, phase=run.records[-1].get("phase"))
         run.checkpoint(agent)
     elapsed = time.time() - t_train
+    train_time = timing["update_time_s"]
 
     # the report
     behaviour = data.return_stats()  # episodes cut short by the collection budget left out
-    plot_curve([run.records], run.path / "learning_curve.png", label=algo["name"], title=f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})",
-               behaviour=behaviour["mean"], xlabel=UNIT_LABELS[unit])
+    curve_title = f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})"
+    if tcfg is None:
+        plot_curve([run.records], run.path / "learning_curve.png", label=algo["name"], title=curve_title, behaviour=behaviour["mean"], xlabel=UNIT_LABELS[unit])
+    else:
+        plot_transfer([run.records], run.path / "learning_curve.png", label=algo["name"], title=f"{curve_title}, then {tcfg['task']} online")
     summary = run_summary(
-        cfg, data, behaviour, run.records, ref=evaluator.ref, pessimism=pess, threshold=threshold, frames=run.frames, updates=run.updates,
+        cfg, data, behaviour, run.records, ref=ref, pessimism=pess, threshold=threshold, frames=run.frames, updates=run.updates,
         frames_per_s=(run.frames - frames_at_start) / elapsed if elapsed > 0 and run.frames > frames_at_start else None,
         updates_per_s=((run.updates - updates_at_start) / train_time) if train_time > 0 else None,
         timing={"update_time_s": train_time, "data_s": t_data, "models_s": t_models, "total_s": time.time() - t_start},
         models=model_info["model_dir"], run_dir=run.path, evaluation_files=agent.evaluation_files, unit=unit,
     )
+    if tcfg is not None:
+        summary["transfer"] = {**tcfg, "switch_frame": switch}
+        summary["offline_final"] = next((r for r in reversed(run.records) if r.get("phase") == "offline"), None)
     run.write_json("summary.json", summary)
-    plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=UNIT_LABELS[unit])
-    eval_env.close()
+    plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=UNIT_LABELS["transfer" if tcfg else unit])
+    for e in (eval_env, online_evaluator.env if online_evaluator else None, online_env):
+        if e is not None:
+            e.close()
     return summary
