@@ -1,3 +1,5 @@
+import os
+
 import pytest
 import torch
 
@@ -30,3 +32,26 @@ def fitted_cvae(toy_data):
     return ConditionalVAE.for_dataset(toy_data, hidden_sizes=(64, 64)).fit(
         toy_data, lr=1e-3, max_epochs=20, progress=False
     )
+
+
+@pytest.fixture(scope="module")
+def hopper_file(tmp_path_factory):
+    """A small Hopper-v5 dataset file (1200 random transitions) for the recipes' end-to-end tests."""
+    from torchrl_offhrl.data import collect_dataset, save_dataset
+
+    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
+    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """A fresh model/dataset cache (``TORCHRL_OFFHRL_CACHE``) for one test module."""
+    old = os.environ.get("TORCHRL_OFFHRL_CACHE")
+    path = tmp_path_factory.mktemp("cache")
+    os.environ["TORCHRL_OFFHRL_CACHE"] = str(path)
+    yield path
+    if old is None:
+        os.environ.pop("TORCHRL_OFFHRL_CACHE")
+    else:
+        os.environ["TORCHRL_OFFHRL_CACHE"] = old

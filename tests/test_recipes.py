@@ -32,27 +32,6 @@ TINY = [
 ALGO_TINY = {"sac": ["algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32"], "ppo": ["algo.epochs=2"], "moc": ["algo.epochs=2"]}
 
 
-@pytest.fixture(scope="module")
-def hopper_file(tmp_path_factory):
-    from torchrl_offhrl.data import collect_dataset, save_dataset
-
-    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
-    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
-    return path
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    old = os.environ.get("TORCHRL_OFFHRL_CACHE")
-    path = tmp_path_factory.mktemp("cache")
-    os.environ["TORCHRL_OFFHRL_CACHE"] = str(path)
-    yield path
-    if old is None:
-        os.environ.pop("TORCHRL_OFFHRL_CACHE")
-    else:
-        os.environ["TORCHRL_OFFHRL_CACHE"] = old
-
-
 def _cfg(algo, data, out, extra=()):
     from hydra import compose, initialize_config_dir
 

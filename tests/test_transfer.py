@@ -14,7 +14,7 @@ from torchrl_offhrl.recipes.report import aggregate, transfer_stats
 from torchrl_offhrl.recipes.schema import validate_config
 from torchrl_offhrl.recipes.train import train
 
-from test_recipes import _cfg, cache, hopper_file  # noqa: F401  (fixtures)
+from test_recipes import ROOT, TINY, _cfg
 
 TRANSFER = ["transfer.task=backward", "transfer.online_frames=256", "transfer.num_envs=2", "transfer.eval_every_frames=128"]
 
@@ -99,10 +99,9 @@ def test_transfer_settings_are_validated_and_leave_offline_runs_as_they_were():
     assert config_fingerprint({**base, "transfer": {"task": "forward", "online_frames": 1000}}) != config_fingerprint(on)
 
 
-def test_dataset_agents_refuse_the_transfer_setting(hopper_file, cache, tmp_path):  # noqa: F811
+def test_dataset_agents_refuse_the_transfer_setting(hopper_file, cache, tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from test_recipes import ROOT, TINY
 
     with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base=None):
         cfg = compose("offline_train", overrides=["algo=bc", f"dataset={hopper_file}", f"out_root={tmp_path}", *TINY[:4], *TRANSFER])
@@ -111,7 +110,7 @@ def test_dataset_agents_refuse_the_transfer_setting(hopper_file, cache, tmp_path
 
 
 @pytest.fixture(scope="module")
-def moc_transfer_run(hopper_file, cache, tmp_path_factory):  # noqa: F811
+def moc_transfer_run(hopper_file, cache, tmp_path_factory):
     out = tmp_path_factory.mktemp("transfer")
     return train(_cfg("moc", hopper_file, out, TRANSFER), progress=False)
 
@@ -163,7 +162,7 @@ def test_transfer_stats_hand_computed():
     assert st["area"][0] == pytest.approx(3.5)
 
 
-def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, monkeypatch):  # noqa: F811
+def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, monkeypatch):
     cfg = _cfg("moc", hopper_file, tmp_path, TRANSFER)
     real_make_agent = train_mod.make_agent
     state = {"new_task": 0, "online_updates": 0, "crash": "switch"}
@@ -207,7 +206,7 @@ def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, mo
     assert state["new_task"] == 2  # the interrupted switch, then the resumed one; never again once the online phase had begun
 
 
-def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path, monkeypatch):  # noqa: F811
+def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path, monkeypatch):
     seen = {}
     real_make_agent = train_mod.make_agent
 
@@ -230,7 +229,7 @@ def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path,
     assert transfer_config({"transfer": s["transfer"]})["task"] == "backward"
 
 
-def test_from_scratch_has_no_offline_phase_and_fits_no_model(hopper_file, cache, tmp_path, monkeypatch):  # noqa: F811
+def test_from_scratch_has_no_offline_phase_and_fits_no_model(hopper_file, cache, tmp_path, monkeypatch):
     def no_models(*a, **k):
         raise AssertionError("a from-scratch run without the decoder fits no model")
 

@@ -1,0 +1,108 @@
+"""The transfer setting's runs (offline on forward-running data, then online on running backwards), then docs/results/transfer.md.
+
+    python scripts/transfer.py run [--envs hopper] [--algos moc ppo sac] [--kinds transfer scratch] [--seeds 4 5 6]
+    python scripts/transfer.py report      # docs/results/transfer.md, transfer.csv, curves.png
+
+Kinds of run (every one an ordinary run directory under ``outputs/results/transfer/``, resumable by rerunning):
+
+* ``transfer``: the paper's setting. The offline phase is the ``demo`` scale of ``scripts/results.py`` (100k generated
+  ``medium`` transitions, demo-size models fitted 20k steps, 205k model-env frames), then ``--online-frames`` real-env
+  frames (default 300k) on the ``backward`` task with the decoder discarded;
+* ``scratch``: the same agent trained online only, from its initial weights, on the backward task (the baseline);
+* ``keepdecoder``: fine-tuning through the CVAE decoder instead of discarding it (``transfer.decoder=keep``);
+* ``nocvae``: the CVAE ablation (the paper's Fig. 5e): offline training in real actions (``ablation.no_cvae``), then the same online phase.
+
+Seeds 4-6, as every results script here: nothing was tuned on them. The online phase is evaluated every 10k frames
+(10 deterministic episodes, the same seeds at every evaluation); the report gives the return on the backward task at
+the switch and 50k / 100k / 300k frames after it, the final and (apart) the best, and the mean over the online phase
+(the area under the online curve divided by its length).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results import BUDGET  # noqa: E402  (the demo scale's offline budget)
+
+KINDS = {
+    "transfer": ["transfer.task=backward"],
+    "scratch": ["transfer.task=backward", "transfer.from_scratch=true"],
+    "keepdecoder": ["transfer.task=backward", "transfer.decoder=keep"],
+    "nocvae": ["transfer.task=backward", "ablation.no_cvae=true"],
+}
+OUT = ROOT / "outputs" / "results" / "transfer"
+
+
+def run_dir(env: str, algo: str, kind: str, seed: int) -> Path:
+    return OUT / f"{algo}-{env}-medium-{kind}-seed{seed}"
+
+
+def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], online_frames: int) -> None:
+    from torchrl_offhrl.agents import agent_defaults
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.report import format_summary
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
+
+    for env in envs:
+        for kind in kinds:
+            for algo in algos:
+                for seed in seeds:
+                    overrides = [f"algo={algo}", f"env={env}", "dataset=medium", f"seed={seed}", f"run_dir={run_dir(env, algo, kind, seed)}",
+                                 *BUDGET["demo"], *KINDS[kind], f"transfer.online_frames={online_frames}"]
+                    cfg = compose("demo", overrides)
+                    if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
+                        overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
+                    print(format_summary(train(to_plain(compose("demo", overrides)))), flush=True)
+
+
+def report() -> str:
+    from torchrl_offhrl.recipes.report import aggregate
+
+    runs = sorted(d for d in OUT.glob("*-seed*") if (d / "summary.json").is_file())
+    if not runs:
+        raise SystemExit(f"no finished runs under {OUT}: run `python scripts/transfer.py run` first")
+    out = ROOT / "docs" / "results" / "transfer"
+    table = aggregate(runs, out)
+    lines = ["# Transfer: offline on forward-running data, then online on running backwards", "",
+             __doc__.split("Kinds of run")[1].split("\n", 1)[1].strip(), "",
+             "Made by `python scripts/transfer.py report` from the finished runs under `outputs/results/transfer/`. "
+             "Returns are raw real-env returns on the backward task (D4RL's normalisation is the forward task's); "
+             "the offline column is the last evaluation of the offline phase on the forward task.", "",
+             table, "", "![curves](transfer/curves.png)", "",
+             "Per run (return on the backward task at the switch and at the end of the online phase):", ""]
+    import json
+
+    for d in runs:
+        ev = json.loads((d / "evals.json").read_text())
+        online = [e for e in ev if e.get("phase") == "online"]
+        lines.append(f"- `{d.name}`: {online[0]['return_mean']:.1f} at the switch, {online[-1]['return_mean']:.1f} after "
+                     f"{online[-1]['frames'] - online[0]['frames']} online frames")
+    text = "\n".join(lines) + "\n"
+    (ROOT / "docs" / "results" / "transfer.md").write_text(text)
+    return text
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("--envs", nargs="+", default=["hopper"])
+    r.add_argument("--algos", nargs="+", default=["moc", "ppo", "sac"])
+    r.add_argument("--kinds", nargs="+", choices=sorted(KINDS), default=["transfer", "scratch"])
+    r.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
+    r.add_argument("--online-frames", type=int, default=300_000)
+    sub.add_parser("report")
+    a = p.parse_args(argv)
+    if a.cmd == "run":
+        run(a.envs, a.algos, a.kinds, a.seeds, a.online_frames)
+    else:
+        print(report())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
