@@ -214,7 +214,7 @@ def transfer_config(cfg: Mapping) -> dict | None:
     t = dict(to_plain(cfg.get("transfer") or {}))
     if t.get("task") is None:
         return None
-    return {"online_frames": 300_000, "num_envs": 8, "decoder": "discard", "from_scratch": False, "eval_every_frames": 10_000, **t}
+    return {"online_frames": 300_000, "num_envs": 16, "decoder": "discard", "from_scratch": False, "eval_every_frames": 10_000, **t}
 
 
 def transfer_label(cfg: Mapping) -> str:

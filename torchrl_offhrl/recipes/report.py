@@ -61,32 +61,43 @@ def _curve_stats(runs: Sequence[Sequence[dict]], key: str):
     return common, vals.mean(0), std
 
 
+def _band(ax, runs: Sequence[Sequence[dict]], key: str, label: str | None, x_offset: int = 0, color=None):
+    """Plot the mean over runs, shaded ± one std (one run: ± the std over its evaluation episodes); returns ``(steps, colour)``."""
+    steps, mean, std = _curve_stats(runs, key)
+    if len(runs) == 1 and key == "return_mean":
+        std = torch.tensor([r.get("return_std", 0.0) for r in runs[0] if _step(r) in steps], dtype=torch.float64)
+    x = [f + x_offset for f in steps]
+    line, = ax.plot(x, mean, marker="o", ms=3, color=color, label=label)
+    ax.fill_between(x, mean - std, mean + std, alpha=0.25, color=line.get_color())
+    return steps, line.get_color()
+
+
+def _finish(ax, path, own: bool, xlabel: str, ylabel: str, title: str):
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    if own:
+        plt = _plt()
+        ax.figure.tight_layout()
+        ax.figure.savefig(path, dpi=110)
+        plt.close(ax.figure)
+    return path
+
+
 def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", behaviour: float | None = None, key: str = "return_mean", ax=None,
                xlabel: str = UNIT_LABELS["frames"]):
     """Learning curve(s): the mean over runs, shaded ± one std over runs.
 
     With a single run, the band is the std over its evaluation episodes.
     """
-    plt = _plt()
     own = ax is None
     if own:
-        fig, ax = plt.subplots(figsize=(6, 4))
-    frames, mean, std = _curve_stats(runs, key)
-    if len(runs) == 1 and key == "return_mean":
-        std = torch.tensor([r.get("return_std", 0.0) for r in runs[0] if _step(r) in frames], dtype=torch.float64)
-    ax.plot(frames, mean, marker="o", ms=3, label=f"{label} (n={len(runs)})" if label else None)
-    ax.fill_between(frames, mean - std, mean + std, alpha=0.25)
+        _, ax = _plt().subplots(figsize=(6, 4))
+    _band(ax, runs, key, f"{label} (n={len(runs)})" if label else None)
     if behaviour is not None:
         ax.axhline(behaviour, color="gray", ls="--", label="behaviour (dataset)")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("real-env return" if key == "return_mean" else key)
-    ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
-    if own:
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    return path
+    return _finish(ax, path, own, xlabel, "real-env return" if key == "return_mean" else key, title)
 
 
 def plot_transfer(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", key: str = "return_mean", ax=None, x_offset: int = 0,
@@ -99,35 +110,21 @@ def plot_transfer(runs: Sequence[Sequence[dict]], path, label: str = "", title: 
     marks the switch. ``x_offset`` shifts runs without an offline phase
     (trained from scratch) to start at another run's switch.
     """
-    plt = _plt()
     own = ax is None
     if own:
-        fig, ax = plt.subplots(figsize=(6, 4))
+        _, ax = _plt().subplots(figsize=(6, 4))
     color, switch = None, None
     for phase in ("offline", "online"):
         recs = [[r for r in rs if r.get("phase") == phase] for rs in runs]
         if not recs or not all(recs):
             continue
-        steps, mean, std = _curve_stats(recs, key)
-        if len(runs) == 1 and key == "return_mean":
-            std = torch.tensor([r.get("return_std", 0.0) for r in recs[0] if _step(r) in steps], dtype=torch.float64)
-        x = [f + x_offset for f in steps]
-        line, = ax.plot(x, mean, marker="o", ms=3, color=color, label=(f"{label} (n={len(runs)})" if label else None) if color is None else None)
-        color = line.get_color()
-        ax.fill_between(x, mean - std, mean + std, alpha=0.25, color=color)
+        first = color is None
+        steps, color = _band(ax, recs, key, (f"{label} (n={len(runs)})" if label else None) if first else None, x_offset, color)
         if phase == "online" and steps and x_offset == 0:
             switch = steps[0]
     if switch:
         ax.axvline(switch, color="k", ls=":", lw=1)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("real-env return on the current task" if key == "return_mean" else key)
-    ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
-    if own:
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    return path
+    return _finish(ax, path, own, xlabel, "real-env return on the current task" if key == "return_mean" else key, title)
 
 
 #: online frames after the switch at which :func:`transfer_stats` reports the return on the new task
