@@ -64,7 +64,10 @@ NOTES = {"demo": ("Seeds 4-6 were run once, with the defaults as they stood afte
 NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
                  "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
-                 "one core; CQL ~8 h per seed: it needs a GPU, `benchmarks/offline_updates.py`).")
+                 "one core; CQL ~8 h per seed: it needs a GPU, `benchmarks/offline_updates.py`). MOC at this scale exploits the model: "
+                 "the paper-size ensemble, fitted for the default 20k steps at the paper's lr 1e-4, is underfit and its members agree where "
+                 "they are wrong (held-out error 1.8x their disagreement; 0.9x for the demo-size models), so the pessimism never fires; "
+                 "the development-seed experiments behind this are in [experiments.md](experiments.md).")
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy")
 
 

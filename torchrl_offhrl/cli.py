@@ -104,8 +104,11 @@ def cmd_evaluate(args) -> int:
 def cmd_aggregate(args) -> int:
     from .recipes.report import aggregate
 
+    from pathlib import Path
+
     print(aggregate(args.runs, args.out))
-    print(f"\nwritten: {args.out}/results.md, results.csv, curves.png")
+    written = [f for f in ("results.md", "results.csv", "transfer.csv", "curves.png") if (Path(args.out) / f).is_file()]
+    print(f"\nwritten: {args.out}/" + ", ".join(written))
     return 0
 
 
