@@ -238,3 +238,11 @@ def test_from_scratch_has_no_offline_phase_and_fits_no_model(hopper_file, cache,
     evals = json.loads((Path(s["run_dir"]) / "evals.json").read_text())
     assert [(e["frames"], e["phase"]) for e in evals] == [(0, "online"), (128, "online"), (256, "online")]
     assert s["transfer"]["switch_frame"] == 0 and s["offline_final"] is None and Path(s["run_dir"]).name.endswith("-scratch-backward-seed0")
+
+
+def test_offline_phase_is_the_offline_run_of_the_same_seed(moc_transfer_run, hopper_file, cache, tmp_path):
+    # the online envs are built under a forked RNG: the transfer run's offline phase repeats the plain run draw for draw
+    plain = train(_cfg("moc", hopper_file, tmp_path), progress=False)
+    plain_evals = json.loads((Path(plain["run_dir"]) / "evals.json").read_text())
+    offline = [e for e in json.loads((Path(moc_transfer_run["run_dir"]) / "evals.json").read_text()) if e["phase"] == "offline"]
+    assert [(e["frames"], e["return_mean"]) for e in offline] == [(e["frames"], e["return_mean"]) for e in plain_evals]
