@@ -151,15 +151,16 @@ def test_transfer_stats_hand_computed():
         return {"frames": frames, "phase": phase, "return_mean": ret}
 
     a = {"evals": [rec(0, "offline", 5.0), rec(100, "offline", 9.0), rec(100, "online", 1.0), rec(150, "online", 3.0), rec(200, "online", 2.0)]}
-    b = {"evals": [rec(0, "offline", 7.0), rec(100, "offline", 11.0), rec(100, "online", 3.0), rec(150, "online", 5.0), rec(200, "online", 6.0)]}
+    b = {"evals": [rec(0, "offline", 7.0), rec(100, "offline", 11.0), rec(100, "online", 3.0), rec(152, "online", 5.0), rec(200, "online", 6.0)]}
     st = transfer_stats([a, b], marks=(50, 100, 300))
     assert st["seeds"] == 2 and st["online_frames"] == 100
     assert st["offline_final"] == (10.0, pytest.approx(2 ** 0.5), 2)
+    # b evaluated at 52 frames after its switch, not 50: the first evaluation at or after the mark counts
     assert st["at_switch"][0] == 2.0 and st["at_50"][0] == 4.0 and st["at_100"][0] == 4.0
     assert st["at_300"] == (None, None, 0)  # no run got that far
     assert st["best"][0] == pytest.approx((3.0 + 6.0) / 2)
-    # trapezoid area / length: a: (1+3)/2*50 + (3+2)/2*50 = 225 -> 2.25; b: (3+5)/2*50 + (5+6)/2*50 = 475 -> 4.75
-    assert st["area"][0] == pytest.approx(3.5)
+    # trapezoid area / length: a: (1+3)/2*50 + (3+2)/2*50 = 225 -> 2.25; b: (3+5)/2*52 + (5+6)/2*48 = 472 -> 4.72
+    assert st["area"][0] == pytest.approx((2.25 + 4.72) / 2)
 
 
 def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, monkeypatch):

@@ -136,8 +136,8 @@ def transfer_stats(rs: Sequence[dict], marks: Sequence[int] = TRANSFER_MARKS) ->
 
     Per run, the online records (``phase == "online"``) are read relative to
     the switch (the first online record): ``at_<k>`` is the return of the
-    evaluation at ``switch + k`` frames (None where a run did not get that
-    far or did not evaluate there), ``area`` is the mean return over the
+    first evaluation at or after ``switch + k`` frames (evaluations fall on
+    collector batch boundaries; None where a run did not get that far), ``area`` is the mean return over the
     online phase (the trapezoid area under the online curve divided by its
     length), ``best`` the best online evaluation after the switch (apart from
     the final one, never instead of it). ``offline_final`` is the last
@@ -165,8 +165,8 @@ def transfer_stats(rs: Sequence[dict], marks: Sequence[int] = TRANSFER_MARKS) ->
             "at_switch": float(ys[0]), "final": float(ys[-1]), "best": float(ys[1:].max()) if len(ys) > 1 else None,
             "area": float(torch.trapezoid(ys, xs) / xs[-1]) if xs[-1] > 0 else None,
         }
-        for k in marks:
-            row[f"at_{k}"] = next((float(y) for x, y in zip(xs, ys) if int(x) == k), None)
+        for k in marks:  # the first evaluation at or after the mark (evaluations fall on batch boundaries)
+            row[f"at_{k}"] = next((float(y) for x, y in zip(xs, ys) if int(x) >= k), None)
         per_run.append(row)
     keys = ["offline_final", "at_switch", *[f"at_{k}" for k in marks], "final", "best", "area"]
     return {"seeds": len(per_run), "online_frames": min((p["online_frames"] for p in per_run), default=0),
