@@ -71,7 +71,11 @@ def report() -> str:
              __doc__.split("Kinds of run")[1].split("\n", 1)[1].strip(), "",
              "Made by `python scripts/transfer.py report` from the finished runs under `outputs/results/transfer/`. "
              "Returns are raw real-env returns on the backward task (D4RL's normalisation is the forward task's); "
-             "the offline column is the last evaluation of the offline phase on the forward task.", "",
+             "the offline column is the last evaluation of the offline phase on the forward task. On Hopper a return of about 1,000 "
+             "on the backward task is the healthy reward of standing through the whole episode (1 per step) with no backward "
+             "progress.", "",
+             f"{len(runs)} finished run(s) so far: the `seeds` column says how many seeds each row has; kinds and algorithms "
+             "without a row have not been run yet (the runs are long on CPU and span sessions).", "",
              table, "", "![curves](transfer/curves.png)", "",
              "Per run (return on the backward task at the switch and at the end of the online phase):", ""]
     import json
