@@ -102,9 +102,9 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_aggregate(args) -> int:
-    from .recipes.report import aggregate
-
     from pathlib import Path
+
+    from .recipes.report import aggregate
 
     print(aggregate(args.runs, args.out))
     written = [f for f in ("results.md", "results.csv", "transfer.csv", "curves.png") if (Path(args.out) / f).is_file()]

@@ -95,7 +95,7 @@ class Agent:
       Adam steps each parameter on its own, so this changes nothing);
 
     and implements :meth:`update`. Optional: :meth:`new_task` (the transfer
-setting's switch), :meth:`env_transforms`
+    setting's switch), :meth:`env_transforms`
     (transforms the policy needs on every env it acts in, e.g. an
     ``InitTracker``), :meth:`evaluation_metrics` / :meth:`save_evaluation`
     (extra numbers and files of a real-env evaluation), ``replay_buffer``

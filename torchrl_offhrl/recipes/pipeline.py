@@ -16,6 +16,7 @@ from typing import Any
 import torch
 from torchrl.envs import TransformedEnv
 
+from ..agents import action_box
 from ..data import OfflineDataset
 from ..envs import AffineActionMap, LatentActionTransform, PessimisticModelEnv, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble
@@ -196,9 +197,7 @@ def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int
     """
     env = make_task_env(env_id, task, num_envs=num_envs, device=device, **gym_kwargs)
     if discard_decoder:
-        spec = env.action_spec
-        dim = spec.shape[-1]
-        low, high = spec.space.low.reshape(-1, dim)[0], spec.space.high.reshape(-1, dim)[0]
+        _, low, high = action_box(env, "action")
         env.append_transform(LatentActionTransform(AffineActionMap(latent_bound, low, high).to(device), latent_bound=latent_bound))
     elif cvae is not None:
         env.append_transform(LatentActionTransform(cvae.decoder, latent_bound=latent_bound))

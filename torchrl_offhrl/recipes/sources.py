@@ -8,24 +8,22 @@ from __future__ import annotations
 __all__ = ["dataset_batches", "env_collector", "model_env_metrics", "online_metrics"]
 
 
-def env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu", random_frames: int | None = None):
+def env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu"):
     """A :class:`~torchrl.collectors.Collector` of ``frames`` frames of ``agent.policy`` on ``env`` (model env or real env).
 
     Batches of ``agent.frames_per_batch`` frames (``[envs, steps]``); the first
-    ``random_frames`` frames (default: ``agent.init_random_frames`` when the
-    run starts, ``frames_done == 0``; none when resuming) use uniformly random
-    actions.
+    ``agent.init_random_frames`` frames of the run (those not yet collected
+    before ``frames_done``) use uniformly random actions: none when resuming,
+    nor in a transfer run's online phase (its offline frames count as done).
     """
     from torchrl.collectors import Collector
 
-    if random_frames is None:
-        random_frames = 0 if frames_done else agent.init_random_frames
     return Collector(
         env,
         agent.policy,
         frames_per_batch=agent.frames_per_batch,
         total_frames=frames,
-        init_random_frames=int(random_frames),
+        init_random_frames=0 if frames_done else agent.init_random_frames,
         split_trajs=False,
         auto_register_policy_transforms=False,  # the envs are built with the transforms they need
         device=device,

@@ -265,8 +265,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         remaining = max(switch + budget - run.frames, 0)
         if remaining > 0:
             online_env.set_seed(cfg["seed"] + run.frames)
-            random_frames = agent.init_random_frames if not offline and run.frames == 0 else 0  # a fine-tuned agent acts from the start
-            source = env_collector(online_env, agent, remaining, frames_done=run.frames, device=device, random_frames=random_frames)
+            # random actions only for a run from scratch: after the offline phase frames_done > 0, and the agent acts from the start
+            source = env_collector(online_env, agent, remaining, frames_done=run.frames, device=device)
             train_phase(source, switch, budget, int(tcfg["eval_every_frames"]), online_evaluator,
                         f"{algo['name']} on {env_cfg['name']} ({tcfg['task']}, online)", online_metrics, "online", run.path)
             source.shutdown()
