@@ -2,6 +2,7 @@
 
     python scripts/decoder_sensitivity.py [hydra overrides of configs/demo.yaml ...]
     python scripts/decoder_sensitivity.py cvae.kl_weight=0.05
+    python scripts/decoder_sensitivity.py --config=offline_train   # full scale (first argument)
 
 For 2,000 dataset states, decodes 16 latents drawn from the prior and 16
 corners of the latent box (+-2, the policies' range) and prints the standard
@@ -25,7 +26,10 @@ from torchrl_offhrl.utils import to_plain
 def main(overrides: list[str]) -> None:
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    cfg = to_plain(compose("demo", overrides))
+    name = "demo"
+    if overrides and overrides[0].startswith("--config="):  # e.g. --config=offline_train: the full-scale settings
+        name, overrides = overrides[0].split("=", 1)[1], overrides[1:]
+    cfg = to_plain(compose(name, overrides))
     data = resolve_dataset(cfg)
     _, cvae, info = fit_or_load_models(model_config(cfg), data, progress=False)
     obs, act = data["observation"][:2000], data["action"][:2000]

@@ -2,6 +2,7 @@
 
     python scripts/model_episode_ends.py [hydra overrides of configs/demo.yaml ...]
     python scripts/model_episode_ends.py model_env.member_mode=mean ensemble.fit.max_steps=20000
+    python scripts/model_episode_ends.py --config=offline_train ensemble.fit.lr=1e-3   # full scale (first argument)
 
 Rolls the untrained MOC agent's deterministic policy (the CVAE decoder's mean
 action) out for 50 episodes in the model env built exactly as `offhrl train`
@@ -39,7 +40,10 @@ def rollout(env, policy, seed: int):
 
 def main(overrides: list[str]) -> None:
     torch.set_num_threads(1)
-    cfg = to_plain(compose("demo", overrides))
+    name = "demo"
+    if overrides and overrides[0].startswith("--config="):  # e.g. --config=offline_train: the full-scale settings
+        name, overrides = overrides[0].split("=", 1)[1], overrides[1:]
+    cfg = to_plain(compose(name, overrides))
     data = resolve_dataset(cfg)
     mcfg = model_config(cfg)
     ensemble, cvae, _ = fit_or_load_models(mcfg, data, progress=False)

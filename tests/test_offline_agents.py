@@ -317,3 +317,15 @@ def test_pessimism_overrides_from_the_command_line_and_resume_fingerprint():
     assert plain["model_env"]["pessimism"] is None
     assert config_fingerprint(plain) == config_fingerprint({**plain, "model_env": {**plain["model_env"], "pessimism": {}}})
     assert config_fingerprint(plain) != config_fingerprint(cfg)
+
+
+def test_fingerprint_ignores_model_settings_only_for_agents_that_fit_no_model():
+    """A dataset agent (td3bc) resumes after a change of the ensemble's fit settings it never uses; a model-env agent (moc) does not."""
+    from torchrl_offhrl.recipes.config import config_fingerprint
+
+    for algo, same in (("td3bc", True), ("bc", True), ("moc", False)):
+        a = to_plain(compose("offline_train", [f"algo={algo}"]))
+        b = to_plain(compose("offline_train", [f"algo={algo}", "ensemble.fit.lr=0.5", "cvae.hidden_sizes=[8]"]))
+        assert (config_fingerprint(a) == config_fingerprint(b)) is same, algo
+        c = to_plain(compose("offline_train", [f"algo={algo}", "seed=3"]))
+        assert config_fingerprint(a) != config_fingerprint(c), algo  # what the agent does use still counts
