@@ -60,8 +60,9 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
         "",
         f"This is a short-budget run ({s['dataset_transitions']:,} transitions, small models fitted for "
         f"{cfg['ensemble']['fit']['max_steps']} steps, {s['frames']:,} {algo} frames) that shows the pipeline end to end;",
-        "its score is not a full-budget result. The full-budget command (1M transitions, paper-size models, 1M frames):",
-        f"    offhrl train algo={s['algo']} env={cfg['env']['name']} dataset={cfg['dataset']}",
+        "its score is not a full-scale result. The full-scale command (1M transitions, paper-size models; the results in",
+        "docs/results/full/ ran 205k frames with minibatches of 256, the default is 1M frames):",
+        f"    offhrl train algo={s['algo']} env={cfg['env']['name']} dataset={cfg['dataset']} train.total_frames=204800 algo.minibatch_size=256",
     ]
     text = "\n".join(lines)
     print(text)
