@@ -329,3 +329,25 @@ def test_fingerprint_ignores_model_settings_only_for_agents_that_fit_no_model():
         assert (config_fingerprint(a) == config_fingerprint(b)) is same, algo
         c = to_plain(compose("offline_train", [f"algo={algo}", "seed=3"]))
         assert config_fingerprint(a) != config_fingerprint(c), algo  # what the agent does use still counts
+
+
+def test_checkpoints_fingerprinted_under_older_rules_still_resume():
+    """A td3bc checkpoint whose fingerprint still held the (then different) model settings matches today's run; other changes do not."""
+    import json
+
+    from torchrl_offhrl.recipes.config import RESUMABLE_KEYS, config_fingerprint, fingerprints_match
+
+    def legacy(cfg):  # the fingerprint as written before the model settings of dataset agents were dropped from it
+        return json.dumps({k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS and k != "transfer"}, sort_keys=True, default=str)
+
+    now = to_plain(compose("offline_train", ["algo=td3bc"]))
+    then = to_plain(compose("offline_train", ["algo=td3bc", "ensemble.fit.lr=0.0001"]))
+    assert legacy(then) != config_fingerprint(now)
+    assert fingerprints_match(legacy(then), config_fingerprint(now))
+    assert fingerprints_match(None, config_fingerprint(now))  # checkpoints older than fingerprints
+    other_seed = to_plain(compose("offline_train", ["algo=td3bc", "seed=3", "ensemble.fit.lr=0.0001"]))
+    assert not fingerprints_match(legacy(other_seed), config_fingerprint(now))
+    assert not fingerprints_match("not json", config_fingerprint(now))
+    moc_now = to_plain(compose("offline_train", ["algo=moc"]))
+    moc_then = to_plain(compose("offline_train", ["algo=moc", "ensemble.fit.lr=0.0001"]))
+    assert not fingerprints_match(legacy(moc_then), config_fingerprint(moc_now))  # a model-env agent did use those models

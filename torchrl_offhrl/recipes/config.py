@@ -17,7 +17,7 @@ from ..registry import LEVELS
 from ..utils import to_plain
 
 __all__ = [
-    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "model_config", "model_env_config",
+    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "model_config", "model_env_config",
     "pessimism_for", "resolve_dataset", "transfer_config", "transfer_label",
 ]
 
@@ -245,3 +245,21 @@ def config_fingerprint(cfg: Mapping) -> str:
     else:  # the online budget and evaluation period may change on resume, as train and eval may
         kept["transfer"] = {k: v for k, v in t.items() if k not in ("online_frames", "eval_every_frames")}
     return json.dumps(kept, sort_keys=True, default=str)
+
+
+def fingerprints_match(stored: str | None, fingerprint: str) -> bool:
+    """Whether a checkpoint's ``stored`` fingerprint is the run of ``fingerprint`` (``None``: a checkpoint older than fingerprints).
+
+    ``stored`` is read again under today's rules of :func:`config_fingerprint`
+    (a fingerprint is itself a config minus :data:`RESUMABLE_KEYS`): a
+    checkpoint written before a rule dropped a setting (for example the
+    model settings of agents that fit no model) still resumes, and one whose
+    kept settings differ still does not.
+    """
+    if stored is None or stored == fingerprint:
+        return True
+    try:
+        old = json.loads(stored)
+    except (TypeError, ValueError):
+        return False
+    return isinstance(old, Mapping) and config_fingerprint(old) == fingerprint

@@ -113,7 +113,9 @@ class RunDirectory:
             warnings.warn(f"{err}; resuming from the checkpoint before it, {self.previous_path}", stacklevel=2)
             state = load_torch_file(self.previous_path, "previous run checkpoint", f"delete it and {self.checkpoint_path.name} to start over",
                                     map_location=device)
-        if state.get("fingerprint") not in (None, self.fingerprint):
+        from .config import fingerprints_match
+
+        if not fingerprints_match(state.get("fingerprint"), self.fingerprint):
             raise ValueError(
                 f"{self.path} holds a checkpoint of a run with a different configuration (only {', '.join(RESUMABLE_KEYS)} "
                 f"may change when resuming); give another run_dir= or out_root=, or delete {self.checkpoint_path} to start over"
