@@ -57,6 +57,9 @@ def cmd_collect(args) -> int:
         eps = f"{r.get('episodes')} complete episodes" + (f" (+{r['unfinished']} cut short by the budget, left out)" if r.get("unfinished") else "")
     print(f"{len(ds)} transitions, {eps}, return {r.get('mean', float('nan')):.1f} ± {r.get('std', float('nan')):.1f}; "
           f"cached at {dataset_path(name, args.num_transitions, args.seed, args.num_envs)} ({time.time() - t0:.0f} s)")
+    if "goal_success" in ds.metadata:  # the block-stacking datasets
+        rates = ", ".join(f"goal {k}: {v:.2f}" for k, v in ds.metadata["goal_success"].items() if v is not None)
+        print(f"episodes that reached their goal (horizon {ds.metadata.get('horizon')}): {rates}")
     if args.out:
         save_dataset(ds, args.out)
         print(f"written to {args.out}")
@@ -150,8 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("collect", help="generate (or load from the cache) a D4RL-protocol dataset",
                        description="Rolls out a shipped behaviour policy (stochastic, as D4RL) or uniform actions in the real env. "
                        "Cached under $TORCHRL_OFFHRL_CACHE (default ~/.cache/torchrl_offhrl)/datasets; asking again loads the file.")
-    s.add_argument("env", help="hopper | halfcheetah")
-    s.add_argument("level", help="random | medium | expert | medium-expert")
+    s.add_argument("env", help="hopper | halfcheetah | blockstack2 | blockstack3 (block stacking: a scripted controller with noise)")
+    s.add_argument("level", help="random | medium | expert | medium-expert (block stacking: medium | expert | medium-expert)")
     s.add_argument("-n", "--num-transitions", type=int, default=1_000_000, help="transitions (per part for medium-expert); default 1M as D4RL")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--num-envs", type=int, default=8, help="envs stepped side by side")

@@ -10,7 +10,7 @@ import re
 __all__ = ["ENV_IDS", "LEVELS", "resolve_env"]
 
 #: Short dataset names of the envs and their Gymnasium ids.
-ENV_IDS: dict[str, str] = {"hopper": "Hopper-v5", "halfcheetah": "HalfCheetah-v5"}
+ENV_IDS: dict[str, str] = {"hopper": "Hopper-v5", "halfcheetah": "HalfCheetah-v5", "blockstack2": "BlockStack2-v0", "blockstack3": "BlockStack3-v0"}
 #: Dataset levels of D4RL's protocol.
 LEVELS = ("random", "medium", "expert", "medium-expert")
 

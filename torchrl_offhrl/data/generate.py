@@ -37,6 +37,7 @@ from ..utils import cache_dir, one_thread, remove_stale_tmp
 from .collect import collect_dataset, make_gym_env
 from .dataset import DatasetError, OfflineDataset
 from .io import load_dataset, save_dataset
+from .stacking import SCRIPT_LEVELS, SCRIPT_VERSION, generate_stacking_dataset
 from .policies import (
     PolicyNotFoundError,
     list_policies,
@@ -65,7 +66,12 @@ REF_SEED_OFFSET = 100_003
 STEPS_PER_SECOND: dict[str, dict[str, float]] = {
     "hopper": {"random": 2600.0, "policy": 1800.0},
     "halfcheetah": {"random": 4700.0, "policy": 2900.0},
+    # the scripted block stacker on 8 TorchRL-batched envs, one core (MuJoCo's 20 sub-steps dominate)
+    "blockstack2": {"random": 250.0, "policy": 250.0},
+    "blockstack3": {"random": 230.0, "policy": 230.0},
 }
+#: short names of the block-stacking envs (their datasets come from :mod:`torchrl_offhrl.data.stacking`)
+STACKING_ENVS = ("blockstack2", "blockstack3")
 
 _NAME = re.compile(
     r"^(?P<env>[a-z0-9_]+?)-(?P<level>random|medium-expert|medium|expert)(?:-(?P<size>\d+[km]?))?$",
@@ -348,7 +354,8 @@ def dataset_path(name: str, num_transitions: int | None = None, seed: int = 0, n
     """
     _, short, level, n = _resolve_size(name, num_transitions)
     envs = "" if num_envs == 8 else f"-envs{num_envs}"
-    return cache_dir() / "datasets" / f"{short}-{level}-{n}-seed{seed}{envs}{_policy_tag(short, level)}.hdf5"
+    tag = f"-script{SCRIPT_VERSION}" if short in STACKING_ENVS else _policy_tag(short, level)
+    return cache_dir() / "datasets" / f"{short}-{level}-{n}-seed{seed}{envs}{tag}.hdf5"
 
 
 def _resolve_size(name: str, num_transitions: int | None):
@@ -372,8 +379,11 @@ def estimate_seconds(env: str, level: str, num_transitions: int, ref_episodes: i
         >>> round(estimate_seconds("hopper", "random", 260_000, ref_episodes=0))
         100
     """
-    rates = STEPS_PER_SECOND.get(resolve_env(env)[1], STEPS_PER_SECOND["hopper"])
+    short = resolve_env(env)[1]
+    rates = STEPS_PER_SECOND.get(short, STEPS_PER_SECOND["hopper"])
     parts = 2 if level == "medium-expert" else 1
+    if short in STACKING_ENVS:  # no reference evaluations
+        return parts * num_transitions / rates["policy"]
     seconds = parts * num_transitions / rates["random" if level == "random" else "policy"]
     if ref_episodes > 0:
         seconds += ref_episodes * 1000 * (1 / rates["random"] + 1 / rates["policy"])
@@ -429,6 +439,14 @@ def named_dataset(
         except DatasetError as err:  # the cache can always be rebuilt: say so, and generate the file again
             warnings.warn(f"the cached dataset {path} is corrupt ({err}); deleting it and generating it again", stacklevel=2)
             path.unlink()
+    if short in STACKING_ENVS:  # scripted behaviour: no shipped policy needed
+        if level not in (*SCRIPT_LEVELS, "medium-expert"):
+            raise ValueError(f"{name!r}: the block-stacking datasets come in the levels {[*SCRIPT_LEVELS, 'medium-expert']}")
+        _announce(name, path, n * (2 if level == "medium-expert" else 1), estimate_seconds(short, level, n), progress, "scripted controller")
+        ds = generate_stacking_dataset(env_id, level, n, seed=seed, num_envs=num_envs, progress=progress)
+        save_dataset(ds, path)
+        ds.metadata["source"] = str(path)
+        return ds
     needed = _POLICY_LEVELS[level]
     shipped = list_policies()
     for lv in needed:

@@ -5,7 +5,8 @@ Three sources, one entry point (:func:`load_dataset`):
 * D4RL-style HDF5 files (``observations``, ``actions``, ``rewards``,
   ``terminals``, ``timeouts``, optional ``next_observations``), read with h5py;
 * the project's own HDF5 files, written by :func:`save_dataset`: the D4RL key
-  layout plus ``next_observations`` and a JSON metadata attribute;
+  layout plus ``next_observations``, a JSON metadata attribute and, under the
+  group ``extra/``, any further per-transition fields (goals, options...);
 * Minari datasets already stored locally (``$MINARI_DATASETS_PATH``); nothing
   is ever downloaded.
 
@@ -32,6 +33,12 @@ __all__ = ["load_dataset", "save_dataset", "METADATA_ATTR"]
 log = logging.getLogger(__name__)
 
 METADATA_ATTR = "offhrl_metadata"
+#: HDF5 group of the per-transition fields beyond the D4RL keys (e.g. the goal fields of the block-stacking
+#: datasets), one dataset per TensorDict key, nested keys as paths (``extra/next/achieved_goal``)
+EXTRA_GROUP = "extra"
+# the keys the D4RL layout stores, and those OfflineDataset derives
+_CORE_KEYS = {("observation",), ("action",), ("next", "observation"), ("next", "reward"), ("next", "terminated"), ("next", "truncated"),
+              ("next", "done"), ("episode",)}
 _REQUIRED = ("observations", "actions", "rewards", "terminals")
 _MINARI_ID = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*-v\d+$")
 
@@ -120,6 +127,7 @@ def _load_hdf5(path: Path, dtype: torch.dtype) -> OfflineDataset:
             if has_next:
                 arrays["next_observations"] = f["next_observations"][()]
             meta_raw = f.attrs.get(METADATA_ATTR)
+            extras = _read_extras(f)
     except OSError as err:  # a truncated or damaged file: h5py says so without the fix
         raise DatasetError(
             f"{path}: cannot be read: the file is corrupt or truncated (h5py: {err}). Copy or download it again; "
@@ -214,12 +222,36 @@ def _load_hdf5(path: Path, dtype: torch.dtype) -> OfflineDataset:
             },
         },
         batch_size=[n],
-    )[keep]
-    return OfflineDataset(td, metadata)
+    )
+    for key, arr in extras.items():
+        if arr.shape[:1] != (n,):
+            raise DatasetError(f"{path}: '{EXTRA_GROUP}/{'/'.join(key)}' has shape {arr.shape} but 'observations' has {n} rows; "
+                               "every key must hold one row per transition.")
+        t = torch.as_tensor(arr)
+        td.set(key, t.to(dtype) if t.is_floating_point() else t)
+    if extras:
+        check_finite(td.select(*[k for k in extras if td.get(k).is_floating_point()]), source)
+    return OfflineDataset(td[keep], metadata)
+
+
+def _read_extras(f) -> dict[tuple[str, ...], np.ndarray]:
+    """The per-transition fields beyond the D4RL keys, stored under :data:`EXTRA_GROUP` (key path -> array)."""
+    import h5py
+
+    out: dict[tuple[str, ...], np.ndarray] = {}
+    if EXTRA_GROUP not in f:
+        return out
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            out[tuple(name.split("/"))] = obj[()]
+
+    f[EXTRA_GROUP].visititems(visit)
+    return out
 
 
 def save_dataset(dataset: OfflineDataset, path: str | os.PathLike, compression: str | None = "gzip") -> Path:
-    """Write a dataset to HDF5 (D4RL key layout + ``next_observations`` + metadata).
+    """Write a dataset to HDF5 (D4RL key layout + ``next_observations`` + metadata + the other fields under ``extra/``).
 
     The file is written to a temporary name in the same folder and renamed at
     the end, so an interrupted write never leaves a file that looks complete.
@@ -247,6 +279,10 @@ def save_dataset(dataset: OfflineDataset, path: str | os.PathLike, compression: 
         put("rewards", td.get(("next", "reward")).reshape(-1))
         put("terminals", td.get(("next", "terminated")).reshape(-1))
         put("timeouts", (td.get(("next", "truncated")) & ~td.get(("next", "terminated"))).reshape(-1))
+        for key in td.keys(include_nested=True, leaves_only=True):
+            path_ = (key,) if isinstance(key, str) else tuple(key)
+            if path_ not in _CORE_KEYS:
+                put(f"{EXTRA_GROUP}/{'/'.join(path_)}", td.get(key))
         f.attrs[METADATA_ATTR] = json.dumps(meta, default=_json_default)
     return path
 

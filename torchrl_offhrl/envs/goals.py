@@ -1,0 +1,170 @@
+"""Sub-goals, successes and rewards of the block-stacking tasks as pure, vectorised tensor functions of the state.
+
+The real envs (:mod:`torchrl_offhrl.envs.blockstack`) and the model env
+compute their goals and rewards with these functions, so that an agent
+sees the same task in both. Every function takes observations of any
+leading batch shape ``[..., obs_dim]`` (torch tensors; the gym env passes
+numpy arrays through :func:`torch.as_tensor`).
+
+The definitions follow the official UOF code the paper used (see
+``block_stacking.md`` of the reference notes). ``n_blocks`` is 2 (task 1:
+red and blue) or 3 (task 2: red, blue, green). Observation layout
+(UOF's, velocities multiplied by ``dt = 0.04``)::
+
+    [0:3]   gripper position            [3:6] gripper linear velocity
+    [6:8]   finger velocities           [8:10] finger positions (qpos)
+    then per block c (red, blue[, green]), 6 dims: position, gripper - position
+    then per block c, 6 dims: gripper velocity - block velocity, block angular velocity
+
+The low-level goal (sub-goal) of option ``k`` is a vector of
+``5 + 3 * n_blocks`` numbers, ``[finger_r, finger_l, gripper xyz, red xyz,
+blue xyz(, green xyz)]``, recomputed from the current state: with
+``G(c)`` block ``c``'s current x, y at resting height :data:`REST_Z`, ``R``
+red's current position, ``W`` = :data:`GRASP_WIDTH` and ``E`` =
+:data:`END_POINT`,
+
+==========================  =========  ===================  ====================================
+sub-goal                    fingers    gripper              blocks
+==========================  =========  ===================  ====================================
+0 pick blue                 W, W       G(blue) + 0.005 z    all at G(c)
+1 blue on red               W, W       R + 0.055 z          blue at R + 0.05 z, others at G(c)
+2 end, blue on red          0.005      E                    blue at R + 0.05 z, others at G(c)
+3-5 (task 2)                as 0-2 with green in place of blue (blue stays at G(blue))
+==========================  =========  ===================  ====================================
+
+The achieved sub-goal is ``[finger qpos, gripper, block positions]`` of
+the state. Sub-goal ``k`` is met when the whole vector is within
+:data:`SUCCESS_DISTANCE` (L2) of its sub-goal. The high level's
+``achieved_goal`` is the vector of success flags of every sub-goal, its
+``desired_goal`` a one-hot goal index.
+"""
+from __future__ import annotations
+
+import torch
+
+__all__ = [
+    "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "achieved_goal_flags", "achieved_sub_goal",
+    "block_positions", "goal_reward", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals",
+]
+
+#: resting height of a block's centre on the table (UOF's constant; MuJoCo settles at ~0.4249)
+REST_Z = 0.425
+#: each finger's position when closed on a block (UOF's ``W``)
+GRASP_WIDTH = 0.023
+#: each finger's position in the final sub-goals (closed)
+CLOSED_WIDTH = 0.005
+#: the fixed point the gripper returns to in the final sub-goals
+END_POINT = (1.25, 0.75, 0.65)
+#: a sub-goal is met when its whole vector is within this L2 distance
+SUCCESS_DISTANCE = 0.02
+#: height of the gripper above the centre of the block it holds (grasp sub-goal)
+GRASP_OFFSET = 0.005
+#: height of a stacked block's centre above the lower block's centre
+STACK_OFFSET = 0.05
+#: height of the gripper above the lower block's centre when it has stacked a block on it
+PLACE_OFFSET = 0.055
+
+
+def _check_blocks(n_blocks: int) -> int:
+    if n_blocks not in (2, 3):
+        raise ValueError(f"n_blocks must be 2 (task 1: red, blue) or 3 (task 2: red, blue, green), got {n_blocks!r}")
+    return int(n_blocks)
+
+
+def n_goals(n_blocks: int) -> int:
+    """Number of goals (= options = sub-goals): 3 for task 1, 6 for task 2."""
+    return 3 * (_check_blocks(n_blocks) - 1)
+
+
+def obs_dim(n_blocks: int) -> int:
+    """Observation size: 34 for task 1, 46 for task 2."""
+    return 10 + 12 * _check_blocks(n_blocks)
+
+
+def sub_goal_dim(n_blocks: int) -> int:
+    """Sub-goal size: 11 for task 1, 14 for task 2."""
+    return 5 + 3 * _check_blocks(n_blocks)
+
+
+def _as_obs(obs, n_blocks: int) -> torch.Tensor:
+    obs = torch.as_tensor(obs)
+    if not obs.is_floating_point():
+        obs = obs.float()
+    if obs.shape[-1] != obs_dim(n_blocks):
+        raise ValueError(f"observations of the {n_blocks}-block task have {obs_dim(n_blocks)} entries, got shape {tuple(obs.shape)}")
+    return obs
+
+
+def block_positions(obs, n_blocks: int) -> torch.Tensor:
+    """``[..., n_blocks, 3]``: the blocks' positions (red, blue[, green])."""
+    obs = _as_obs(obs, n_blocks)
+    return torch.stack([obs[..., 10 + 6 * c: 13 + 6 * c] for c in range(n_blocks)], dim=-2)
+
+
+def achieved_sub_goal(obs, n_blocks: int) -> torch.Tensor:
+    """``[..., 5 + 3 n_blocks]``: finger positions, gripper position, block positions of the state."""
+    obs = _as_obs(obs, n_blocks)
+    return torch.cat([obs[..., 8:10], obs[..., 0:3], block_positions(obs, n_blocks).flatten(-2)], dim=-1)
+
+
+def sub_goals(obs, n_blocks: int) -> torch.Tensor:
+    """``[..., n_goals, 5 + 3 n_blocks]``: every option's sub-goal at this state (table in the module docstring)."""
+    obs = _as_obs(obs, n_blocks)
+    blocks = block_positions(obs, n_blocks)
+    rest = blocks.clone()
+    rest[..., 2] = REST_Z  # G(c): each block's x, y at resting height
+    red = blocks[..., 0, :]
+    up = obs.new_tensor([0.0, 0.0, 1.0])
+    end = obs.new_tensor(END_POINT).expand_as(red)
+    out = []
+    for moved in range(1, n_blocks):  # blue (goals 0-2), then green (goals 3-5)
+        stacked = rest.clone()
+        stacked[..., moved, :] = red + STACK_OFFSET * up
+        for fingers, gripper, layout in (
+            (GRASP_WIDTH, rest[..., moved, :] + GRASP_OFFSET * up, rest),
+            (GRASP_WIDTH, red + PLACE_OFFSET * up, stacked),
+            (CLOSED_WIDTH, end, stacked),
+        ):
+            f = obs.new_full((*obs.shape[:-1], 2), fingers)
+            out.append(torch.cat([f, gripper, layout.flatten(-2)], dim=-1))
+    return torch.stack(out, dim=-2)
+
+
+def sub_goal_reached(achieved, goal) -> torch.Tensor:
+    """``|achieved - goal| < SUCCESS_DISTANCE`` over the last dimension (bool); shapes broadcast."""
+    achieved, goal = torch.as_tensor(achieved), torch.as_tensor(goal)
+    return torch.linalg.vector_norm((achieved - goal).float(), dim=-1) < SUCCESS_DISTANCE
+
+
+def sub_goal_reward(achieved, goal) -> torch.Tensor:
+    """The low level's reward: 0 where ``achieved`` (at s') meets ``goal``, else -1 (float)."""
+    return sub_goal_reached(achieved, goal).float() - 1.0
+
+
+def achieved_goal_flags(obs, n_blocks: int) -> torch.Tensor:
+    """``[..., n_goals]``: 1.0 for every sub-goal the state meets (the high level's ``achieved_goal``), in the observations' dtype."""
+    obs = _as_obs(obs, n_blocks)
+    return sub_goal_reached(achieved_sub_goal(obs, n_blocks).unsqueeze(-2), sub_goals(obs, n_blocks)).to(obs.dtype)
+
+
+def goal_reward(achieved_goal, desired_goal) -> torch.Tensor:
+    """The high level's reward: 0 where the success flags equal the one-hot ``desired_goal``, else -1 (float).
+
+    UOF also requires the running option to be the goal's; the env does
+    not know the agent's option, so hierarchical agents add that condition.
+    """
+    achieved_goal, desired_goal = torch.as_tensor(achieved_goal), torch.as_tensor(desired_goal)
+    return (achieved_goal.round() == desired_goal.round()).all(-1).float() - 1.0
+
+
+def abstract_demonstration(goal: int, n_blocks: int) -> list[int]:
+    """The option sequence that ends in ``goal`` (UOF's abstract demonstrations).
+
+    Examples:
+        >>> abstract_demonstration(2, 2), abstract_demonstration(4, 3)
+        ([0, 1, 2], [3, 4])
+    """
+    if not 0 <= int(goal) < n_goals(n_blocks):
+        raise ValueError(f"goal must be in [0, {n_goals(n_blocks)}) for the {n_blocks}-block task, got {goal}")
+    start = 3 * (int(goal) // 3)
+    return list(range(start, int(goal) + 1))
