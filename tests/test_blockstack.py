@@ -217,3 +217,10 @@ def test_named_stacking_dataset_is_generated_and_cached(tmp_path, monkeypatch):
     assert torch.equal(again.data["sub_goal"], ds.data["sub_goal"])
     with pytest.raises(ValueError, match="levels"):
         named_dataset("blockstack2-random", num_transitions=50, progress=False)
+
+
+def test_affine_sub_goals_equal_the_definition():
+    for n in (2, 3):
+        for dtype in (torch.float32, torch.float64):
+            obs = torch.randn(7, 5, G.obs_dim(n), dtype=dtype)
+            torch.testing.assert_close(G.sub_goals(obs, n), G.sub_goals_reference(obs, n))

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import torch
 
+import numpy as np
+
 from ..envs import goals as G
 
 __all__ = ["ScriptedStacker", "next_option"]
@@ -149,7 +151,7 @@ GOAL_FIELDS = {
 
 
 def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0, noise_std: float = 0.0, num_envs: int = 8,
-                     seed: int = 0, horizon: int | None = None, progress: bool = True, parallel: bool = False, metadata: dict | None = None,
+                     seed: int = 0, horizon: int | None = None, progress: bool = True, metadata: dict | None = None,
                      controller=None):
     """Episodes of :class:`ScriptedStacker` in a block-stacking env, as an :class:`~torchrl_offhrl.data.OfflineDataset`.
 
@@ -167,58 +169,68 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     ``metadata["goal_episodes"]`` their counts. The same seed gives the same
     tensors.
     """
+    import time
+
+    import gymnasium as gym
     from tensordict import TensorDict
-    from torchrl.envs.utils import step_mdp
     from tqdm.auto import tqdm
 
-    from ..envs.blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, make_blockstack_env
+    from ..envs.blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
     from .collect import package_versions
     from .dataset import OfflineDataset
 
     if env_id not in BLOCKSTACK_IDS:
         raise ValueError(f"collect_stacking: {env_id!r} is not a block-stacking env ({', '.join(BLOCKSTACK_IDS)})")
-    import time
-
+    register_blockstack_envs()
     n_blocks = BLOCKSTACK_IDS[env_id]
     horizon = int(horizon or DEFAULT_HORIZON)
-    env = make_blockstack_env(env_id, num_envs=num_envs, parallel=parallel, max_episode_steps=horizon)
-    env.set_seed(seed)
+    # Gymnasium's vector env, reset by hand at the start of each round (every episode ends at the horizon together):
+    # no per-step TensorDict bookkeeping, which cost as much as the MuJoCo step itself
+    venv = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
+                        vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.DISABLED}, max_episode_steps=horizon)
     gen = torch.Generator().manual_seed(seed)
     scripted = controller is None
     controller = ScriptedStacker(n_blocks, random_prob, noise_std, generator=gen) if scripted else controller
     rounds = -(-int(num_transitions) // (num_envs * horizon))
-    episodes = []
+    rows = torch.arange(num_envs)
+    steps: list[dict] = []
     t0 = time.time()
     bar = tqdm(total=rounds * num_envs * horizon, desc=f"collect {env_id}", disable=not progress, unit="step")
-    for _ in range(rounds):
-        td = env.reset()
-        goal = td["desired_goal"].argmax(-1)
+    for r in range(rounds):
+        obs, _ = venv.reset(seed=seed if r == 0 else None)  # env i is seeded with seed + i, then continues its own stream
+        obs = {k: torch.from_numpy(v) for k, v in obs.items()}
+        goal = obs["desired_goal"].argmax(-1)
         option = first_option(goal)
-        steps = []
         for t in range(horizon):
-            obs = td["observation"]
-            td["action"] = controller(obs, option)
-            td = env.step(td)
-            nxt = td["next"]
-            flags = nxt["achieved_goal"]
+            action = torch.as_tensor(controller(obs["observation"].float(), option), dtype=torch.float32)
+            nobs, reward, terminated, truncated, _ = venv.step(action.double().numpy())
+            nobs = {k: torch.from_numpy(v) for k, v in nobs.items()}
+            flags = nobs["achieved_goal"]
             done_opt = flags.gather(-1, option.unsqueeze(-1)) > 0.5
-            steps.append(TensorDict({
-                "observation": obs, "action": td["action"], "desired_goal": td["desired_goal"], "achieved_goal": td["achieved_goal"],
-                "option": option.clone(), "sub_goal": td["sub_goals"][torch.arange(num_envs), option],
-                "achieved_sub_goal": td["achieved_sub_goal"],
-                "next": {"observation": nxt["observation"], "reward": nxt["reward"], "terminated": nxt["terminated"],
-                         "truncated": nxt["truncated"], "achieved_goal": flags, "achieved_sub_goal": nxt["achieved_sub_goal"],
-                         "sub_goal_reward": done_opt.float() - 1.0, "option_done": done_opt},
-            }, batch_size=[num_envs]))
+            steps.append({
+                "observation": obs["observation"], "action": action, "desired_goal": obs["desired_goal"], "achieved_goal": obs["achieved_goal"],
+                "option": option, "sub_goal": obs["sub_goals"][rows, option], "achieved_sub_goal": obs["achieved_sub_goal"],
+                ("next", "observation"): nobs["observation"], ("next", "reward"): torch.from_numpy(np.asarray(reward)).unsqueeze(-1),
+                ("next", "terminated"): torch.from_numpy(np.asarray(terminated)).unsqueeze(-1),
+                ("next", "truncated"): torch.from_numpy(np.asarray(truncated)).unsqueeze(-1),
+                ("next", "achieved_goal"): flags, ("next", "achieved_sub_goal"): nobs["achieved_sub_goal"],
+                ("next", "sub_goal_reward"): done_opt.float() - 1.0, ("next", "option_done"): done_opt,
+            })
             option = next_option(option, goal, flags)
-            td = step_mdp(td)
+            obs = nobs
             bar.update(num_envs)
-        if not bool(steps[-1]["next", "truncated"].all()):
+        if not bool(steps[-1][("next", "truncated")].all()):
             raise RuntimeError(f"{env_id}: an episode did not end at the horizon {horizon}")
-        episodes.append(torch.stack(steps, dim=1))  # [num_envs, horizon]
     bar.close()
-    env.close()
-    data = torch.cat(episodes, 0).reshape(-1)  # episode after episode
+    venv.close()
+    # [rounds * horizon, num_envs] -> episode after episode: [rounds, num_envs, horizon] flattened
+    stacked = {}
+    for key in steps[0]:
+        v = torch.stack([st[key] for st in steps]).unflatten(0, (rounds, horizon)).transpose(1, 2).flatten(0, 2)
+        stacked[key] = v.float() if v.dtype == torch.float64 else v
+    data = TensorDict({}, batch_size=[rounds * num_envs * horizon])
+    for key, v in stacked.items():
+        data.set(key, v)
     goals = data["desired_goal"].argmax(-1).reshape(-1, horizon)[:, 0]
     reached = (data["next", "reward"].reshape(-1, horizon) == 0).any(-1)
     n_goals = data["desired_goal"].shape[-1]

@@ -186,13 +186,18 @@ def _make_class():
             dt = self.n_substeps * m.opt.timestep
             grip = u.get_site_xpos(m, d, "robot0:grip").copy()
             grip_vel = u.get_site_xvelp(m, d, "robot0:grip") * dt
-            robot_qpos, robot_qvel = u.robot_get_obs(m, d, self._model_names.joint_names)
+            if getattr(self, "_finger_adr", None) is None:  # the two finger joints' qpos / qvel addresses (gymnasium-robotics' robot_get_obs
+                # reads every robot joint by name at each step; the observation takes the last two, the fingers)
+                names = [n for n in self._model_names.joint_names if n.startswith("robot")][-2:]
+                ids = [self._model_names.joint_name2id[n] for n in names]
+                self._finger_adr = (m.jnt_qposadr[ids].copy(), m.jnt_dofadr[ids].copy())
+            qadr, vadr = self._finger_adr
             positions, velocities = [], []
             for c in self.blocks:
                 pos = u.get_site_xpos(m, d, c).copy()
                 positions.append(np.concatenate([pos, grip - pos]))
                 velocities.append(np.concatenate([grip_vel - u.get_site_xvelp(m, d, c) * dt, u.get_site_xvelr(m, d, c) * dt]))
-            obs = np.concatenate([grip, grip_vel, robot_qvel[-2:] * dt, robot_qpos[-2:], *positions, *velocities])
+            obs = np.concatenate([grip, grip_vel, d.qvel[vadr] * dt, d.qpos[qadr], *positions, *velocities])
             t = torch.from_numpy(obs)
             goal = self.goal if np.size(self.goal) == self.n_goals else np.zeros(self.n_goals)
             sub, achieved = G.sub_goals(t, self.n_blocks), G.achieved_sub_goal(t, self.n_blocks)
@@ -250,8 +255,8 @@ def register_blockstack_envs() -> None:
             gymnasium.register(env_id, entry_point=f"{__name__}:_entry_point", max_episode_steps=DEFAULT_HORIZON, kwargs={"n_blocks": n})
 
 
-def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", parallel: bool = False, **gym_kwargs):
-    """``num_envs`` copies of a block-stacking env batched by TorchRL (``SerialEnv``, or ``ParallelEnv`` with ``parallel``), float32.
+def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", **gym_kwargs):
+    """``num_envs`` copies of a block-stacking env batched by TorchRL's ``SerialEnv``, float32.
 
     Each copy is TorchRL's ``GymEnv(env_id, **gym_kwargs)`` (e.g.
     ``max_episode_steps=50``, ``block_mass=50.0``); the batch resets each
@@ -259,18 +264,18 @@ def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", parallel: 
     for the locomotion envs: TorchRL 0.14's reader of a vector env's final
     observations fails on dict observations at the first autoreset.
     """
-    from torchrl.envs import DoubleToFloat, ParallelEnv, SerialEnv, TransformedEnv
+    from torchrl.envs import DoubleToFloat, SerialEnv, TransformedEnv
 
     if env_id not in BLOCKSTACK_IDS:
         raise ValueError(f"{env_id!r} is not a block-stacking env; they are {', '.join(BLOCKSTACK_IDS)}")
     register_blockstack_envs()
     make = _EnvFactory(env_id, gym_kwargs)
-    batched = (ParallelEnv if parallel else SerialEnv)(int(num_envs), make, device=device)
+    batched = SerialEnv(int(num_envs), make, device=device)
     return TransformedEnv(batched, DoubleToFloat())
 
 
 class _EnvFactory:
-    """A picklable ``GymEnv`` constructor (``ParallelEnv`` sends it to its workers)."""
+    """A picklable ``GymEnv`` constructor (so that the batch can also go to TorchRL's ``ParallelEnv`` workers)."""
 
     def __init__(self, env_id: str, gym_kwargs: dict):
         self.env_id, self.gym_kwargs = env_id, dict(gym_kwargs)

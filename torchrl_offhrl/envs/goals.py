@@ -44,7 +44,7 @@ import torch
 
 __all__ = [
     "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "achieved_goal_flags", "achieved_sub_goal",
-    "block_positions", "goal_reward", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals",
+    "block_positions", "goal_reward", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
 ]
 
 #: resting height of a block's centre on the table (UOF's constant; MuJoCo settles at ~0.4249)
@@ -108,7 +108,33 @@ def achieved_sub_goal(obs, n_blocks: int) -> torch.Tensor:
 
 
 def sub_goals(obs, n_blocks: int) -> torch.Tensor:
-    """``[..., n_goals, 5 + 3 n_blocks]``: every option's sub-goal at this state (table in the module docstring)."""
+    """``[..., n_goals, 5 + 3 n_blocks]``: every option's sub-goal at this state (table in the module docstring).
+
+    Every entry of a sub-goal is a constant or an entry of the observation
+    plus a constant, so the map is affine: it runs as one matrix product,
+    ``obs @ M.T + c``, with ``(M, c)`` read off :func:`sub_goals_reference`
+    (the definition, entry by entry) once per dtype and device.
+    """
+    obs = _as_obs(obs, n_blocks)
+    m, c = _affine(n_blocks, obs.dtype, obs.device)
+    return (obs @ m.T + c).unflatten(-1, (n_goals(n_blocks), sub_goal_dim(n_blocks)))
+
+
+_AFFINE: dict = {}
+
+
+def _affine(n_blocks: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    key = (n_blocks, dtype, device)
+    if key not in _AFFINE:
+        d = obs_dim(n_blocks)
+        c = sub_goals_reference(torch.zeros(d, dtype=torch.float64), n_blocks).flatten()
+        m = sub_goals_reference(torch.eye(d, dtype=torch.float64), n_blocks).flatten(-2) - c  # row i: the response to obs entry i
+        _AFFINE[key] = (m.T.contiguous().to(dtype=dtype, device=device), c.to(dtype=dtype, device=device))
+    return _AFFINE[key]
+
+
+def sub_goals_reference(obs, n_blocks: int) -> torch.Tensor:
+    """:func:`sub_goals` computed entry by entry from the definitions (slower; what the fast affine form is read from)."""
     obs = _as_obs(obs, n_blocks)
     blocks = block_positions(obs, n_blocks)
     rest = blocks.clone()
