@@ -224,3 +224,85 @@ def test_affine_sub_goals_equal_the_definition():
         for dtype in (torch.float32, torch.float64):
             obs = torch.randn(7, 5, G.obs_dim(n), dtype=dtype)
             torch.testing.assert_close(G.sub_goals(obs, n), G.sub_goals_reference(obs, n))
+
+
+# ------------------------------------------------------------------------------------------ the model env
+@pytest.fixture(scope="module", params=["BlockStack2-v0", "BlockStack3-v0"])
+def stacking_models(request):
+    from torchrl_offhrl.data.stacking import collect_stacking
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+
+    data = collect_stacking(request.param, 200, 0.1, 0.1, num_envs=4, seed=1, progress=False)
+    ens = DynamicsEnsemble.for_dataset(data, num_models=3, hidden_sizes=(32,), learn_reward=False).fit(data, max_epochs=2, progress=False)
+    cvae = ConditionalVAE.for_dataset(data, goal_key="sub_goal", hidden_sizes=(32,)).fit(data, max_epochs=2, progress=False)
+    return request.param, data, ens, cvae
+
+
+def test_composed_model_env_specs_rewards_and_goals(stacking_models):
+    from torchrl.envs import Compose, TransformedEnv
+    from torchrl.envs.utils import check_env_specs
+
+    from torchrl_offhrl.envs import BlockStackModelEnv, LatentActionTransform, SubGoalTracker
+
+    env_id, data, ens, cvae = stacking_models
+    n_blocks = 2 if env_id == "BlockStack2-v0" else 3
+    base = BlockStackModelEnv(ens, data, batch_size=[16], seed=0)
+    assert base.horizon == 25 and base.penalty == 50.0 and base.termination_fn is None
+    env = TransformedEnv(base, Compose(SubGoalTracker(), LatentActionTransform(cvae.decoder, goal_key="sub_goal")))
+    check_env_specs(env)
+    td = env.rollout(30, break_when_any_done=False)
+    nxt = td["next"]
+    # rewards: the task's, from the predicted states, unless the step was penalised
+    expect = G.goal_reward(nxt["achieved_goal"], td["desired_goal"]).unsqueeze(-1)
+    expect = torch.where(nxt["penalized"], torch.full_like(expect, -50.0), expect)
+    torch.testing.assert_close(nxt["reward"], expect)
+    torch.testing.assert_close(nxt["sub_goals"], G.sub_goals(nxt["observation"], n_blocks))
+    torch.testing.assert_close(nxt["achieved_goal"], G.achieved_goal_flags(nxt["observation"], n_blocks))
+    # the decoder's goal is the tracked option's sub-goal; the desired goal stays within an episode
+    rows = td["sub_goals"].gather(-2, td["option"][..., None, None].expand(*td["option"].shape, 1, td["sub_goal"].shape[-1])).squeeze(-2)
+    torch.testing.assert_close(td["sub_goal"], rows)
+    same_episode = ~td["next", "done"][:, :-1].squeeze(-1)
+    assert torch.equal(td["desired_goal"][:, 1:][same_episode], td["desired_goal"][:, :-1][same_episode])
+    assert (td["option"] <= td["desired_goal"].argmax(-1)).all()
+    # episodes end at the horizon or on a penalty, never otherwise
+    ends = nxt["done"].squeeze(-1)
+    assert torch.equal(ends, (nxt["penalized"] | nxt["truncated"]).squeeze(-1))
+    assert (nxt["model_step"][nxt["truncated"]] == 25).all()
+
+
+def test_model_env_goal_draws_and_arguments(stacking_models):
+    from torchrl_offhrl.envs import BlockStackModelEnv
+
+    _, data, ens, _ = stacking_models
+    n_goals = data.data["desired_goal"].shape[-1]
+    env = BlockStackModelEnv(ens, data, batch_size=[3000], seed=0)
+    counts = env.reset()["desired_goal"].sum(0)
+    assert counts.sum() == 3000 and (counts > 3000 / n_goals * 0.8).all()
+    only_last = BlockStackModelEnv(ens, data, batch_size=[50], seed=0, goal_probs=[0] * (n_goals - 1) + [1])
+    assert (only_last.reset()["desired_goal"].argmax(-1) == n_goals - 1).all()
+    with pytest.raises(ValueError, match="goal_probs"):
+        BlockStackModelEnv(ens, data, goal_probs=[1.0])
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import DynamicsEnsemble
+
+    toy = make_toy_dataset(num_episodes=3, episode_length=5)
+    with pytest.raises(ValueError, match="block-stacking"):
+        BlockStackModelEnv(DynamicsEnsemble.for_dataset(toy, num_models=2, hidden_sizes=(8,), learn_reward=False), toy)
+
+
+def test_sub_goal_tracker_on_the_real_env_follows_the_collection_rule():
+    from torchrl.envs.utils import check_env_specs
+
+    from torchrl_offhrl.data import make_gym_env
+    from torchrl_offhrl.envs import SubGoalTracker
+
+    env = make_gym_env("BlockStack3-v0", num_envs=3, max_episode_steps=6).append_transform(SubGoalTracker())
+    check_env_specs(env)
+    td = env.rollout(14, break_when_any_done=False)
+    goal = td["desired_goal"].argmax(-1)
+    first = td["next", "done"].squeeze(-1).roll(1, dims=1)
+    first[:, 0] = True
+    assert torch.equal(td["option"][first], G.first_option(goal[first]))
+    later = ~first[:, 1:]
+    expect = G.next_option(td["option"][:, :-1], goal[:, :-1], td["next", "achieved_goal"][:, :-1])
+    assert torch.equal(td["option"][:, 1:][later], expect[later])

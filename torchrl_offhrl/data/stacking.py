@@ -27,39 +27,18 @@ added to its three displacement entries.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
-import numpy as np
-
 from ..envs import goals as G
+from ..envs.goals import first_option, next_option
 
-__all__ = ["ScriptedStacker", "next_option"]
+__all__ = ["GOAL_FIELDS", "SCRIPT_LEVELS", "ScriptedStacker", "collect_stacking", "first_option", "generate_stacking_dataset", "next_option", "scripted_success"]
 
 _ALIGN = 0.008     # x, y error under which the gripper descends
 _SAFE = 0.06       # height above a block to reach it from
 _CARRY = 0.08      # height above red to carry a block at
 _GAIN = 2.0 / 0.05
-
-
-def next_option(option: torch.Tensor, goal: torch.Tensor, flags: torch.Tensor) -> torch.Tensor:
-    """The options after a step: each env moves on along its goal's abstract demonstration when its sub-goal is met.
-
-    ``option`` and ``goal`` are ``[B]`` integer tensors, ``flags`` the
-    ``[B, n_goals]`` success flags at s' (the env's ``achieved_goal``). An
-    env already in its goal's option stays in it.
-
-    Examples:
-        >>> import torch
-        >>> next_option(torch.tensor([0, 0, 2]), torch.tensor([2, 0, 2]), torch.tensor([[1., 0, 0], [1, 0, 0], [0, 0, 1]]))
-        tensor([1, 0, 2])
-    """
-    met = flags.gather(-1, option.long().unsqueeze(-1)).squeeze(-1) > 0.5
-    return torch.where(met & (option < goal), option + 1, option)
-
-
-def first_option(goal: torch.Tensor) -> torch.Tensor:
-    """The first option of each goal's abstract demonstration (0 for goals 0-2, 3 for goals 3-5)."""
-    return 3 * torch.div(goal.long(), 3, rounding_mode="floor")
 
 
 class ScriptedStacker:

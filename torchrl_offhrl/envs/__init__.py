@@ -2,6 +2,7 @@
 from . import goals
 from .blockstack import BLOCKSTACK_IDS, register_blockstack_envs
 from .calibration import CalibrationReport, calibrate_threshold, dataset_discrepancy
+from .goal_model import BlockStackModelEnv, SubGoalTracker
 from .latent import AffineActionMap, LatentActionTransform
 from .pessimistic import PessimisticModelEnv
 from .tasks import TASKS, make_task_env, task_kwargs
@@ -9,10 +10,12 @@ from .termination import TERMINATION_FNS, hopper_termination, never_terminates, 
 
 __all__ = [
     "BLOCKSTACK_IDS",
+    "BlockStackModelEnv",
     "AffineActionMap",
     "CalibrationReport",
     "LatentActionTransform",
     "PessimisticModelEnv",
+    "SubGoalTracker",
     "TASKS",
     "TERMINATION_FNS",
     "calibrate_threshold",

@@ -44,7 +44,7 @@ import torch
 
 __all__ = [
     "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "achieved_goal_flags", "achieved_sub_goal",
-    "block_positions", "goal_reward", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
+    "block_positions", "first_option", "goal_reward", "next_option", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
 ]
 
 #: resting height of a block's centre on the table (UOF's constant; MuJoCo settles at ~0.4249)
@@ -194,3 +194,24 @@ def abstract_demonstration(goal: int, n_blocks: int) -> list[int]:
         raise ValueError(f"goal must be in [0, {n_goals(n_blocks)}) for the {n_blocks}-block task, got {goal}")
     start = 3 * (int(goal) // 3)
     return list(range(start, int(goal) + 1))
+
+
+def next_option(option: torch.Tensor, goal: torch.Tensor, flags: torch.Tensor) -> torch.Tensor:
+    """The options after a step: each env moves on along its goal's abstract demonstration when its sub-goal is met.
+
+    ``option`` and ``goal`` are ``[B]`` integer tensors, ``flags`` the
+    ``[B, n_goals]`` success flags at s' (the env's ``achieved_goal``). An
+    env already in its goal's option stays in it.
+
+    Examples:
+        >>> import torch
+        >>> next_option(torch.tensor([0, 0, 2]), torch.tensor([2, 0, 2]), torch.tensor([[1., 0, 0], [1, 0, 0], [0, 0, 1]]))
+        tensor([1, 0, 2])
+    """
+    met = flags.gather(-1, option.long().unsqueeze(-1)).squeeze(-1) > 0.5
+    return torch.where(met & (option < goal), option + 1, option)
+
+
+def first_option(goal: torch.Tensor) -> torch.Tensor:
+    """The first option of each goal's abstract demonstration (0 for goals 0-2, 3 for goals 3-5)."""
+    return 3 * torch.div(goal.long(), 3, rounding_mode="floor")

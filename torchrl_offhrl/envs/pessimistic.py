@@ -84,6 +84,10 @@ class PessimisticModelEnv(EnvBase):
         True
     """
 
+    #: whether the ensemble must predict the reward (a learned reward or a ``reward_fn``); subclasses that compute
+    #: their rewards from the predicted states set it to False
+    needs_model_reward: bool = True
+
     def __init__(
         self,
         ensemble,
@@ -115,7 +119,7 @@ class PessimisticModelEnv(EnvBase):
                 f"the dataset has obs/action dims ({data.observation_dim}, {data.action_dim}) but the "
                 f"ensemble was built for ({ensemble.observation_dim}, {ensemble.action_dim})."
             )
-        if ensemble.reward_fn is None and ensemble.reward_net is None:
+        if self.needs_model_reward and ensemble.reward_fn is None and ensemble.reward_net is None:
             raise ValueError("the ensemble predicts no reward: build it with learn_reward=True or a reward_fn.")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}.")
@@ -226,6 +230,8 @@ class PessimisticModelEnv(EnvBase):
         pred = self.ensemble.predict(obs, act)
         disc = self.ensemble.discrepancy_of(pred["delta"], self.discrepancy_kind)
         rewards = pred["reward"]
+        if rewards is None:  # a subclass that computes its own rewards (needs_model_reward = False)
+            rewards = torch.zeros(self.num_members, n, device=self.device, dtype=obs.dtype)
         if self.member_mode == "mean":
             next_obs = pred["next_observation"].mean(0)
             reward = rewards.mean(0)
