@@ -147,7 +147,9 @@ def test_env_specs_and_goals_match_the_shared_functions(env_id, n_blocks):
 def test_env_arguments_and_goal_option():
     import gymnasium as gym
 
-    import torchrl_offhrl.envs  # noqa: F401  (registers the ids)
+    from torchrl_offhrl.envs import register_blockstack_envs
+
+    register_blockstack_envs()
 
     env = gym.make("BlockStack2-v0", block_mass=(50000.0, 50.0), min_block_distance=0.0, max_episode_steps=50)
     assert env.spec.max_episode_steps == 50
@@ -306,3 +308,73 @@ def test_sub_goal_tracker_on_the_real_env_follows_the_collection_rule():
     later = ~first[:, 1:]
     expect = G.next_option(td["option"][:, :-1], goal[:, :-1], td["next", "achieved_goal"][:, :-1])
     assert torch.equal(td["option"][:, 1:][later], expect[later])
+
+
+def test_config_fits_goal_conditioned_models_and_builds_the_composed_envs(tmp_path, monkeypatch):
+    """`env=blockstack2` composes the paper's goal-conditioned settings; the pipeline fits and composes from them."""
+    from torchrl.envs.utils import check_env_specs
+
+    from torchrl_offhrl.recipes.config import compose, model_config, model_env_config, resolve_dataset
+    from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env, make_real_env
+    from torchrl_offhrl.recipes.schema import validate_config
+    from torchrl_offhrl.utils import to_plain
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
+    cfg = to_plain(compose("offline_train", ["env=blockstack2", "dataset=medium", "num_transitions=200", "dataset_num_envs=4",
+                                             "ensemble.hidden_sizes=[16]", "ensemble.num_models=2", "cvae.hidden_sizes=[16]",
+                                             "ensemble.fit.max_steps=20", "cvae.fit.max_steps=20"]))
+    validate_config(cfg)
+    assert cfg["model_env"]["horizon"] == 25 and cfg["cvae"]["goal_key"] == "sub_goal" and cfg["cvae"]["fit"]["batch_size"] == 128
+    assert cfg["ensemble"]["learn_reward"] is False and cfg["env"]["pessimism"]["default"] == {"quantile": 0.99, "penalty": 50.0}
+    hopper = to_plain(compose("offline_train", ["env=hopper"]))  # the locomotion settings are untouched
+    assert hopper["model_env"]["horizon"] == 1000 and "goal_key" not in hopper["cvae"] and "learn_reward" not in hopper["ensemble"]
+    data = resolve_dataset(cfg)
+    ens, cvae, _ = fit_or_load_models(model_config(cfg), data, progress=False)
+    assert ens.reward_net is None and cvae.goal_key == "sub_goal" and cvae.decoder.goal_dim == G.sub_goal_dim(2)
+    menv, pess = model_env_config(cfg, data.metadata["level"], data)
+    env = make_model_env({"env": {**menv, **pess}, "device": "cpu", "seed": 0}, ens, cvae, data, batch_size=4)
+    check_env_specs(env)
+    assert env.base_env.penalty == 50.0 and env.base_env.horizon == 25
+    td = env.rollout(3)
+    assert td["action"].shape == (4, 3, 4) and td["sub_goal"].shape == (4, 3, G.sub_goal_dim(2))
+    real = make_real_env("BlockStack2-v0", cvae, num_envs=2)
+    check_env_specs(real)
+
+
+class _Oracle:
+    """An 'ensemble' of K identical members that predict the recorded next states (exact lookup), or stand still."""
+
+    def __init__(self, episodes, num_members=3, still=False):
+        self.obs = episodes["observation"].reshape(-1, episodes["observation"].shape[-1]).float()
+        self.nxt = episodes["next", "observation"].reshape(self.obs.shape).float()
+        self.num_members, self.still = num_members, still
+
+    def predict(self, observation, action):
+        if self.still:
+            nxt = observation
+        else:
+            idx = torch.cdist(observation, self.obs).argmin(-1)
+            nxt = self.nxt[idx]
+        nxt = nxt.expand(self.num_members, *nxt.shape)
+        return {"next_observation": nxt, "delta": nxt - observation, "reward": None}
+
+    @staticmethod
+    def discrepancy_of(delta, kind="variance"):
+        return delta.var(0, unbiased=False).sum(-1)
+
+
+def test_open_loop_replay_of_an_exact_and_of_a_still_model():
+    from torchrl_offhrl.data.stacking import collect_stacking
+    from torchrl_offhrl.envs.goal_model import replay_open_loop
+
+    ds = collect_stacking("BlockStack2-v0", 150, 0.0, 0.05, num_envs=3, seed=2, progress=False)
+    episodes = ds.data.reshape(-1, 25)
+    exact = replay_open_loop(_Oracle(episodes), episodes, 2, threshold=1e-9)
+    assert exact["gripper_error"].abs().max() < 1e-6 and exact["block_error"].abs().max() < 1e-6
+    assert torch.equal(exact["model_success"], exact["real_success"].expand(3, -1))
+    assert (exact["cut_step"] == 26).all()  # identical members never disagree
+    still = replay_open_loop(_Oracle(episodes, still=True), episodes, 2)
+    start, real = episodes["observation"][:, 0], episodes["next", "observation"]
+    expect = torch.linalg.vector_norm(real[..., 0:3] - start[:, None, 0:3], dim=-1).mean(0)
+    torch.testing.assert_close(still["gripper_error"], expect)
+    assert not still["model_success"].any()  # standing at the start reaches no goal

@@ -33,7 +33,7 @@ import torch
 from ..envs import goals as G
 from ..envs.goals import first_option, next_option
 
-__all__ = ["GOAL_FIELDS", "SCRIPT_LEVELS", "ScriptedStacker", "collect_stacking", "first_option", "generate_stacking_dataset", "next_option", "scripted_success"]
+__all__ = ["GOAL_FIELDS", "SCRIPT_LEVELS", "ScriptedStacker", "collect_stacking", "combine_stacking", "first_option", "generate_stacking_dataset", "next_option", "scripted_success"]
 
 _ALIGN = 0.008     # x, y error under which the gripper descends
 _SAFE = 0.06       # height above a block to reach it from
@@ -231,6 +231,21 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     return ds
 
 
+def combine_stacking(parts, seed: int):
+    """``medium`` + ``expert`` -> ``medium-expert`` (episodes renumbered), with the goal statistics of both parts."""
+    from .generate import _combine
+
+    ds = _combine(parts, seed)
+    for k in ("horizon", "n_blocks", "goal_fields"):
+        ds.metadata[k] = parts[0].metadata[k]
+    eps = {k: sum(p.metadata["goal_episodes"][k] for p in parts) for k in parts[0].metadata["goal_episodes"]}
+    ds.metadata["goal_episodes"] = eps
+    ds.metadata["goal_success"] = {
+        k: (sum((p.metadata["goal_success"][k] or 0.0) * p.metadata["goal_episodes"][k] for p in parts) / eps[k]) if eps[k] else None for k in eps}
+    ds.metadata["success_rate"] = sum(p.metadata["success_rate"] * len(p) for p in parts) / sum(len(p) for p in parts)
+    return ds
+
+
 def generate_stacking_dataset(env_id: str, level: str, num_transitions: int = 1_000_000, seed: int = 0, num_envs: int = 8,
                               progress: bool = True, horizon: int | None = None):
     """A block-stacking dataset of a scripted ``level`` (:data:`SCRIPT_LEVELS`; ``medium-expert`` = medium + expert, each ``num_transitions``).
@@ -240,18 +255,9 @@ def generate_stacking_dataset(env_id: str, level: str, num_transitions: int = 1_
     (issue 18), and a trained agent's policy plugs in through
     :func:`collect_stacking`'s ``controller`` hook.
     """
-    from .generate import _combine
-
     if level == "medium-expert":
-        parts = [generate_stacking_dataset(env_id, lv, num_transitions, seed, num_envs, progress, horizon) for lv in ("medium", "expert")]
-        ds = _combine(parts, seed)
-        for k in ("horizon", "n_blocks", "goal_fields"):
-            ds.metadata[k] = parts[0].metadata[k]
-        eps = {k: parts[0].metadata["goal_episodes"][k] + parts[1].metadata["goal_episodes"][k] for k in parts[0].metadata["goal_episodes"]}
-        ds.metadata["goal_episodes"] = eps
-        ds.metadata["goal_success"] = {
-            k: (sum(p.metadata["goal_success"][k] * p.metadata["goal_episodes"][k] for p in parts) / eps[k]) if eps[k] else None for k in eps}
-        ds.metadata["success_rate"] = sum(p.metadata["success_rate"] for p in parts) / 2
+        ds = combine_stacking([generate_stacking_dataset(env_id, lv, num_transitions, seed, num_envs, progress, horizon) for lv in ("medium", "expert")],
+                              seed)
     elif level in SCRIPT_LEVELS:
         random_prob, noise_std = SCRIPT_LEVELS[level]
         ds = collect_stacking(env_id, num_transitions, random_prob, noise_std, num_envs=num_envs, seed=seed, horizon=horizon, progress=progress)

@@ -9,7 +9,7 @@ from torchrl.envs import Transform
 from . import goals as G
 from .pessimistic import PessimisticModelEnv
 
-__all__ = ["BlockStackModelEnv", "SubGoalTracker"]
+__all__ = ["BlockStackModelEnv", "SubGoalTracker", "replay_open_loop"]
 
 
 class BlockStackModelEnv(PessimisticModelEnv):
@@ -143,3 +143,56 @@ class SubGoalTracker(Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:  # on a stored batch: the option is recorded there
         return tensordict
+
+
+def replay_open_loop(ensemble, episodes: TensorDictBase, n_blocks: int, threshold: float | None = None, kind: str = "variance") -> dict:
+    """Replay recorded episodes' actions open loop through every member of ``ensemble``: how far the model drifts from the real env.
+
+    ``episodes`` is ``[E, T]`` (whole episodes of a block-stacking dataset:
+    ``observation``, ``action``, ``desired_goal``, ``("next", "observation")``,
+    ``("next", "reward")``). Each member starts from each episode's first
+    state and is fed the recorded actions on its own predicted states (as in
+    the P-MDP, where one member makes a whole episode). Returns (tensors):
+
+    * ``gripper_error`` / ``block_error``: ``[T]`` mean distance (m) between
+      the predicted and the real gripper / block positions after each step
+      (mean over members, episodes and blocks);
+    * ``real_success``: ``[E]`` the episode reached its goal (high-level reward 0 at some step);
+    * ``model_success``: ``[K, E]`` the member's path reached it (the task's
+      functions on the predicted states; pessimism not applied);
+    * ``cut_step``: ``[K, E]`` the first step (1-based) at which the members'
+      disagreement on the path exceeds ``threshold`` (where the P-MDP would
+      end the episode with the penalty), ``T + 1`` when never (or no threshold);
+    * ``goal``: ``[E]`` the episodes' goals.
+    """
+    obs = episodes.get("observation").float()
+    E, T, D = obs.shape
+    actions = episodes.get("action").float()
+    real = episodes.get(("next", "observation")).float()
+    goal_onehot = episodes.get("desired_goal")[:, 0].float()
+    K = ensemble.num_members
+    members = torch.arange(K)
+    state = obs[:, 0].expand(K, E, D)
+    path, disc = [], []
+    with torch.no_grad():
+        for t in range(T):
+            out = ensemble.predict(state.reshape(K * E, D), actions[:, t].repeat(K, 1))
+            nxt = out["next_observation"].reshape(K, K, E, D)  # [member, whose path, E, D]
+            disc.append(ensemble.discrepancy_of(out["delta"], kind).reshape(K, E))
+            state = nxt[members, members]  # each member on its own path
+            path.append(state)
+    pred = torch.stack(path, 2)  # [K, E, T, D]
+    dis = torch.stack(disc, 2)  # [K, E, T]
+    gripper_error = torch.linalg.vector_norm(pred[..., 0:3] - real[..., 0:3], dim=-1).mean((0, 1))
+    blocks_p, blocks_r = G.block_positions(pred, n_blocks), G.block_positions(real, n_blocks)
+    block_error = torch.linalg.vector_norm(blocks_p - blocks_r, dim=-1).mean((0, 1, 3))
+    flags = G.achieved_goal_flags(pred, n_blocks)  # [K, E, T, n_goals]
+    model_success = (G.goal_reward(flags, goal_onehot[None, :, None, :]) == 0).any(-1)
+    real_success = (episodes.get(("next", "reward")).reshape(E, T) == 0).any(-1)
+    if threshold is None:
+        cut = torch.full((K, E), T + 1)
+    else:
+        over = ~(dis <= threshold)  # NaN counts as over
+        cut = torch.where(over.any(-1), over.float().argmax(-1) + 1, torch.full((K, E), T + 1))
+    return {"gripper_error": gripper_error, "block_error": block_error, "real_success": real_success, "model_success": model_success,
+            "cut_step": cut, "goal": goal_onehot.argmax(-1)}

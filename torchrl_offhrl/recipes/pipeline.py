@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Compose, TransformedEnv
 
 from ..agents import action_box
 from ..data import OfflineDataset
-from ..envs import AffineActionMap, LatentActionTransform, PessimisticModelEnv, make_task_env
+from ..envs import BLOCKSTACK_IDS, AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, to_plain
 
@@ -86,15 +86,18 @@ def _load_cached(cls, path):
 
 
 def fit_or_load_models(
-    cfg: Mapping, data: OfflineDataset, progress: bool = True
-) -> tuple[DynamicsEnsemble, ConditionalVAE, dict]:
+    cfg: Mapping, data: OfflineDataset, progress: bool = True, cvae: bool = True
+) -> tuple[DynamicsEnsemble, ConditionalVAE | None, dict]:
     """Fit the ensemble and the CVAE on ``data``, or load them from the cache.
 
     Checkpoints live in ``cache_dir()/models/<key>/`` where the key hashes the
     dataset's content (:meth:`~torchrl_offhrl.data.OfflineDataset.content_hash`)
     and the model and fit configs: change either and the models are fitted
-    again (a file replaced by other data at the same path is reported). Returns ``(ensemble, cvae, info)``.
+    again (a file replaced by other data at the same path is reported). Returns ``(ensemble, cvae, info)``;
+    ``cvae=False`` fits (or loads) the ensemble alone and returns ``None`` for the CVAE (a later call fits
+    it into the same folder).
     """
+    want_cvae = cvae
     device = torch.device(cfg.get("device", "cpu"))
     ecfg, ccfg = to_plain(cfg["ensemble"]), to_plain(cfg["cvae"])
     ident = {
@@ -109,7 +112,7 @@ def fit_or_load_models(
     info = {"model_dir": str(folder)}
     e_path, c_path = folder / "ensemble.pt", folder / "cvae.pt"
     source = data.metadata.get("source")
-    if not (e_path.is_file() and c_path.is_file()):
+    if not (e_path.is_file() and (c_path.is_file() or not want_cvae)):
         stale = _entries_for_other_data(source, ident)
         if stale:
             print(f"the data at {source} is not what the cached models {', '.join(map(str, stale))} were fitted on "
@@ -121,23 +124,25 @@ def fit_or_load_models(
         info["ensemble"] = "loaded"
     else:
         ensemble = DynamicsEnsemble.for_dataset(
-            data, num_models=ecfg["num_models"], hidden_sizes=ecfg["hidden_sizes"], loss=ecfg["loss"]
+            data, num_models=ecfg["num_models"], hidden_sizes=ecfg["hidden_sizes"], loss=ecfg["loss"], learn_reward=ecfg.get("learn_reward", True)
         ).to(device)
         ensemble.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ecfg["fit"])
         ensemble.save(e_path)
         info["ensemble"] = "fitted"
         info["ensemble_history"] = ensemble.training_history
-    cvae = _load_cached(ConditionalVAE, c_path)
-    if cvae is not None:
+    cvae = _load_cached(ConditionalVAE, c_path) if want_cvae else None
+    if not want_cvae:
+        info["cvae"] = "not asked for"
+    elif cvae is not None:
         info["cvae"] = "loaded"
     else:
-        cvae = ConditionalVAE.for_dataset(data, hidden_sizes=ccfg["hidden_sizes"], kl_weight=ccfg["kl_weight"]).to(device)
+        cvae = ConditionalVAE.for_dataset(data, goal_key=ccfg.get("goal_key"), hidden_sizes=ccfg["hidden_sizes"], kl_weight=ccfg["kl_weight"]).to(device)
         cvae.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ccfg["fit"])
         cvae.save(c_path)
         info["cvae"] = "fitted"
         info["cvae_history"] = cvae.training_history
     _record_source(folder / "ident.json", ident, source)
-    return ensemble.to(device), cvae.to(device), info
+    return ensemble.to(device), (cvae.to(device) if cvae is not None else None), info
 
 
 def make_model_env(
@@ -162,7 +167,8 @@ def make_model_env(
     env_cfg = cfg["env"]
     if threshold is None:
         threshold = env_cfg.get("threshold")
-    base = PessimisticModelEnv(
+    stacking = data.env_id in BLOCKSTACK_IDS  # goal-conditioned: the tasks' goals and rewards on the predicted states
+    base = (BlockStackModelEnv if stacking else PessimisticModelEnv)(
         ensemble,
         data,
         threshold=threshold,
@@ -178,12 +184,15 @@ def make_model_env(
         seed=cfg.get("seed"),
     )
     if not latent:
-        return TransformedEnv(base)
+        return TransformedEnv(base, SubGoalTracker()) if stacking else TransformedEnv(base)
     if cvae is None:
         raise ValueError("latent=True needs a fitted ConditionalVAE.")
     # the transform as the env's own transform (not in a Compose): the decoded
     # action is then kept in every stepping style, hand-written loops included
-    return TransformedEnv(base, LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", 2.0)))
+    latent_t = LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", 2.0), goal_key=cvae.goal_key)
+    if stacking:  # the decoder's goal: the option's sub-goal, tracked along the goal's abstract demonstration
+        return TransformedEnv(base, Compose(SubGoalTracker(), latent_t))
+    return TransformedEnv(base, latent_t)
 
 
 def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = 2.0, device="cpu",
@@ -196,11 +205,13 @@ def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int
     (``cvae`` is then not used).
     """
     env = make_task_env(env_id, task, num_envs=num_envs, device=device, **gym_kwargs)
+    if env_id in BLOCKSTACK_IDS:
+        env.append_transform(SubGoalTracker())
     if discard_decoder:
         _, low, high = action_box(env, "action")
         env.append_transform(LatentActionTransform(AffineActionMap(latent_bound, low, high).to(device), latent_bound=latent_bound))
     elif cvae is not None:
-        env.append_transform(LatentActionTransform(cvae.decoder, latent_bound=latent_bound))
+        env.append_transform(LatentActionTransform(cvae.decoder, latent_bound=latent_bound, goal_key=cvae.goal_key))
     return env
 
 
