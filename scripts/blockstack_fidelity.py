@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
 
     from torchrl_offhrl.data.stacking import SCRIPT_LEVELS, generate_stacking_dataset
-    from torchrl_offhrl.envs import goals as G
+    from torchrl_offhrl.blockstack import goals as G
     from torchrl_offhrl.envs.calibration import calibrate_threshold
     from torchrl_offhrl.envs.goal_model import replay_open_loop
     from torchrl_offhrl.recipes.config import compose, model_config, resolve_dataset

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchrl_offhrl.envs import goals as G
+from torchrl_offhrl.blockstack import goals as G
 
 RED, BLUE, GREEN = (1.20, 0.70, 0.425), (1.40, 0.80, 0.425), (1.30, 0.62, 0.425)
 W, E = G.GRASP_WIDTH, G.END_POINT
@@ -147,7 +147,7 @@ def test_env_specs_and_goals_match_the_shared_functions(env_id, n_blocks):
 def test_env_arguments_and_goal_option():
     import gymnasium as gym
 
-    from torchrl_offhrl.envs import register_blockstack_envs
+    from torchrl_offhrl.blockstack import register_blockstack_envs
 
     register_blockstack_envs()
 

@@ -18,12 +18,12 @@ def make_gym_env(env_id: str, num_envs: int = 1, device: str | torch.device = "c
     machines for MuJoCo envs whose step costs microseconds. ``num_envs=1``
     still returns a batched env of batch size ``[1]``. The block-stacking
     envs (``BlockStack2-v0``, ``BlockStack3-v0``) are batched by TorchRL
-    instead (:func:`~torchrl_offhrl.envs.blockstack.make_blockstack_env`).
+    instead (:func:`~torchrl_offhrl.blockstack.make_blockstack_env`).
     """
     import gymnasium as gym
     from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
 
-    from ..envs.blockstack import BLOCKSTACK_IDS, make_blockstack_env
+    from ..blockstack import BLOCKSTACK_IDS, make_blockstack_env
 
     if env_id in BLOCKSTACK_IDS:  # dict observations: batched by TorchRL (see make_blockstack_env)
         return make_blockstack_env(env_id, num_envs=num_envs, device=device, **kwargs)

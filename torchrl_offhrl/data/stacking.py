@@ -3,7 +3,7 @@
 :class:`ScriptedStacker` maps a batch of observations and the options the
 envs are in to Fetch actions, with no state of its own (everything it needs
 is in the observation), so one call serves any number of envs. Options
-follow UOF's abstract demonstrations (:func:`~torchrl_offhrl.envs.goals.abstract_demonstration`):
+follow UOF's abstract demonstrations (:func:`~torchrl_offhrl.blockstack.goals.abstract_demonstration`):
 an episode with goal ``k`` starts in the first option of ``k``'s sequence
 and moves to the next one when the running option's sub-goal is met
 (:func:`next_option`).
@@ -30,8 +30,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..envs import goals as G
-from ..envs.goals import first_option, next_option
+from ..blockstack import goals as G
+from ..blockstack.goals import first_option, next_option
 
 __all__ = ["GOAL_FIELDS", "SCRIPT_LEVELS", "ScriptedStacker", "collect_stacking", "combine_stacking", "first_option", "generate_stacking_dataset", "next_option", "scripted_success"]
 
@@ -42,7 +42,7 @@ _GAIN = 2.0 / 0.05
 
 
 class ScriptedStacker:
-    """A stateless scripted controller for :mod:`~torchrl_offhrl.envs.blockstack`'s tasks (module docstring: the script).
+    """A stateless scripted controller for :mod:`~torchrl_offhrl.blockstack.env`'s tasks (module docstring: the script).
 
     Args:
         n_blocks: 2 or 3.
@@ -55,7 +55,7 @@ class ScriptedStacker:
     """
 
     def __init__(self, n_blocks: int, random_prob: float = 0.0, noise_std: float = 0.0, generator: torch.Generator | None = None):
-        self.n_blocks = G._check_blocks(n_blocks)
+        self.n_blocks = G.check_blocks(n_blocks)
         if not 0.0 <= random_prob <= 1.0 or noise_std < 0:
             raise ValueError(f"random_prob must be in [0, 1] and noise_std >= 0, got {random_prob}, {noise_std}")
         self.random_prob, self.noise_std, self.generator = float(random_prob), float(noise_std), generator
@@ -154,7 +154,7 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     from tensordict import TensorDict
     from tqdm.auto import tqdm
 
-    from ..envs.blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
+    from ..blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
     from .collect import package_versions
     from .dataset import OfflineDataset
 
@@ -233,11 +233,18 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
 
 def combine_stacking(parts, seed: int):
     """``medium`` + ``expert`` -> ``medium-expert`` (episodes renumbered), with the goal statistics of both parts."""
-    from .generate import _combine
+    from .dataset import OfflineDataset
 
-    ds = _combine(parts, seed)
-    for k in ("horizon", "n_blocks", "goal_fields"):
-        ds.metadata[k] = parts[0].metadata[k]
+    meta = {k: parts[0].metadata[k] for k in ("env_id", "num_envs", "versions", "horizon", "n_blocks", "goal_fields") if k in parts[0].metadata}
+    meta.update({
+        "seed": seed, "policy": " + ".join(str(p.metadata.get("policy")) for p in parts),
+        "policy_card": {"medium": parts[0].metadata.get("policy_card"), "expert": parts[1].metadata.get("policy_card")},
+        "parts": {name: {"transitions": len(p), "goal_success": p.metadata.get("goal_success"), "collection_seconds": p.metadata.get("collection_seconds")}
+                  for name, p in zip(("medium", "expert"), parts)},
+        "collection_seconds": round(sum(p.metadata.get("collection_seconds", 0.0) for p in parts), 2),
+    })
+    ds = OfflineDataset.concatenate(parts, meta)
+    ds.metadata["returns"] = ds.return_stats()
     eps = {k: sum(p.metadata["goal_episodes"][k] for p in parts) for k in parts[0].metadata["goal_episodes"]}
     ds.metadata["goal_episodes"] = eps
     ds.metadata["goal_success"] = {
@@ -279,7 +286,7 @@ def scripted_success(env_id: str, episodes: int = 10, horizon: int | None = None
     """
     import gymnasium as gym
 
-    from ..envs.blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
+    from ..blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
 
     register_blockstack_envs()
     n_blocks = BLOCKSTACK_IDS[env_id]

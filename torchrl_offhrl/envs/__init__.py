@@ -1,6 +1,4 @@
 """Environments: the pessimistic model env, the latent action transform, terminations, the transfer tasks, block stacking."""
-from . import goals
-from .blockstack import BLOCKSTACK_IDS, register_blockstack_envs
 from .calibration import CalibrationReport, calibrate_threshold, dataset_discrepancy
 from .goal_model import BlockStackModelEnv, SubGoalTracker
 from .latent import AffineActionMap, LatentActionTransform
@@ -9,7 +7,6 @@ from .tasks import TASKS, make_task_env, task_kwargs
 from .termination import TERMINATION_FNS, hopper_termination, never_terminates, termination_fn_for
 
 __all__ = [
-    "BLOCKSTACK_IDS",
     "BlockStackModelEnv",
     "AffineActionMap",
     "CalibrationReport",
@@ -20,13 +17,9 @@ __all__ = [
     "TERMINATION_FNS",
     "calibrate_threshold",
     "dataset_discrepancy",
-    "goals",
     "hopper_termination",
     "make_task_env",
     "never_terminates",
-    "register_blockstack_envs",
     "task_kwargs",
     "termination_fn_for",
 ]
-
-register_blockstack_envs()  # BlockStack2-v0 / BlockStack3-v0 (gymnasium-robotics is imported only when one is made)

@@ -6,18 +6,18 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Unbounded
 from torchrl.envs import Transform
 
-from . import goals as G
+from ..blockstack import goals as G
 from .pessimistic import PessimisticModelEnv
 
 __all__ = ["BlockStackModelEnv", "SubGoalTracker", "replay_open_loop"]
 
 
 class BlockStackModelEnv(PessimisticModelEnv):
-    """:class:`PessimisticModelEnv` for the goal-conditioned block-stacking tasks (:mod:`torchrl_offhrl.envs.blockstack`).
+    """:class:`PessimisticModelEnv` for the goal-conditioned block-stacking tasks (:mod:`torchrl_offhrl.blockstack.env`).
 
     The ensemble learns transitions only (``learn_reward=False``): the
     rewards, sub-goals and successes come from the shared functions of
-    :mod:`torchrl_offhrl.envs.goals`, applied to the predicted states, so an
+    :mod:`torchrl_offhrl.blockstack.goals`, applied to the predicted states, so an
     agent sees the same task as in the real env. Episodes start from the
     dataset's initial states with a goal drawn uniformly (or from
     ``goal_probs``) and last ``horizon`` steps (25, the paper's); they end
@@ -47,7 +47,7 @@ class BlockStackModelEnv(PessimisticModelEnv):
             if n_blocks is None:
                 raise ValueError(f"observations of {data.observation_dim} entries are not of a block-stacking task "
                                  f"({G.obs_dim(2)}: 2 blocks, {G.obs_dim(3)}: 3 blocks)")
-        self.n_blocks = G._check_blocks(n_blocks)
+        self.n_blocks = G.check_blocks(n_blocks)
         if data.observation_dim != G.obs_dim(self.n_blocks):
             raise ValueError(f"the dataset's observations have {data.observation_dim} entries, the {n_blocks}-block task's {G.obs_dim(n_blocks)}")
         self.n_goals = G.n_goals(self.n_blocks)
@@ -97,9 +97,9 @@ class SubGoalTracker(Transform):
     """Follows each env's goal along its abstract demonstration: writes ``option`` and its ``sub_goal`` (the low level's goal).
 
     At reset the option is the first of the goal's sequence
-    (:func:`~torchrl_offhrl.envs.goals.first_option` of ``desired_goal``);
+    (:func:`~torchrl_offhrl.blockstack.goals.first_option` of ``desired_goal``);
     after each step it moves on when its sub-goal is met at s'
-    (:func:`~torchrl_offhrl.envs.goals.next_option`), as the scripted data
+    (:func:`~torchrl_offhrl.blockstack.goals.next_option`), as the scripted data
     were collected. ``sub_goal`` is that option's row of ``sub_goals``. A
     flat agent conditioned on the low-level goal (the paper's SAC + HER in
     the CVAE's latent space) reads ``sub_goal``, and so does a

@@ -18,7 +18,8 @@ from torchrl.envs import Compose, TransformedEnv
 
 from ..agents import action_box
 from ..data import OfflineDataset
-from ..envs import BLOCKSTACK_IDS, AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
+from ..blockstack import BLOCKSTACK_IDS
+from ..envs import AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, to_plain
 

@@ -1,6 +1,6 @@
 """Sub-goals, successes and rewards of the block-stacking tasks as pure, vectorised tensor functions of the state.
 
-The real envs (:mod:`torchrl_offhrl.envs.blockstack`) and the model env
+The real envs (:mod:`torchrl_offhrl.blockstack.env`) and the model env (:class:`torchrl_offhrl.envs.BlockStackModelEnv`)
 compute their goals and rewards with these functions, so that an agent
 sees the same task in both. Every function takes observations of any
 leading batch shape ``[..., obs_dim]`` (torch tensors; the gym env passes
@@ -43,7 +43,7 @@ from __future__ import annotations
 import torch
 
 __all__ = [
-    "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "achieved_goal_flags", "achieved_sub_goal",
+    "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "check_blocks", "achieved_goal_flags", "achieved_sub_goal",
     "block_positions", "first_option", "goal_reward", "next_option", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
 ]
 
@@ -65,7 +65,8 @@ STACK_OFFSET = 0.05
 PLACE_OFFSET = 0.055
 
 
-def _check_blocks(n_blocks: int) -> int:
+def check_blocks(n_blocks: int) -> int:
+    """``n_blocks`` if it is 2 or 3, else a ValueError."""
     if n_blocks not in (2, 3):
         raise ValueError(f"n_blocks must be 2 (task 1: red, blue) or 3 (task 2: red, blue, green), got {n_blocks!r}")
     return int(n_blocks)
@@ -73,17 +74,17 @@ def _check_blocks(n_blocks: int) -> int:
 
 def n_goals(n_blocks: int) -> int:
     """Number of goals (= options = sub-goals): 3 for task 1, 6 for task 2."""
-    return 3 * (_check_blocks(n_blocks) - 1)
+    return 3 * (check_blocks(n_blocks) - 1)
 
 
 def obs_dim(n_blocks: int) -> int:
     """Observation size: 34 for task 1, 46 for task 2."""
-    return 10 + 12 * _check_blocks(n_blocks)
+    return 10 + 12 * check_blocks(n_blocks)
 
 
 def sub_goal_dim(n_blocks: int) -> int:
     """Sub-goal size: 11 for task 1, 14 for task 2."""
-    return 5 + 3 * _check_blocks(n_blocks)
+    return 5 + 3 * check_blocks(n_blocks)
 
 
 def _as_obs(obs, n_blocks: int) -> torch.Tensor:

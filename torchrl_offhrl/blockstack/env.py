@@ -10,7 +10,7 @@ Both are ``gymnasium_robotics`` goal envs with a 4-D action (gripper
 displacement and finger command, in ``[-1, 1]``) and the observation dict
 
 * ``observation``: UOF's state vector (34 / 46 entries, layout in
-  :mod:`torchrl_offhrl.envs.goals`);
+  :mod:`torchrl_offhrl.blockstack.goals`);
 * ``desired_goal``: the episode's goal, one-hot (sampled uniformly at
   reset, or ``reset(options={"goal": k})``);
 * ``achieved_goal``: the success flags of every sub-goal at this state;
@@ -22,7 +22,7 @@ The reward is the high level's (0 when the success flags equal the goal's
 one-hot vector, else -1; ``info["is_success"]`` is 1 then); episodes never
 terminate, the time limit (25 steps, the paper's; ``max_episode_steps=50``
 for UOF's tests) truncates them. Everything is computed by the shared tensor
-functions of :mod:`torchrl_offhrl.envs.goals`.
+functions of :mod:`torchrl_offhrl.blockstack.goals`.
 
 Deviations from UOF, each a constructor argument: blocks weigh
 ``block_mass=2.0`` kg (gymnasium-robotics' object mass; UOF's 50 kg blocks
@@ -114,7 +114,7 @@ def _make_class():
 
         def __init__(self, n_blocks: int = 2, block_mass: float | Sequence[float] = 2.0, min_block_distance: float = 0.1,
                      obj_range: float = 0.15, **kwargs):
-            self.n_blocks = G._check_blocks(n_blocks)
+            self.n_blocks = G.check_blocks(n_blocks)
             masses = (float(block_mass),) * self.n_blocks if np.isscalar(block_mass) else tuple(float(m) for m in block_mass)
             if len(masses) != self.n_blocks or not all(m > 0 for m in masses):
                 raise ValueError(f"block_mass must be a positive number or {self.n_blocks} positive numbers (red, blue[, green]), got {block_mass!r}")
@@ -210,7 +210,7 @@ def _make_class():
             }
 
         def compute_reward(self, achieved_goal, desired_goal, info):
-            """The high level's reward (:func:`torchrl_offhrl.envs.goals.goal_reward`), batched as gymnasium-robotics' goal envs."""
+            """The high level's reward (:func:`torchrl_offhrl.blockstack.goals.goal_reward`), batched as gymnasium-robotics' goal envs."""
             r = G.goal_reward(np.asarray(achieved_goal), np.asarray(desired_goal)).double().numpy()
             return float(r) if r.ndim == 0 else r
 
