@@ -31,6 +31,7 @@ def main(argv=None) -> int:
     p.add_argument("--envs", nargs="+", default=["blockstack2", "blockstack3"])
     p.add_argument("--transitions", type=int, default=100_000, help="per dataset part (medium-expert holds twice as many)")
     p.add_argument("--episodes", type=int, default=240, help="held-out episodes replayed per task")
+    p.add_argument("--script-episodes", type=int, default=20, help="episodes per goal of the noiseless script at horizons 25 and 50")
     p.add_argument("--config", default="offline_train")
     p.add_argument("--out", default=str(OUT))
     p.add_argument("overrides", nargs="*")
@@ -41,7 +42,8 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchrl_offhrl.data.stacking import SCRIPT_LEVELS, generate_stacking_dataset
+    from torchrl_offhrl.data.stacking import SCRIPT_LEVELS, generate_stacking_dataset, scripted_success
+    from torchrl_offhrl.registry import ENV_IDS
     from torchrl_offhrl.blockstack import goals as G
     from torchrl_offhrl.envs.calibration import calibrate_threshold
     from torchrl_offhrl.envs.goal_model import replay_open_loop
@@ -51,8 +53,11 @@ def main(argv=None) -> int:
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    data_rows, goal_rows, err_rows, curves, notes = [], [], [], {}, []
+    data_rows, goal_rows, err_rows, curves, notes, script_rows = [], [], [], {}, [], []
     for env in a.envs:
+        for horizon in (25, 50):  # the script without noise, each goal set at reset (UOF's test: success at any step)
+            rates = scripted_success(ENV_IDS[env], episodes=a.script_episodes, horizon=horizon, seed=1)
+            script_rows.append(f"| {env} | {horizon} | " + " / ".join(f"{v:.2f}" for v in rates.values()) + " |")
         datasets = {}
         for level in ("medium", "expert", "medium-expert"):
             cfg = to_plain(compose(a.config, [f"env={env}", f"dataset={level}", f"num_transitions={a.transitions}", *a.overrides]))
@@ -113,6 +118,9 @@ def main(argv=None) -> int:
     fig.savefig(out / "fidelity.png", dpi=110)
     md = ["# Block stacking: datasets and model-env fidelity", "",
           f"Made by `python scripts/blockstack_fidelity.py {' '.join(argv if argv is not None else sys.argv[1:])}`.", "",
+          "## The scripted controller without noise", "",
+          f"Fraction of {a.script_episodes} episodes per goal (goal set at reset, reset seeds 1000 onwards) reaching the goal at some step:", "",
+          "| task | horizon | success per goal |", "|---|---|---|", *script_rows, "",
           "## Datasets (scripted controller, horizon 25)", "",
           "Per-goal success: the fraction of episodes with that goal whose high-level reward was 0 at some step. "
           "Levels: `expert` = the script with Gaussian noise 0.05 on its displacement; `medium` = 10% uniformly random actions "

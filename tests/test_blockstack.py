@@ -378,3 +378,21 @@ def test_open_loop_replay_of_an_exact_and_of_a_still_model():
     expect = torch.linalg.vector_norm(real[..., 0:3] - start[:, None, 0:3], dim=-1).mean(0)
     torch.testing.assert_close(still["gripper_error"], expect)
     assert not still["model_success"].any()  # standing at the start reaches no goal
+
+
+def test_renders_off_screen_with_egl():
+    """`render_mode="rgb_array"` with MUJOCO_GL=egl (in a fresh process: the GL backend is chosen when mujoco is imported)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, gymnasium as gym, torchrl_offhrl.blockstack\n"
+            "env = gym.make('BlockStack3-v0', render_mode='rgb_array', width=64, height=48)\n"
+            "env.reset(seed=0, options={'goal': 4})\n"
+            "img = env.render()\n"
+            "print(img.shape, img.dtype, float(img.std()) > 5)\n")
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "MUJOCO_GL": "egl"}, capture_output=True, text=True, timeout=120)
+    if out.returncode != 0 and ("EGL" in out.stderr or "egl" in out.stderr):
+        pytest.skip(f"no EGL on this machine: {out.stderr.strip().splitlines()[-1]}")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "(48, 64, 3) uint8 True"
