@@ -119,3 +119,13 @@ def test_demo_tiny(cache, tmp_path, capsys):
 def test_console_script_installed():
     exe = os.path.join(os.path.dirname(sys.executable), "offhrl")
     assert os.path.exists(exe), "pip install -e . installs the offhrl console script"
+
+
+def test_hydra_deletion_overrides_are_accepted():
+    """``~key`` (hydra's deletion, as scripts/transfer.py passes for agents without a minibatch) composes."""
+    from torchrl_offhrl.recipes.config import compose
+
+    cfg = compose("demo", ["algo=sac", "~algo.minibatch_size"])
+    assert "minibatch_size" not in cfg.algo
+    with pytest.raises(SystemExit, match="key=value"):
+        compose("demo", ["algo.minibatch_size"])

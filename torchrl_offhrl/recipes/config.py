@@ -44,9 +44,9 @@ def compose(config_name: str, overrides: list[str], command: str | None = None):
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    bad = [o for o in overrides if "=" not in o]
+    bad = [o for o in overrides if "=" not in o and not o.startswith("~")]  # ~key: hydra's deletion of a key
     if bad:
-        raise SystemExit(f"error: overrides must look like key=value, got {bad}; see `offhrl {command or 'train'} --help`")
+        raise SystemExit(f"error: overrides must look like key=value (or ~key to delete one), got {bad}; see `offhrl {command or 'train'} --help`")
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
             return hcompose(config_name, overrides=overrides)
