@@ -449,27 +449,25 @@ def named_dataset(
         else:
             _announce(name, path, n, estimate_seconds(short, level, n), progress, "scripted controller")
             ds = generate_stacking_dataset(env_id, level, n, seed=seed, num_envs=num_envs, progress=progress)
-        save_dataset(ds, path)
-        ds.metadata["source"] = str(path)
-        return ds
-    needed = _POLICY_LEVELS[level]
-    shipped = list_policies()
-    for lv in needed:
-        if f"{short}-{lv}" not in shipped:
-            raise PolicyNotFoundError(missing_policy_message(f"{short}-{lv}"))
-    if level == "medium-expert":
-        todo = [lv for lv in needed if not dataset_path(f"{short}-{lv}", n, seed, num_envs).is_file()]
-        seconds = sum(estimate_seconds(short, lv, n) for lv in todo)
-        detail = f"parts to generate first: {[f'{short}-{lv}' for lv in todo]}" if todo else "from the cached parts"
-        _announce(name, path, n * len(todo), seconds, progress, detail)
-        parts = [named_dataset(f"{short}-{lv}", n, seed, progress, num_envs) for lv in needed]
-        ds = _combine(parts, seed)
-        refs = {k: parts[1].metadata.get(k) for k in
-                ("ref_min_return", "ref_max_return", "ref_episodes", "ref_seed", "ref_policy", "ref_note")}
-        _finish_metadata(ds, env_id, short, level, seed, n, refs)
     else:
-        _announce(name, path, n, estimate_seconds(short, level, n), progress, "")
-        ds = generate_dataset(env_id, level, n, seed=seed, num_envs=num_envs, progress=progress)
+        needed = _POLICY_LEVELS[level]
+        shipped = list_policies()
+        for lv in needed:
+            if f"{short}-{lv}" not in shipped:
+                raise PolicyNotFoundError(missing_policy_message(f"{short}-{lv}"))
+        if level == "medium-expert":
+            todo = [lv for lv in needed if not dataset_path(f"{short}-{lv}", n, seed, num_envs).is_file()]
+            seconds = sum(estimate_seconds(short, lv, n) for lv in todo)
+            detail = f"parts to generate first: {[f'{short}-{lv}' for lv in todo]}" if todo else "from the cached parts"
+            _announce(name, path, n * len(todo), seconds, progress, detail)
+            parts = [named_dataset(f"{short}-{lv}", n, seed, progress, num_envs) for lv in needed]
+            ds = _combine(parts, seed)
+            refs = {k: parts[1].metadata.get(k) for k in
+                    ("ref_min_return", "ref_max_return", "ref_episodes", "ref_seed", "ref_policy", "ref_note")}
+            _finish_metadata(ds, env_id, short, level, seed, n, refs)
+        else:
+            _announce(name, path, n, estimate_seconds(short, level, n), progress, "")
+            ds = generate_dataset(env_id, level, n, seed=seed, num_envs=num_envs, progress=progress)
     save_dataset(ds, path)
     ds.metadata["source"] = str(path)
     return ds
