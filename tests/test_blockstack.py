@@ -396,3 +396,18 @@ def test_renders_off_screen_with_egl():
         pytest.skip(f"no EGL on this machine: {out.stderr.strip().splitlines()[-1]}")
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().splitlines()[-1] == "(48, 64, 3) uint8 True"
+
+
+def test_fixed_goals_per_env_for_per_goal_evaluation():
+    from torchrl_offhrl.blockstack import make_blockstack_env
+
+    goals = [0, 0, 1, 2]
+    env = make_blockstack_env("BlockStack2-v0", num_envs=4, goals=goals, max_episode_steps=3)
+    td = env.rollout(7, break_when_any_done=False)  # crosses two resets
+    assert torch.equal(td["desired_goal"].argmax(-1), torch.tensor(goals).unsqueeze(-1).expand(4, 7))
+    with pytest.raises(ValueError, match="one goal per env"):
+        make_blockstack_env("BlockStack2-v0", num_envs=2, goals=[0])
+    import gymnasium as gym
+
+    with pytest.raises(ValueError, match="goal must be"):
+        gym.make("BlockStack2-v0", goal=3)

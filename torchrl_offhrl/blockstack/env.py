@@ -109,12 +109,17 @@ def _make_class():
             min_block_distance: blocks start at least this far apart in x, y (m); 0 lets them overlap (UOF).
             obj_range: each block starts at the gripper's initial x, y plus ``U(-obj_range, obj_range)^2``,
                 at least 0.1 m from it (UOF and gymnasium-robotics: 0.15).
+            goal: every episode's goal (``None``: drawn uniformly at each reset); ``reset(options={"goal": k})``
+                sets one episode's.
             render_mode, width, height: as gymnasium-robotics' Fetch envs (``rgb_array`` with ``MUJOCO_GL=egl`` off-screen).
         """
 
         def __init__(self, n_blocks: int = 2, block_mass: float | Sequence[float] = 2.0, min_block_distance: float = 0.1,
-                     obj_range: float = 0.15, **kwargs):
+                     obj_range: float = 0.15, goal: int | None = None, **kwargs):
             self.n_blocks = G.check_blocks(n_blocks)
+            if goal is not None and not 0 <= int(goal) < G.n_goals(self.n_blocks):
+                raise ValueError(f"goal must be in [0, {G.n_goals(self.n_blocks)}) for {self.n_blocks} blocks, got {goal}")
+            self.fixed_goal = None if goal is None else int(goal)
             masses = (float(block_mass),) * self.n_blocks if np.isscalar(block_mass) else tuple(float(m) for m in block_mass)
             if len(masses) != self.n_blocks or not all(m > 0 for m in masses):
                 raise ValueError(f"block_mass must be a positive number or {self.n_blocks} positive numbers (red, blue[, green]), got {block_mass!r}")
@@ -131,7 +136,8 @@ def _make_class():
                 self, model_path=str(_fetch_assets() / "fetch" / "pick_and_place.xml"), has_object=False, block_gripper=False,
                 n_substeps=20, gripper_extra_height=0.2, target_in_the_air=False, target_offset=0.0, obj_range=float(obj_range),
                 target_range=0.15, distance_threshold=G.SUCCESS_DISTANCE, initial_qpos=initial_qpos, reward_type="sparse", **kwargs)
-            EzPickle.__init__(self, n_blocks=n_blocks, block_mass=block_mass, min_block_distance=min_block_distance, obj_range=obj_range, **kwargs)
+            EzPickle.__init__(self, n_blocks=n_blocks, block_mass=block_mass, min_block_distance=min_block_distance, obj_range=obj_range, goal=goal,
+                              **kwargs)
             from gymnasium import spaces
 
             obs = self._get_obs()
@@ -177,7 +183,8 @@ def _make_class():
             return super().reset(seed=seed, options=options)
 
         def _sample_goal(self):
-            k = int(self._goal_index) if self._goal_index is not None else int(self.np_random.integers(self.n_goals))
+            k = self._goal_index if self._goal_index is not None else self.fixed_goal
+            k = int(k) if k is not None else int(self.np_random.integers(self.n_goals))
             return np.eye(self.n_goals)[k]
 
         # --- observations, goals, rewards ---------------------------------------------------------------------
@@ -255,8 +262,12 @@ def register_blockstack_envs() -> None:
             gymnasium.register(env_id, entry_point=f"{__name__}:_entry_point", max_episode_steps=DEFAULT_HORIZON, kwargs={"n_blocks": n})
 
 
-def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", **gym_kwargs):
+def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", goals: Sequence[int] | None = None, **gym_kwargs):
     """``num_envs`` copies of a block-stacking env batched by TorchRL's ``SerialEnv``, float32.
+
+    ``goals`` (one per copy) fixes each copy's goal for every episode, e.g.
+    ``[k for k in range(3) for _ in range(30)]`` for UOF's evaluation of 30
+    episodes per goal in one batch; ``None`` draws them at each reset.
 
     Each copy is TorchRL's ``GymEnv(env_id, **gym_kwargs)`` (e.g.
     ``max_episode_steps=50``, ``block_mass=50.0``); the batch resets each
@@ -269,8 +280,11 @@ def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", **gym_kwar
     if env_id not in BLOCKSTACK_IDS:
         raise ValueError(f"{env_id!r} is not a block-stacking env; they are {', '.join(BLOCKSTACK_IDS)}")
     register_blockstack_envs()
+    if goals is not None and len(goals) != int(num_envs):
+        raise ValueError(f"goals must give one goal per env ({num_envs}), got {len(goals)}")
     make = _EnvFactory(env_id, gym_kwargs)
-    batched = SerialEnv(int(num_envs), make, device=device)
+    kwargs = [{}] * int(num_envs) if goals is None else [{"goal": int(g)} for g in goals]
+    batched = SerialEnv(int(num_envs), make, create_env_kwargs=kwargs, device=device)
     return TransformedEnv(batched, DoubleToFloat())
 
 
@@ -280,8 +294,8 @@ class _EnvFactory:
     def __init__(self, env_id: str, gym_kwargs: dict):
         self.env_id, self.gym_kwargs = env_id, dict(gym_kwargs)
 
-    def __call__(self):
+    def __call__(self, **kwargs):
         from torchrl.envs import GymEnv
 
         register_blockstack_envs()
-        return GymEnv(self.env_id, **self.gym_kwargs)
+        return GymEnv(self.env_id, **{**self.gym_kwargs, **kwargs})
