@@ -31,6 +31,7 @@ import torch
 from torchrl.envs import RewardScaling, RewardSum
 
 from ..agents import agent_defaults, make_agent
+from ..blockstack import BLOCKSTACK_IDS
 from ..utils import to_plain
 from .config import (
     acts_in_latent_space, config_fingerprint, default_run_dir, learns_from_dataset, model_config, model_env_config, resolve_dataset, resolve_reward_scale,
@@ -58,6 +59,11 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     """
     cfg = to_plain(cfg)
     validate_config(cfg)  # every bad value named before any data or model work
+    if cfg["env"]["env_id"] in BLOCKSTACK_IDS:
+        raise ValueError(f"env={cfg['env']['name']}: training agents on the block-stacking tasks needs goal-conditioned agents (UOF, SAC + HER, "
+                         "BC), which are not built yet (issue 18). The data, the models and the model env are ready: "
+                         f"`offhrl collect {cfg['env']['name']} medium`, `offhrl fit env={cfg['env']['name']} dataset=medium`, "
+                         "torchrl_offhrl.recipes.pipeline.make_model_env")
     t_start = time.time()
     run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
     with run.locked():  # refused here, a run leaves the directory alone: it belongs to the run holding the lock
