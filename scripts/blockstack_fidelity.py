@@ -71,7 +71,7 @@ def main(argv=None) -> int:
                              + " |")
         data = datasets["medium-expert"]
         t0 = time.time()
-        ens, _, info = fit_or_load_models(model_config(cfg), data, cvae=False)
+        ens, _, info = fit_or_load_models(model_config(cfg), data, with_cvae=False)
         hist = info.get("ensemble_history")
         fit_note = f"fitted in {time.time() - t0:.0f} s" if info["ensemble"] == "fitted" else f"loaded from {info['model_dir']}"
         notes.append(f"- {env}: ensemble {cfg['ensemble']['num_models']} x MLP{tuple(cfg['ensemble']['hidden_sizes'])}, fit "

@@ -207,14 +207,8 @@ def _make_class():
             obs = np.concatenate([grip, grip_vel, d.qvel[vadr] * dt, d.qpos[qadr], *positions, *velocities])
             t = torch.from_numpy(obs)
             goal = self.goal if np.size(self.goal) == self.n_goals else np.zeros(self.n_goals)
-            sub, achieved = G.sub_goals(t, self.n_blocks), G.achieved_sub_goal(t, self.n_blocks)
-            return {
-                "observation": obs,
-                "achieved_goal": G.sub_goal_reached(achieved.unsqueeze(-2), sub).double().numpy(),  # = goals.achieved_goal_flags
-                "desired_goal": np.asarray(goal, dtype=np.float64).copy(),
-                "sub_goals": sub.numpy(),
-                "achieved_sub_goal": achieved.numpy(),
-            }
+            fields = G.goal_fields(t, self.n_blocks)
+            return {"observation": obs, "desired_goal": np.asarray(goal, dtype=np.float64).copy(), **{k: v.numpy() for k, v in fields.items()}}
 
         def compute_reward(self, achieved_goal, desired_goal, info):
             """The high level's reward (:func:`torchrl_offhrl.blockstack.goals.goal_reward`), batched as gymnasium-robotics' goal envs."""

@@ -44,7 +44,7 @@ import torch
 
 __all__ = [
     "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "check_blocks", "achieved_goal_flags", "achieved_sub_goal",
-    "block_positions", "first_option", "goal_reward", "next_option", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
+    "block_positions", "first_option", "goal_fields", "goal_reward", "next_option", "option_met", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
 ]
 
 #: resting height of a block's centre on the table (UOF's constant; MuJoCo settles at ~0.4249)
@@ -168,10 +168,21 @@ def sub_goal_reward(achieved, goal) -> torch.Tensor:
     return sub_goal_reached(achieved, goal).float() - 1.0
 
 
+def goal_fields(obs, n_blocks: int) -> dict[str, torch.Tensor]:
+    """The goal entries of a state, as the real envs and the model env write them.
+
+    ``sub_goals`` (:func:`sub_goals`), ``achieved_sub_goal``
+    (:func:`achieved_sub_goal`) and ``achieved_goal`` (the success flags of
+    every sub-goal, in the observations' dtype), each computed once.
+    """
+    obs = _as_obs(obs, n_blocks)
+    sub, achieved = sub_goals(obs, n_blocks), achieved_sub_goal(obs, n_blocks)
+    return {"sub_goals": sub, "achieved_sub_goal": achieved, "achieved_goal": sub_goal_reached(achieved.unsqueeze(-2), sub).to(obs.dtype)}
+
+
 def achieved_goal_flags(obs, n_blocks: int) -> torch.Tensor:
     """``[..., n_goals]``: 1.0 for every sub-goal the state meets (the high level's ``achieved_goal``), in the observations' dtype."""
-    obs = _as_obs(obs, n_blocks)
-    return sub_goal_reached(achieved_sub_goal(obs, n_blocks).unsqueeze(-2), sub_goals(obs, n_blocks)).to(obs.dtype)
+    return goal_fields(obs, n_blocks)["achieved_goal"]
 
 
 def goal_reward(achieved_goal, desired_goal) -> torch.Tensor:
@@ -209,8 +220,12 @@ def next_option(option: torch.Tensor, goal: torch.Tensor, flags: torch.Tensor) -
         >>> next_option(torch.tensor([0, 0, 2]), torch.tensor([2, 0, 2]), torch.tensor([[1., 0, 0], [1, 0, 0], [0, 0, 1]]))
         tensor([1, 0, 2])
     """
-    met = flags.gather(-1, option.long().unsqueeze(-1)).squeeze(-1) > 0.5
-    return torch.where(met & (option < goal), option + 1, option)
+    return torch.where(option_met(option, flags) & (option < goal), option + 1, option)
+
+
+def option_met(option: torch.Tensor, flags: torch.Tensor) -> torch.Tensor:
+    """``[B]`` bool: whether each env's ``option`` has its sub-goal met in the success ``flags`` (``[B, n_goals]``)."""
+    return flags.gather(-1, option.long().unsqueeze(-1)).squeeze(-1) > 0.5
 
 
 def first_option(goal: torch.Tensor) -> torch.Tensor:

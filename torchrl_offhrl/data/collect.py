@@ -8,7 +8,7 @@ from typing import Callable
 import torch
 from .dataset import OfflineDataset
 
-__all__ = ["make_gym_env", "collect_dataset"]
+__all__ = ["collect_dataset", "combine_levels", "make_gym_env", "package_versions"]
 
 
 def make_gym_env(env_id: str, num_envs: int = 1, device: str | torch.device = "cpu", **kwargs):
@@ -133,3 +133,26 @@ def package_versions() -> dict:
         except md.PackageNotFoundError:  # pragma: no cover
             out[pkg] = None
     return out
+
+
+def combine_levels(parts: list[OfflineDataset], seed: int, keep: tuple[str, ...] = ("env_id", "num_envs", "versions"),
+                   part_keys: tuple[str, ...] = ("policy", "returns", "collection_seconds")) -> OfflineDataset:
+    """medium + expert -> medium-expert (D4RL's protocol): episodes renumbered and kept apart, the parts described in the metadata.
+
+    The result's metadata holds ``keep`` from the medium part, ``seed``,
+    ``policy`` and ``policy_card`` of both parts, ``parts`` (per part: its
+    transitions and ``part_keys`` of its metadata), the summed
+    ``collection_seconds`` and the ``returns`` of the whole.
+    """
+    med, exp = parts
+    meta = {k: med.metadata[k] for k in keep if k in med.metadata}
+    meta.update({
+        "seed": seed,
+        "policy": f"{med.metadata.get('policy')} + {exp.metadata.get('policy')}",
+        "policy_card": {"medium": med.metadata.get("policy_card"), "expert": exp.metadata.get("policy_card")},
+        "parts": {name: {"transitions": len(p), **{k: p.metadata.get(k) for k in part_keys}} for name, p in (("medium", med), ("expert", exp))},
+        "collection_seconds": round(sum(p.metadata.get("collection_seconds", 0.0) for p in parts), 2),
+    })
+    ds = OfflineDataset.concatenate(parts, meta)
+    ds.metadata["returns"] = ds.return_stats()
+    return ds

@@ -34,7 +34,7 @@ from ..registry import ENV_IDS, LEVELS, resolve_env
 from ..rollouts import evaluate_policy
 from ..scores import normalized_score
 from ..utils import cache_dir, one_thread, remove_stale_tmp
-from .collect import collect_dataset, make_gym_env
+from .collect import collect_dataset, combine_levels, make_gym_env
 from .dataset import DatasetError, OfflineDataset
 from .io import load_dataset, save_dataset
 from .stacking import SCRIPT_LEVELS, SCRIPT_VERSION, combine_stacking, generate_stacking_dataset
@@ -186,7 +186,7 @@ def _generate(env_id, short, level, num_transitions, seed, num_envs, progress, p
         medium = _get_policy(policy[0], short, "medium", env_id)
         expert = _get_policy(policy[1], short, "expert", env_id)
         parts = [_collect_with(env_id, *p, num_transitions, num_envs, seed, progress) for p in (medium, expert)]
-        ds = _combine(parts, seed)
+        ds = combine_levels(parts, seed)
     refs = _reference_returns(env_id, short, expert, ref_episodes, seed)
     _finish_metadata(ds, env_id, short, level, seed, num_transitions, refs)
     return ds
@@ -222,34 +222,6 @@ def _collect_with(env_id, actor, card, n, num_envs, seed, progress) -> OfflineDa
     meta = {"policy": card.get("name", "user-given"), "policy_card": card}
     return collect_dataset(env_id, n, SampledPolicy(actor), num_envs=num_envs, seed=seed,
                            progress=progress, metadata=meta)
-
-
-def _combine(parts: list[OfflineDataset], seed: int) -> OfflineDataset:
-    """medium + expert -> medium-expert, episodes renumbered and kept apart."""
-    med, exp = parts
-    meta = {
-        k: med.metadata[k] for k in ("env_id", "num_envs", "versions") if k in med.metadata
-    }
-    meta.update(
-        {
-            "seed": seed,
-            "policy": f"{med.metadata.get('policy')} + {exp.metadata.get('policy')}",
-            "policy_card": {"medium": med.metadata.get("policy_card"), "expert": exp.metadata.get("policy_card")},
-            "parts": {
-                name: {
-                    "transitions": len(p),
-                    "policy": p.metadata.get("policy"),
-                    "returns": p.metadata.get("returns"),
-                    "collection_seconds": p.metadata.get("collection_seconds"),
-                }
-                for name, p in (("medium", med), ("expert", exp))
-            },
-            "collection_seconds": round(sum(p.metadata.get("collection_seconds", 0.0) for p in parts), 2),
-        }
-    )
-    ds = OfflineDataset.concatenate(parts, meta)
-    ds.metadata["returns"] = ds.return_stats()
-    return ds
 
 
 def _reference_returns(env_id: str, short: str, expert, episodes: int, seed: int) -> dict:
@@ -461,7 +433,7 @@ def named_dataset(
             detail = f"parts to generate first: {[f'{short}-{lv}' for lv in todo]}" if todo else "from the cached parts"
             _announce(name, path, n * len(todo), seconds, progress, detail)
             parts = [named_dataset(f"{short}-{lv}", n, seed, progress, num_envs) for lv in needed]
-            ds = _combine(parts, seed)
+            ds = combine_levels(parts, seed)
             refs = {k: parts[1].metadata.get(k) for k in
                     ("ref_min_return", "ref_max_return", "ref_episodes", "ref_seed", "ref_policy", "ref_note")}
             _finish_metadata(ds, env_id, short, level, seed, n, refs)

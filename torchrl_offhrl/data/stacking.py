@@ -32,6 +32,7 @@ import torch
 
 from ..blockstack import goals as G
 from ..blockstack.goals import first_option, next_option
+from .collect import combine_levels, package_versions
 
 __all__ = ["GOAL_FIELDS", "SCRIPT_LEVELS", "ScriptedStacker", "collect_stacking", "combine_stacking", "first_option", "generate_stacking_dataset", "next_option", "scripted_success"]
 
@@ -155,7 +156,6 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     from tqdm.auto import tqdm
 
     from ..blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
-    from .collect import package_versions
     from .dataset import OfflineDataset
 
     if env_id not in BLOCKSTACK_IDS:
@@ -185,7 +185,7 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
             nobs, reward, terminated, truncated, _ = venv.step(action.double().numpy())
             nobs = {k: torch.from_numpy(v) for k, v in nobs.items()}
             flags = nobs["achieved_goal"]
-            done_opt = flags.gather(-1, option.unsqueeze(-1)) > 0.5
+            done_opt = G.option_met(option, flags).unsqueeze(-1)
             steps.append({
                 "observation": obs["observation"], "action": action, "desired_goal": obs["desired_goal"], "achieved_goal": obs["achieved_goal"],
                 "option": option, "sub_goal": obs["sub_goals"][rows, option], "achieved_sub_goal": obs["achieved_sub_goal"],
@@ -233,18 +233,8 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
 
 def combine_stacking(parts, seed: int):
     """``medium`` + ``expert`` -> ``medium-expert`` (episodes renumbered), with the goal statistics of both parts."""
-    from .dataset import OfflineDataset
-
-    meta = {k: parts[0].metadata[k] for k in ("env_id", "num_envs", "versions", "horizon", "n_blocks", "goal_fields") if k in parts[0].metadata}
-    meta.update({
-        "seed": seed, "policy": " + ".join(str(p.metadata.get("policy")) for p in parts),
-        "policy_card": {"medium": parts[0].metadata.get("policy_card"), "expert": parts[1].metadata.get("policy_card")},
-        "parts": {name: {"transitions": len(p), "goal_success": p.metadata.get("goal_success"), "collection_seconds": p.metadata.get("collection_seconds")}
-                  for name, p in zip(("medium", "expert"), parts)},
-        "collection_seconds": round(sum(p.metadata.get("collection_seconds", 0.0) for p in parts), 2),
-    })
-    ds = OfflineDataset.concatenate(parts, meta)
-    ds.metadata["returns"] = ds.return_stats()
+    ds = combine_levels(parts, seed, keep=("env_id", "num_envs", "versions", "horizon", "n_blocks", "goal_fields"),
+                        part_keys=("goal_success", "collection_seconds"))
     eps = {k: sum(p.metadata["goal_episodes"][k] for p in parts) for k in parts[0].metadata["goal_episodes"]}
     ds.metadata["goal_episodes"] = eps
     ds.metadata["goal_success"] = {

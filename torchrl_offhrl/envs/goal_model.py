@@ -67,25 +67,20 @@ class BlockStackModelEnv(PessimisticModelEnv):
         self.observation_spec["sub_goals"] = Unbounded((*B, self.n_goals, d), dtype=torch.float32, device=dev)
         self.observation_spec["achieved_sub_goal"] = Unbounded((*B, d), dtype=torch.float32, device=dev)
 
-    def _goal_fields(self, obs: torch.Tensor) -> dict[str, torch.Tensor]:
-        sub, achieved = G.sub_goals(obs, self.n_blocks), G.achieved_sub_goal(obs, self.n_blocks)
-        return {"sub_goals": sub, "achieved_sub_goal": achieved,
-                "achieved_goal": G.sub_goal_reached(achieved.unsqueeze(-2), sub).to(obs.dtype)}
-
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         out = super()._reset(tensordict, **kwargs)
         B = self.batch_size
         n = max(1, B.numel())
         k = torch.multinomial(self._goal_probs, n, replacement=True, generator=self._rng).to(self.device)
         out.set("desired_goal", torch.nn.functional.one_hot(k, self.n_goals).float().reshape(*B, self.n_goals))
-        out.update(self._goal_fields(out.get("observation")))
+        out.update(G.goal_fields(out.get("observation"), self.n_blocks))
         return out
 
     @torch.no_grad()
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         out = super()._step(tensordict)
         desired = tensordict.get("desired_goal")
-        fields = self._goal_fields(out.get("observation"))
+        fields = G.goal_fields(out.get("observation"), self.n_blocks)
         reward = G.goal_reward(fields["achieved_goal"], desired).unsqueeze(-1)
         out.set("reward", torch.where(out.get("penalized"), torch.full_like(reward, -self.penalty), reward))
         out.set("desired_goal", desired.clone())

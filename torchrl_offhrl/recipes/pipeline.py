@@ -87,7 +87,7 @@ def _load_cached(cls, path):
 
 
 def fit_or_load_models(
-    cfg: Mapping, data: OfflineDataset, progress: bool = True, cvae: bool = True
+    cfg: Mapping, data: OfflineDataset, progress: bool = True, with_cvae: bool = True
 ) -> tuple[DynamicsEnsemble, ConditionalVAE | None, dict]:
     """Fit the ensemble and the CVAE on ``data``, or load them from the cache.
 
@@ -95,10 +95,9 @@ def fit_or_load_models(
     dataset's content (:meth:`~torchrl_offhrl.data.OfflineDataset.content_hash`)
     and the model and fit configs: change either and the models are fitted
     again (a file replaced by other data at the same path is reported). Returns ``(ensemble, cvae, info)``;
-    ``cvae=False`` fits (or loads) the ensemble alone and returns ``None`` for the CVAE (a later call fits
+    ``with_cvae=False`` fits (or loads) the ensemble alone and returns ``None`` for the CVAE (a later call fits
     it into the same folder).
     """
-    want_cvae = cvae
     device = torch.device(cfg.get("device", "cpu"))
     ecfg, ccfg = to_plain(cfg["ensemble"]), to_plain(cfg["cvae"])
     ident = {
@@ -113,7 +112,7 @@ def fit_or_load_models(
     info = {"model_dir": str(folder)}
     e_path, c_path = folder / "ensemble.pt", folder / "cvae.pt"
     source = data.metadata.get("source")
-    if not (e_path.is_file() and (c_path.is_file() or not want_cvae)):
+    if not (e_path.is_file() and (c_path.is_file() or not with_cvae)):
         stale = _entries_for_other_data(source, ident)
         if stale:
             print(f"the data at {source} is not what the cached models {', '.join(map(str, stale))} were fitted on "
@@ -131,8 +130,8 @@ def fit_or_load_models(
         ensemble.save(e_path)
         info["ensemble"] = "fitted"
         info["ensemble_history"] = ensemble.training_history
-    cvae = _load_cached(ConditionalVAE, c_path) if want_cvae else None
-    if not want_cvae:
+    cvae = _load_cached(ConditionalVAE, c_path) if with_cvae else None
+    if not with_cvae:
         info["cvae"] = "not asked for"
     elif cvae is not None:
         info["cvae"] = "loaded"

@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from ..utils import CorruptFileError, atomic_write, load_torch_file
-from .config import RESUMABLE_KEYS
+from .config import RESUMABLE_KEYS, fingerprints_match
 
 __all__ = ["RunDirectory", "trim_csv_logs"]
 
@@ -113,8 +113,6 @@ class RunDirectory:
             warnings.warn(f"{err}; resuming from the checkpoint before it, {self.previous_path}", stacklevel=2)
             state = load_torch_file(self.previous_path, "previous run checkpoint", f"delete it and {self.checkpoint_path.name} to start over",
                                     map_location=device)
-        from .config import fingerprints_match
-
         if not fingerprints_match(state.get("fingerprint"), self.fingerprint):
             raise ValueError(
                 f"{self.path} holds a checkpoint of a run with a different configuration (only {', '.join(RESUMABLE_KEYS)} "
