@@ -411,15 +411,3 @@ def test_fixed_goals_per_env_for_per_goal_evaluation():
 
     with pytest.raises(ValueError, match="goal must be"):
         gym.make("BlockStack2-v0", goal=3)
-
-
-def test_training_on_block_stacking_is_refused_with_what_is_ready(tmp_path):
-    """Until the goal-conditioned agents exist, `offhrl train env=blockstack2` says so before any work (no run folder)."""
-    from torchrl_offhrl.recipes.config import compose
-    from torchrl_offhrl.recipes.train import train
-
-    for algo in ("ppo", "moc", "bc"):
-        cfg = compose("offline_train", [f"algo={algo}", "env=blockstack2", f"run_dir={tmp_path / algo}"])
-        with pytest.raises(ValueError, match="issue 18"):
-            train(cfg)
-        assert not (tmp_path / algo).exists()

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_offhrl.agents.her import SEGMENT_END, mark_segments, relabelled_reward, sub_goal_her_buffer
+from torchrl_offhrl.agents.her import LOW_REWARD, SEGMENT_END, mark_segments, relabelled_reward, sub_goal_her_buffer
 from torchrl_offhrl.blockstack import goals as G
 
 
@@ -12,6 +12,7 @@ def test_relabelled_goals_come_from_later_in_the_same_option_segment():
 
     ds = collect_stacking("BlockStack2-v0", 100, 0.0, 0.05, num_envs=2, seed=3, progress=False)
     data = mark_segments(ds.data.clone())
+    data.set(LOW_REWARD, relabelled_reward(data))
     ends = data[SEGMENT_END].squeeze(-1)
     assert torch.equal(ends, (data["next", "done"] | data["next", "option_done"]).squeeze(-1))
     rb = sub_goal_her_buffer(1000, 64, her_ratio=1.0)
@@ -27,9 +28,10 @@ def test_relabelled_goals_come_from_later_in_the_same_option_segment():
         same = (seg == seg[t]) & (torch.arange(len(data)) >= t)
         assert (achieved[same] == batch["sub_goal"][i]).all(-1).any()
     # rewards recomputed with the task's function: 0 where the goal is the transition's own achieved sub-goal
-    torch.testing.assert_close(batch["next", "reward"], relabelled_reward(batch))
+    torch.testing.assert_close(batch[LOW_REWARD], relabelled_reward(batch))
     own = (batch["sub_goal"] == batch["next", "achieved_sub_goal"]).all(-1)
-    assert own.any() and (batch["next", "reward"].squeeze(-1)[own] == 0).all()
+    assert own.any() and (batch[LOW_REWARD].squeeze(-1)[own] == 0).all()
+    torch.testing.assert_close(batch["next", "reward"], data["next", "reward"][idx])  # the high level's reward is left alone
 
 
 def test_relabelled_reward_by_hand():

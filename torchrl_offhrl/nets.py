@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-__all__ = ["ACTIVATIONS", "NormalizedMLP", "ObservationNormalizer", "activation_class", "mlp", "tanh_gaussian_actor"]
+__all__ = ["ACTIVATIONS", "GoalMLP", "NormalizedMLP", "ObservationNormalizer", "activation_class", "mlp", "tanh_gaussian_actor"]
 
 #: Activation names accepted by :func:`mlp` (and the configs' ``activation``).
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}
@@ -91,6 +91,36 @@ class NormalizedMLP(nn.Module):
 
     def forward(self, obs, *extra):
         return self.net(torch.cat([self.norm(obs), *extra], -1))
+
+
+class GoalMLP(nn.Module):
+    """An MLP on ``cat(norm(observation), norm(goal), *extra)``: goal-conditioned networks (UOF's, SAC + HER's).
+
+    UOF normalises its inputs as ``(x - mean) / (std + 0.01)`` clipped to
+    ``[-3, 3]``: pass ``scale = std + 0.01`` and ``clip=3``. ``extra``
+    inputs (a one-hot goal, an action) are not normalised. With
+    ``last_layer_init`` the last layer's weights and biases are drawn from
+    ``U(-last_layer_init, last_layer_init)`` (UOF: 3e-3).
+
+    Examples:
+        >>> net = GoalMLP(3, 2, 1, 4, [8], "relu", clip=3.0)
+        >>> net(torch.zeros(5, 3), torch.zeros(5, 2), torch.zeros(5, 1)).shape
+        torch.Size([5, 4])
+    """
+
+    def __init__(self, obs_dim: int, goal_dim: int, in_extra: int, out: int, hidden: Sequence[int], activation: str, obs_loc=None, obs_scale=None,
+                 goal_loc=None, goal_scale=None, clip: float | None = None, last_layer_init: float | None = None):
+        super().__init__()
+        self.norm = ObservationNormalizer(obs_dim, obs_loc, obs_scale, clip=clip)
+        self.goal_norm = ObservationNormalizer(goal_dim, goal_loc, goal_scale, clip=clip)
+        self.net = mlp(obs_dim + goal_dim + in_extra, out, hidden, activation)
+        if last_layer_init is not None:
+            last = [m for m in self.net.modules() if isinstance(m, nn.Linear)][-1]
+            nn.init.uniform_(last.weight, -last_layer_init, last_layer_init)
+            nn.init.uniform_(last.bias, -last_layer_init, last_layer_init)
+
+    def forward(self, obs, goal, *extra):
+        return self.net(torch.cat([self.norm(obs), self.goal_norm(goal), *extra], -1))
 
 
 def tanh_gaussian_actor(module, low, high, action_key: str = "action"):

@@ -11,7 +11,7 @@ code, just defining it: registration happens at class creation); see
 Examples:
     >>> from torchrl_offhrl.agents import AGENTS
     >>> sorted(AGENTS)
-    ['bc', 'cql', 'iql', 'moc', 'ppo', 'sac', 'td3bc']
+    ['bc', 'cql', 'iql', 'moc', 'ppo', 'sac', 'sac_her', 'td3bc', 'uof']
 """
 from __future__ import annotations
 
@@ -19,14 +19,15 @@ from collections.abc import Mapping
 
 from ..utils import to_plain
 from .base import Agent, DatasetAgent, MetricMeans, OnPolicyAgent, action_box, adam, sum_losses
-from .registry import AGENTS, agent_class, agent_defaults, register_agent
+from .registry import AGENTS, agent_class, agent_defaults, goal_conditioned, register_agent
 
 __all__ = [
-    "AGENTS", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "make_agent", "register_agent",
+    "AGENTS", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "goal_conditioned", "make_agent", "register_agent",
     "sum_losses",
 ]
 
-def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_scale=None, action_key: str = "latent_action", device="cpu", **kwargs) -> Agent:
+def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_scale=None, action_key: str = "latent_action", device="cpu",
+               goal_key: str | None = None, **kwargs) -> Agent:
     """Build the agent registered as ``name`` for ``env`` (specs only: the composed model env or a real env with the same action key).
 
     Args:
@@ -36,6 +37,9 @@ def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_
         action_key: the key the policy writes: ``"latent_action"`` under the
             latent transform, ``"action"`` for the "no CVAE" ablation.
         device: where the networks and updates live.
+        goal_key: on a goal-conditioned task (block stacking), the goal the
+            agent is conditioned on (``"sub_goal"``: the low-level goal); only
+            agents that take it (:func:`goal_conditioned`) can act there.
         cfg, **kwargs: the algorithm's hyper-parameters (``configs/algo/<name>.yaml``,
             as a mapping and/or keyword arguments; ``name`` and ``label`` (a
             config's run name, e.g. ``moc_official``) are not passed on). An unknown key is an error that lists the accepted ones.
@@ -46,8 +50,14 @@ def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_
     unknown = sorted(set(cfg) - set(accepted))
     if unknown:
         raise TypeError(f"algo={name}: unknown hyper-parameter(s) {unknown}; {cls.__name__} accepts {sorted(accepted)}")
-    return cls(env, obs_loc=obs_loc, obs_scale=obs_scale, action_key=action_key, device=device, **cfg).to(device)
+    context = {"obs_loc": obs_loc, "obs_scale": obs_scale, "action_key": action_key, "device": device}
+    if goal_key is not None:
+        if not goal_conditioned(name):
+            raise ValueError(f"algo={name} is not goal-conditioned: on a goal-conditioned task use one of "
+                             f"{sorted(n for n in AGENTS if goal_conditioned(n))}")
+        context["goal_key"] = goal_key
+    return cls(env, **context, **cfg).to(device)
 
 
 # the algorithms shipped with the library register themselves on import
-from . import bc, cql, iql, moc, ppo, sac, td3bc  # noqa: E402,F401
+from . import bc, cql, iql, moc, ppo, sac, sac_her, td3bc, uof  # noqa: E402,F401

@@ -251,11 +251,20 @@ class OnPolicyAgent(Agent):
         return {**metrics.means(), "updates": metrics.count}
 
 
-def gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, default_scale: float = 1.0, scale_lb: float = 0.1):
+def _inputs(env, goal_key: str | None) -> tuple[list[str], int]:
+    """The actor's in-keys (``observation``, and the goal if any) and the goal's size (not normalised: an extra input)."""
+    if goal_key is None:
+        return ["observation"], 0
+    return ["observation", goal_key], env.observation_spec[goal_key].shape[-1]
+
+
+def gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, default_scale: float = 1.0, scale_lb: float = 0.1,
+                   goal_key: str | None = None):
     """A tanh-Gaussian :class:`~torchrl.modules.ProbabilisticActor` on ``env``'s action box, state-dependent scale.
 
     The scale is ``biased_softplus_<default_scale>`` of the network's output,
     at least ``scale_lb`` (TorchRL's IQL / CQL sota scripts: 1.0 and 0.1).
+    With ``goal_key`` the actor also reads that goal (goal-conditioned tasks).
     """
     from tensordict.nn import NormalParamExtractor, TensorDictModule
 
@@ -263,15 +272,16 @@ def gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=N
 
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim, low, high = action_box(env, action_key)
+    in_keys, goal_dim = _inputs(env, goal_key)
     net = nn.Sequential(
-        NormalizedMLP(obs_dim, 0, 2 * act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale),
+        NormalizedMLP(obs_dim, goal_dim, 2 * act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale),
         NormalParamExtractor(scale_mapping=f"biased_softplus_{float(default_scale)}", scale_lb=float(scale_lb)),
     )
-    return tanh_gaussian_actor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]), low, high, action_key)
+    return tanh_gaussian_actor(TensorDictModule(net, in_keys=in_keys, out_keys=["loc", "scale"]), low, high, action_key)
 
 
-def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None):
-    """A deterministic actor: an MLP squashed into ``env``'s action box by TorchRL's ``TanhModule`` (TD3+BC, BC)."""
+def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, goal_key: str | None = None):
+    """A deterministic actor: an MLP squashed into ``env``'s action box by TorchRL's ``TanhModule`` (TD3+BC, BC); with ``goal_key``, also on that goal."""
     from tensordict.nn import TensorDictModule, TensorDictSequential
     from torchrl.modules import TanhModule
 
@@ -279,7 +289,8 @@ def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_sc
 
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim, low, high = action_box(env, action_key)
-    net = TensorDictModule(NormalizedMLP(obs_dim, 0, act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=["observation"], out_keys=["param"])
+    in_keys, goal_dim = _inputs(env, goal_key)
+    net = TensorDictModule(NormalizedMLP(obs_dim, goal_dim, act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=in_keys, out_keys=["param"])
     return TensorDictSequential(net, TanhModule(in_keys=["param"], out_keys=[action_key], low=low, high=high))
 
 

@@ -20,6 +20,13 @@ class BCAgent(DatasetAgent):
     error. ``stochastic=True``: a tanh-Gaussian actor fitted by negative
     log-likelihood, evaluated at its mode. Rewards are not used.
 
+    On a goal-conditioned task (block stacking) the loop passes ``goal_key``
+    (``"sub_goal"``): the policy maps (state, low-level goal) to the action,
+    as the paper's BC baseline, learning from the sub-goal the data's
+    collector pursued; at test the env's
+    :class:`~torchrl_offhrl.envs.SubGoalTracker` gives it the sub-goals
+    along the goal's abstract demonstration.
+
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
@@ -38,6 +45,7 @@ class BCAgent(DatasetAgent):
         obs_scale=None,
         action_key: str = "action",
         device="cpu",
+        goal_key: str | None = None,
         hidden_sizes: Sequence[int] = (256, 256),
         lr: float = 3e-4,
         stochastic: bool = False,
@@ -45,10 +53,10 @@ class BCAgent(DatasetAgent):
         fused_adam: bool = True,
     ):
         if stochastic:
-            self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale)
+            self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, goal_key=goal_key)
             self.loss = BCLoss(self.policy)
         else:
-            self.policy = deterministic_actor(env, action_key, hidden_sizes, obs_loc, obs_scale)
+            self.policy = deterministic_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, goal_key=goal_key)
             self.loss = BCLoss(self.policy, loss_function="l2")
         self.loss.set_keys(action=action_key)
         self.optimizer = adam(self.loss.parameters(), lr=lr, fused=fused_adam)

@@ -5,13 +5,13 @@ import inspect
 
 from .base import Agent
 
-__all__ = ["AGENTS", "agent_class", "agent_defaults", "register_agent"]
+__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "register_agent"]
 
 #: Registered agent classes by name.
 AGENTS: dict[str, type[Agent]] = {}
 
 # arguments every builder takes from the training loop rather than from its config
-_CONTEXT = ("env", "obs_loc", "obs_scale", "action_key", "device")
+_CONTEXT = ("env", "obs_loc", "obs_scale", "action_key", "device", "goal_key")
 
 
 def register_agent(name: str):
@@ -39,3 +39,8 @@ def agent_class(name: str) -> type[Agent]:
         return AGENTS[name.lower()]
     except KeyError:
         raise ValueError(f"unknown algorithm {name!r}; registered agents: {sorted(AGENTS)}") from None
+
+
+def goal_conditioned(name: str) -> bool:
+    """Whether agent ``name`` can act on a goal-conditioned task (its builder takes ``goal_key``, e.g. ``uof``, ``sac_her``, ``bc``)."""
+    return "goal_key" in inspect.signature(agent_class(name).__init__).parameters

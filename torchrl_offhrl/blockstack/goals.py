@@ -45,6 +45,7 @@ import torch
 __all__ = [
     "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "check_blocks", "achieved_goal_flags", "achieved_sub_goal",
     "block_positions", "first_option", "goal_fields", "goal_reward", "next_option", "option_met", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
+    "success_by_goal",
 ]
 
 #: resting height of a block's centre on the table (UOF's constant; MuJoCo settles at ~0.4249)
@@ -231,3 +232,23 @@ def option_met(option: torch.Tensor, flags: torch.Tensor) -> torch.Tensor:
 def first_option(goal: torch.Tensor) -> torch.Tensor:
     """The first option of each goal's abstract demonstration (0 for goals 0-2, 3 for goals 3-5)."""
     return 3 * torch.div(goal.long(), 3, rounding_mode="floor")
+
+
+def success_by_goal(reward: torch.Tensor, alive: torch.Tensor, goal: torch.Tensor, num_goals: int) -> torch.Tensor:
+    """``[num_goals]``: the share of each goal's episodes that succeeded (NaN for a goal with no episode).
+
+    An episode succeeds when its high-level reward is 0 at some step it is
+    still running (UOF's test). ``reward`` and ``alive`` are ``[E, T]`` (an
+    evaluation rollout: rewards and :func:`~torchrl_offhrl.rollouts.first_episode_mask`),
+    ``goal`` is ``[E]``.
+
+    Examples:
+        >>> import torch
+        >>> r = torch.tensor([[-1., 0.], [-1., -1.], [0., -1.]])
+        >>> success_by_goal(r, torch.ones(3, 2, dtype=torch.bool), torch.tensor([0, 0, 2]), 3)
+        tensor([0.5000,    nan, 1.0000])
+    """
+    ok = ((reward == 0) & alive.bool()).any(-1).float()
+    counts = torch.zeros(num_goals).index_add_(0, goal.long().cpu(), torch.ones_like(ok).cpu())
+    hits = torch.zeros(num_goals).index_add_(0, goal.long().cpu(), ok.cpu())
+    return hits / counts  # 0 / 0 = NaN where a goal has no episode

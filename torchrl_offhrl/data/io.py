@@ -370,7 +370,10 @@ def _check_env_dims(ds: OfflineDataset, env_id: str, source: str) -> None:
     except Exception as err:
         raise DatasetError(f"{source}: cannot check dimensions against env {env_id!r}: {err}") from err
     try:
-        obs_shape = env.observation_space.shape
+        space = env.observation_space
+        if isinstance(space, gym.spaces.Dict) and "observation" in space.spaces:  # a goal env (block stacking): the state entry
+            space = space["observation"]
+        obs_shape = space.shape
         act_shape = env.action_space.shape
         action_low, action_high = env.action_space.low, env.action_space.high
     finally:

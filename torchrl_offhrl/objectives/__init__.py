@@ -1,5 +1,6 @@
-"""Losses: the Multi-updates Option Critic (MOC), deep intra-option Q-learning (DIOL, UOF's high level)."""
+"""Losses: the Multi-updates Option Critic (MOC), deep intra-option Q-learning (DIOL, UOF's high level), DDPG with twin critics (UOF's low level)."""
 from .diol import DIOLLoss, uof_epsilon
 from .option_critic import OptionCriticLoss, OptionGAE
+from .twin_ddpg import TwinDDPGLoss
 
-__all__ = ["DIOLLoss", "OptionCriticLoss", "OptionGAE", "uof_epsilon"]
+__all__ = ["DIOLLoss", "OptionCriticLoss", "OptionGAE", "TwinDDPGLoss", "uof_epsilon"]

@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
@@ -79,6 +79,8 @@ class DIOLLoss(LossModule):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     value_network: TensorDictModule
+    value_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
 
     def __init__(self, value_network: TensorDictModule, *, num_options: int | None = None, num_qvalue_nets: int = 2, gamma: float = 0.98,
                  target_range: tuple[float, float] | None = (-50.0, 0.0), loss_function: str = "smooth_l1"):

@@ -19,7 +19,7 @@ from ..utils import load_torch_file
 from .config import acts_in_latent_space, transfer_config
 from .pipeline import make_real_env
 
-__all__ = ["Evaluator", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
+__all__ = ["Evaluator", "GoalEvaluator", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
 
 
 class Evaluator:
@@ -68,17 +68,72 @@ class Evaluator:
             "normalized_d4rl": normalized_score(self.env_id, mean) if forward else None,
             "normalized_dataset": normalized_score(self.env_id, mean, ref=self.ref) if self.ref and forward else None,
         })
-        if self.model_env is not None:  # the same policy in the pessimistic model: a large gap means it exploits model errors
-            with torch.random.fork_rng():
-                model_rets = evaluate_policy(self.model_env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed)
-            rec["model_return_mean"] = float(model_rets.mean())
-            rec["model_return_std"] = float(model_rets.std())
-            rec["model_real_gap"] = rec["model_return_mean"] - mean
+        rec.update(self.model_metrics(agent, mean))
         alive = first_episode_mask(td["next", "done"].reshape(self.episodes, -1))
         rec.update(agent.evaluation_metrics(td, alive))
         if save_to is not None:
             Path(save_to).mkdir(parents=True, exist_ok=True)
             agent.save_evaluation(td, alive, Path(save_to), title)
+        return rec
+
+    def model_metrics(self, agent, real_mean: float) -> dict:
+        """The same deterministic policy in the pessimistic model env (if any): a large model-real gap means it exploits model errors."""
+        if self.model_env is None:
+            return {}
+        with torch.random.fork_rng():
+            model_rets = evaluate_policy(self.model_env, agent.policy, self.model_env.batch_size.numel(), max_steps=self.max_steps, deterministic=True,
+                                         seed=self.seed)
+        m = float(model_rets.mean())
+        return {"model_return_mean": m, "model_return_std": float(model_rets.std()), "model_real_gap": m - real_mean}
+
+
+class GoalEvaluator(Evaluator):
+    """Per-goal success on a goal-conditioned task (block stacking), as UOF tests: ``episodes`` episodes of every goal.
+
+    ``env`` is the batched real env with ``episodes * num_goals`` copies, copy
+    ``i`` fixed to goal ``i // episodes``
+    (:func:`~torchrl_offhrl.blockstack.make_blockstack_env` with ``goals=``)
+    and a time limit of ``max_steps`` (UOF tests with 50), the agent's
+    transforms appended. One deterministic rollout of ``max_steps`` steps
+    gives both horizons: an episode succeeds when its high-level reward is 0 at
+    some step (the success flags equal the goal's); within the first
+    ``horizon`` steps (25: training's horizon, the paper's) it is
+    ``success_rate`` / ``success_per_goal``, within all ``max_steps`` it is
+    ``success_rate_h<max_steps>`` / ``success_per_goal_h<max_steps>``
+    (nothing in the env depends on the time limit, so the first 25 steps of a
+    50-step episode are a 25-step episode). ``return_mean`` is the return over
+    the first ``horizon`` steps; there is no D4RL score. The agent's
+    :meth:`~torchrl_offhrl.agents.Agent.evaluation_metrics` and evaluation
+    files see the first ``horizon`` steps.
+    """
+
+    def __init__(self, env, env_id: str, episodes: int, num_goals: int, horizon: int, max_steps: int, seed: int, model_env=None):
+        super().__init__(env, env_id, episodes * num_goals, max_steps, seed, model_env=model_env)
+        self.per_goal, self.num_goals, self.horizon = int(episodes), int(num_goals), int(horizon)
+        if self.horizon > self.max_steps:
+            raise ValueError(f"the evaluation's max_steps ({max_steps}) must be at least the training horizon ({horizon})")
+
+    def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
+        from ..blockstack.goals import success_by_goal
+
+        _, td = evaluate_policy(self.env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True)
+        reward = td["next", "reward"].reshape(self.episodes, -1)
+        alive = first_episode_mask(td["next", "done"].reshape(self.episodes, -1))
+        goal = td["desired_goal"][:, 0].argmax(-1)
+        h = min(self.horizon, reward.shape[1])
+        rets = (reward[:, :h] * alive[:, :h]).sum(1)
+        short = success_by_goal(reward[:, :h], alive[:, :h], goal, self.num_goals)
+        full = success_by_goal(reward, alive, goal, self.num_goals)
+        mean = float(rets.mean())
+        rec = {"return_mean": mean, "return_std": float(rets.std()), "normalized_d4rl": None, "normalized_dataset": None,
+               "success_rate": float(short.nanmean()), "success_per_goal": short.tolist(),
+               f"success_rate_h{self.max_steps}": float(full.nanmean()), f"success_per_goal_h{self.max_steps}": full.tolist()}
+        rec.update(self.model_metrics(agent, mean))
+        head = td[:, :h]
+        rec.update(agent.evaluation_metrics(head, alive[:, :h]))
+        if save_to is not None:
+            Path(save_to).mkdir(parents=True, exist_ok=True)
+            agent.save_evaluation(head, alive[:, :h], Path(save_to), title)
         return rec
 
 

@@ -22,7 +22,7 @@ from .config import transfer_config, transfer_label
 
 __all__ = [
     "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "fmt_number", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
-    "plot_curve", "plot_training_metrics",
+    "plot_curve", "plot_goal_success", "plot_training_metrics",
     "plot_transfer", "read_scalar_logs", "run_summary", "run_unit", "transfer_stats",
 ]
 
@@ -98,6 +98,40 @@ def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str
     if behaviour is not None:
         ax.axhline(behaviour, color="gray", ls="--", label="behaviour (dataset)")
     return _finish(ax, path, own, xlabel, "real-env return" if key == "return_mean" else key, title)
+
+
+def plot_goal_success(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", xlabel: str = UNIT_LABELS["frames"], axes=None,
+                      key: str = "success_per_goal"):
+    """Per-goal success curves of goal-conditioned runs (the paper's Fig. 4): one panel per goal, mean over runs, shaded ± one std.
+
+    ``key`` is the records' per-goal list (``success_per_goal``: horizon 25;
+    ``success_per_goal_h50``: horizon 50). Pass ``axes`` (one per goal) to
+    draw several algorithms on the same panels; the figure is then saved by
+    the caller (``path`` is ignored).
+    """
+    runs = [[r for r in recs if key in r] for recs in runs]
+    if not runs or not all(runs):
+        return None
+    n = len(runs[0][0][key])
+    own = axes is None
+    if own:
+        fig, axes = _plt().subplots(1, n, figsize=(3.2 * n, 3.2), sharey=True, squeeze=False)
+        axes = axes[0]
+    for k, ax in enumerate(axes):
+        per_goal = [[{**r, "_success": r[key][k]} for r in recs] for recs in runs]
+        _band(ax, per_goal, "_success", f"{label} (n={len(runs)})" if label and k == 0 else None)
+        ax.set_title(f"goal {k}", fontsize=9)
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_xlabel(xlabel, fontsize=8)
+    axes[0].set_ylabel("success rate")
+    if own:
+        axes[0].legend(loc="best", fontsize=8)
+        fig = axes[0].figure
+        fig.suptitle(title, fontsize=9)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        _plt().close(fig)
+    return path
 
 
 def plot_transfer(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", key: str = "return_mean", ax=None, x_offset: int = 0,

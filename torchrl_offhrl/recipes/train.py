@@ -30,16 +30,17 @@ from collections.abc import Mapping
 import torch
 from torchrl.envs import RewardScaling, RewardSum
 
-from ..agents import agent_defaults, make_agent
+from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent
 from ..blockstack import BLOCKSTACK_IDS
+from ..blockstack import goals as G
 from ..utils import to_plain
 from .config import (
     acts_in_latent_space, config_fingerprint, default_run_dir, learns_from_dataset, model_config, model_env_config, resolve_dataset, resolve_reward_scale,
     transfer_config,
 )
-from .evaluation import Evaluator
+from .evaluation import Evaluator, GoalEvaluator
 from .pipeline import fit_or_load_models, make_model_env, make_real_env
-from .report import UNIT_LABELS, fmt_number, plot_curve, plot_training_metrics, plot_transfer, run_summary
+from .report import UNIT_LABELS, fmt_number, plot_curve, plot_goal_success, plot_training_metrics, plot_transfer, run_summary
 from .rundir import RunDirectory
 from .schema import validate_config
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
@@ -59,11 +60,6 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     """
     cfg = to_plain(cfg)
     validate_config(cfg)  # every bad value named before any data or model work
-    if cfg["env"]["env_id"] in BLOCKSTACK_IDS:
-        raise ValueError(f"env={cfg['env']['name']}: training agents on the block-stacking tasks needs goal-conditioned agents (UOF, SAC + HER, "
-                         "BC), which are not built yet (issue 18). The data, the models and the model env are ready: "
-                         f"`offhrl collect {cfg['env']['name']} medium`, `offhrl fit env={cfg['env']['name']} dataset=medium`, "
-                         "torchrl_offhrl.recipes.pipeline.make_model_env")
     t_start = time.time()
     run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
     with run.locked():  # refused here, a run leaves the directory alone: it belongs to the run holding the lock
@@ -89,6 +85,12 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     if from_dataset and tcfg is not None:
         raise ValueError(f"algo={algo['name']} learns from the dataset itself; the transfer setting fine-tunes online an agent trained "
                          "on the model env (moc, ppo, sac, ...): leave transfer.task null")
+    stacking = env_cfg["env_id"] in BLOCKSTACK_IDS  # goal-conditioned: per-goal success, agents conditioned on the sub-goal
+    if stacking and not goal_conditioned(algo["name"]):
+        raise ValueError(f"algo={algo['name']} is not goal-conditioned; on {env_cfg['env_id']} use one of "
+                         f"{sorted(n for n in AGENTS if goal_conditioned(n))}")
+    if stacking and tcfg is not None:
+        raise ValueError(f"the transfer setting is defined for the locomotion tasks (run backwards), not {env_cfg['env_id']}: leave transfer.task null")
     offline = tcfg is None or not tcfg["from_scratch"]  # from scratch: the online phase only (the transfer setting's baseline)
     latent = acts_in_latent_space(cfg)
     keep_decoder = latent and tcfg is not None and tcfg["decoder"] == "keep"
@@ -114,6 +116,15 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     env = model_eval_env = eval_env = online_env = None
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
 
+    n_goals = G.n_goals(2 if env_cfg["env_id"] == "BlockStack2-v0" else 3) if stacking else 0
+
+    def eval_real_env(with_cvae):  # the evaluation env: per goal `episodes` copies on a goal-conditioned task
+        if not stacking:
+            return make_real_env(env_cfg["env_id"], with_cvae, num_envs=episodes, latent_bound=bound)
+        goals = [k for k in range(n_goals) for _ in range(episodes)]
+        return make_real_env(env_cfg["env_id"], with_cvae, num_envs=len(goals), latent_bound=bound, goals=goals,
+                             max_episode_steps=int(cfg["eval"]["max_steps"]))
+
     def real_env(num_envs: int, task: str):  # the real env of the online phase, in the action space the agent acts in
         return make_real_env(env_cfg["env_id"], cvae if keep_decoder else None, num_envs=num_envs, latent_bound=bound, task=task,
                              discard_decoder=latent and not keep_decoder)
@@ -129,7 +140,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         if "reward_scale" in agent_defaults(algo["name"]):  # the rewards it learns from: a number, or a name resolved from the data
             algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), data, float(algo.get("gamma", 0.99)))}
             pcfg["env"]["reward_scale"] = algo["reward_scale"]
-        eval_env = make_real_env(env_cfg["env_id"], None, num_envs=episodes)  # the env whose specs the agent is built for
+        eval_env = eval_real_env(None)  # the env whose specs the agent is built for
     else:
         pcfg["env"], pess = model_env_config(cfg, level, data)
         if offline:
@@ -142,14 +153,14 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     # 3. the agent, and the envs it acts in
     agent = make_agent(
         algo["name"], next(e for e in (env, online_env, eval_env) if e is not None), algo, obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
-        action_key="latent_action" if latent else "action", device=device,
+        action_key="latent_action" if latent else "action", device=device, goal_key="sub_goal" if stacking else None,
     )
     for e in (env, online_env):
         if e is not None:
             agent.attach(e)
             add_reward_transforms(e)
     if eval_env is None and offline:  # built after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
-        eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=episodes, latent_bound=bound)
+        eval_env = eval_real_env(cvae if latent else None)
     if eval_env is not None:
         agent.attach(eval_env)
     if env is not None and cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
@@ -160,7 +171,10 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     ref = ref if None not in ref else None
     eval_seed = int(cfg["seed"]) * 1000 + 7
     evaluator = online_evaluator = None
-    if eval_env is not None:
+    if eval_env is not None and stacking:
+        evaluator = GoalEvaluator(eval_env, env_cfg["env_id"], episodes, n_goals, int(pcfg["env"].get("horizon", 25)), int(cfg["eval"]["max_steps"]),
+                                  seed=eval_seed, model_env=model_eval_env)
+    elif eval_env is not None:
         evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=eval_seed, ref=ref, model_env=model_eval_env,
                               task=None if tcfg is None else "forward")
     if tcfg is not None:
@@ -218,10 +232,12 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                 rec = evaluate(ev, save_to=final_dir if run.step >= end else None, phase=phase)
                 run.records.append(rec)
                 if logger is not None:
-                    for k in ("return_mean", "normalized_d4rl", "model_return_mean", "model_real_gap"):
+                    for k in ("return_mean", "normalized_d4rl", "model_return_mean", "model_real_gap", "success_rate"):
                         if rec.get(k) is not None:
                             logger.log_scalar(f"eval/{k}", rec[k], step=run.step)
                 score = "" if rec["normalized_d4rl"] is None else f" (D4RL-normalised {rec['normalized_d4rl']:.1f})"
+                if "success_per_goal" in rec:
+                    score = f", success per goal {' '.join(f'{x:.2f}' for x in rec['success_per_goal'])}"
                 bar.set_postfix(ret=f"{rec['return_mean']:.0f}", score=fmt_number(rec["normalized_d4rl"]))
                 where = f"{env_cfg['env_id']}" + (f" ({rec['task']} task)" if "task" in rec else "")
                 bar.write(f"[{run.step} {unit}] real {where} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f}{score}")
@@ -286,6 +302,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     # the report
     behaviour = data.return_stats()  # episodes cut short by the collection budget left out
     curve_title = f"{algo['name']} on {env_cfg['env_id']} ({cfg['dataset']})"
+    if stacking:
+        plot_goal_success([run.records], run.path / "success.png", label=algo["name"], title=curve_title, xlabel=UNIT_LABELS[unit])
     if tcfg is None:
         plot_curve([run.records], run.path / "learning_curve.png", label=algo["name"], title=curve_title, behaviour=behaviour["mean"], xlabel=UNIT_LABELS[unit])
     else:

@@ -1,0 +1,262 @@
+"""UOF and the goal-conditioned baselines: the low-level loss by hand, the option policy's rules, HER keys, per-goal evaluation, the recipe."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from torchrl_offhrl.blockstack import goals as G
+from torchrl_offhrl.objectives import TwinDDPGLoss
+
+
+# ------------------------------------------------------------------------------------------ the low-level loss
+class Const(torch.nn.Module):
+    """An affine map of its last input (the action) with one bias: Q(s, g, a) = w . a + b."""
+
+    def __init__(self, dim):
+        super().__init__()
+        self.lin = torch.nn.Linear(dim, 1)
+
+    def forward(self, obs, goal, action):
+        return self.lin(action)
+
+
+def twin_loss(q_bias, target_q_bias, target_action, **kwargs):
+    actor = TensorDictModule(torch.nn.Linear(2, 1), in_keys=["observation"], out_keys=["action"])
+    critic = TensorDictModule(Const(1), in_keys=["observation", "goal", "action"], out_keys=["state_action_value"])
+    loss = TwinDDPGLoss(actor, critic, **kwargs)
+    with torch.no_grad():
+        for p in (loss.actor_network_params, loss.target_actor_network_params):
+            p["module", "weight"].data.zero_()
+            p["module", "bias"].data.zero_()
+        loss.target_actor_network_params["module", "bias"].data.fill_(target_action)
+        for params, b in ((loss.qvalue_network_params, q_bias), (loss.target_qvalue_network_params, target_q_bias)):
+            params["module", "lin", "weight"].data.fill_(1.0)  # Q = a + b_j
+            params["module", "lin", "bias"].data.copy_(torch.tensor(b).unsqueeze(-1))
+    return loss
+
+
+def low_batch(action, reward, done):
+    n = len(action)
+    return TensorDict({"observation": torch.randn(n, 2), "goal": torch.randn(n, 3), "action": torch.tensor(action).unsqueeze(-1),
+                       "next": {"observation": torch.randn(n, 2), "goal": torch.randn(n, 3), "reward": torch.tensor(reward).unsqueeze(-1),
+                                "done": torch.tensor(done).unsqueeze(-1)}}, batch_size=[n])
+
+
+def test_twin_ddpg_targets_losses_and_gradients_by_hand():
+    # critics Q_j(s, g, a) = a + b_j; targets: b' = (-3, -5), the target actor's action 1 -> min Q' = 1 - 5 = -4
+    loss = twin_loss([0.5, -1.0], [-3.0, -5.0], 1.0)
+    td = low_batch(action=[0.0, 2.0, -1.0], reward=[-1.0, 0.0, -1.0], done=[False, True, False])
+    y = torch.tensor([-1.0 + 0.98 * -4.0, 0.0, -1.0 + 0.98 * -4.0])
+    torch.testing.assert_close(loss.target(td), y)
+    out = loss(td)
+    q1 = torch.tensor([0.5, 2.5, -0.5])
+    q2 = torch.tensor([-1.0, 1.0, -2.0])
+    torch.testing.assert_close(out["loss_qvalue"], ((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean())
+    # the actor (action 0 from its zero weights and bias 0) is scored by min_j Q_j(s, g, 0) = min(0.5, -1) = -1
+    torch.testing.assert_close(out["loss_actor"], torch.tensor(1.0))
+    out["loss_actor"].backward()
+    assert loss.actor_network_params["module", "bias"].grad is not None
+    assert loss.qvalue_network_params["module", "lin", "bias"].grad is None  # the critics do not learn from the actor's loss
+    loss.zero_grad()
+    out = loss(td)
+    out["loss_qvalue"].backward()
+    assert loss.qvalue_network_params["module", "lin", "bias"].grad.abs().sum() > 0
+    assert loss.actor_network_params["module", "bias"].grad is None or loss.actor_network_params["module", "bias"].grad.abs().sum() == 0
+
+
+def test_twin_ddpg_targets_are_clamped_to_uofs_range():
+    loss = twin_loss([0.0, 0.0], [30.0, 40.0], 0.0)
+    td = low_batch(action=[0.0, 0.0], reward=[-1.0, -30.0], done=[False, True])
+    torch.testing.assert_close(loss.target(td), torch.tensor([0.0, -25.0]))  # -1 + 0.98 * 30 > 0 -> 0; -30 -> -25
+    free = twin_loss([0.0, 0.0], [30.0, 40.0], 0.0, target_range=None)
+    torch.testing.assert_close(free.target(td), torch.tensor([-1.0 + 0.98 * 30.0, -30.0]))
+    with pytest.raises(ValueError, match="target_range"):
+        twin_loss([0.0, 0.0], [0.0, 0.0], 0.0, target_range=(0.0, -1.0))
+
+
+# ------------------------------------------------------------------------------------------ HER keys for the low level
+def test_low_level_annotation_rewards_penalty_segments_and_done():
+    from torchrl_offhrl.agents.her import LOW_DONE, LOW_REWARD, SEGMENT_END, low_level_done, prepare_low_level
+
+    E, T, d = 2, 3, 11
+    sub = torch.zeros(E, T, d)
+    achieved = torch.ones(E, T, d)
+    achieved[0, 1] = 0.0  # env 0 meets its sub-goal at s' of step 1
+    flags = torch.zeros(E, T, 3)
+    flags[0, 1, 1] = 1.0  # ... which is option 1's
+    penalized = torch.zeros(E, T, 1, dtype=torch.bool)
+    penalized[1, 0] = True
+    td = TensorDict({"sub_goal": sub, "option": torch.ones(E, T, dtype=torch.long),
+                     "next": {"achieved_sub_goal": achieved, "achieved_goal": flags, "penalized": penalized,
+                              "reward": torch.where(penalized, torch.full((E, T, 1), -50.0), torch.full((E, T, 1), -1.0)),
+                              "done": penalized.clone(), "terminated": penalized.clone()}}, batch_size=[E, T])
+    prepare_low_level(td)
+    torch.testing.assert_close(td[LOW_REWARD].squeeze(-1), torch.tensor([[-1.0, 0.0, -1.0], [-50.0, -1.0, -1.0]]))
+    # segments end where the option's sub-goal is met, at an episode's end, and at each env's last step of the batch
+    assert td[SEGMENT_END].squeeze(-1).tolist() == [[False, True, True], [True, False, True]]
+    assert torch.equal(td["next", "sub_goal"], td["sub_goal"])
+    assert td["next", "option_done"].squeeze(-1).tolist() == [[False, True, False], [False, False, False]]
+    low_level_done(td)
+    assert td[LOW_DONE].squeeze(-1).tolist() == [[False, True, False], [True, False, False]]
+
+
+# ------------------------------------------------------------------------------------------ the option policy
+@pytest.fixture(scope="module")
+def stacking_env():
+    from torchrl_offhrl.data.stacking import collect_stacking
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    data = collect_stacking("BlockStack2-v0", 200, 0.1, 0.1, num_envs=4, seed=1, progress=False)
+    ens = DynamicsEnsemble.for_dataset(data, num_models=2, hidden_sizes=(16,), learn_reward=False).fit(data, max_epochs=1, progress=False)
+    cvae = ConditionalVAE.for_dataset(data, goal_key="sub_goal", hidden_sizes=(16,)).fit(data, max_epochs=1, progress=False)
+    cfg = {"env": {"penalty": 50.0, "quantile": 0.99, "horizon": 25}, "seed": 0}
+    return data, lambda n: make_model_env(cfg, ens, cvae, data, batch_size=n)
+
+
+def make_uof(env, data, **kw):
+    from torchrl_offhrl.agents import make_agent
+
+    stats = data.stats()
+    agent = make_agent("uof", env, {"hidden_sizes": [16], "batch_size": 8, "frames_per_batch": 40, **kw}, obs_loc=stats.obs_mean,
+                       obs_scale=stats.obs_std, goal_key="sub_goal")
+    agent.attach(env)
+    return agent
+
+
+def test_uof_options_persist_until_their_sub_goal_is_met(stacking_env):
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    data, make_env = stacking_env
+    env = make_env(8)
+    agent = make_uof(env, data, demo_ratio=0.0)
+    agent.policy.epsilon = 1.0  # every pick at random: an option can only stay by the rule
+    torch.manual_seed(0)
+    td = env.rollout(25, agent.policy, break_when_any_done=False)
+    option, start = td["option"], td["option_start"]
+    met_before = G.option_met(option[:, :-1], td["next", "achieved_goal"][:, :-1])
+    # a new pick happens exactly at episode starts and where the running option's sub-goal was met at s
+    expect = td["is_init"][:, 1:].squeeze(-1) | met_before
+    assert torch.equal(start[:, 1:], expect) and start[:, 0].all()
+    assert torch.equal(option[:, 1:][~expect], option[:, :-1][~expect])
+    assert torch.equal(td["next", "prev_option"], option)  # carried to the next step
+    rows = td["sub_goals"].gather(-2, option[..., None, None].expand(*option.shape, 1, 11)).squeeze(-2)
+    assert torch.equal(td["sub_goal"], rows)  # the low level (and the decoder) pursue the option's sub-goal
+    # greedy at test: the first target network's best option
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.rollout(3, agent.policy, break_when_any_done=False)
+    picked = td["option_start"]
+    assert torch.equal(td["option"][picked], agent.policy.option_values(td).argmax(-1)[picked])
+
+
+def test_uof_demonstration_episodes_follow_the_abstract_demonstration(stacking_env):
+    data, make_env = stacking_env
+    env = make_env(8)
+    agent = make_uof(env, data, demo_ratio=1.0)
+    torch.manual_seed(1)
+    td = env.rollout(25, agent.policy, break_when_any_done=False)
+    assert td["next", "demo_episode"].all()  # decided at each episode start, carried to the next steps
+    goal = td["desired_goal"].argmax(-1)
+    first = td["is_init"].squeeze(-1)
+    assert torch.equal(td["option"][first], G.first_option(goal[first]))
+    nxt = G.next_option(td["option"][:, :-1], goal[:, :-1], td["next", "achieved_goal"][:, :-1])
+    cont = ~first[:, 1:]
+    assert torch.equal(td["option"][:, 1:][cont], nxt[cont])
+
+
+def test_uof_update_learns_both_levels_and_counts_episodes(stacking_env):
+    from torchrl.collectors import Collector
+
+    data, make_env = stacking_env
+    env = make_env(4)
+    agent = make_uof(env, data)
+    before = {k: v.clone() for k, v in agent.loss.state_dict().items()}
+    col = Collector(env, agent.policy, frames_per_batch=100, total_frames=200, auto_register_policy_transforms=False)
+    for batch in col:
+        out = agent.update(batch)
+    col.shutdown()
+    assert out["updates"] == 10 and agent.episodes >= 4  # 0.1 updates per frame; 4 envs started their episodes
+    assert 0 < agent.policy.epsilon < 1
+    after = agent.loss.state_dict()
+    for part in ("high.value_network_params", "low.actor_network_params", "low.qvalue_network_params", "low.target_qvalue_network_params"):
+        moved = [k for k in after if k.startswith(part) and not torch.equal(after[k], before[k])]
+        assert moved, part
+    assert len(agent.replay_buffer["high"]) == len(agent.replay_buffer["low"]) == 200
+    # the high level's reward: the env's only where the running option is the goal's (or a penalty), else -1
+    sample = agent.replay_buffer["high"][:]
+    own = sample["option"] == sample["desired_goal"].argmax(-1)
+    assert (sample["next", "high_reward"][~own] == -1).all() or (sample["next", "high_reward"][~own] <= -1).all()
+
+
+def test_uof_exploration_ema_follows_the_evaluation_success(stacking_env):
+    data, make_env = stacking_env
+    agent = make_uof(make_env(2), data)
+    E, T = 4, 3
+    reward = torch.full((E, T, 1), -1.0)
+    reward[0, 2] = 0.0  # goal 0: one of two episodes succeeds
+    rollout = TensorDict({"desired_goal": torch.nn.functional.one_hot(torch.tensor([0, 0, 1, 1]), 3).float().unsqueeze(1).expand(E, T, 3),
+                          "option": torch.zeros(E, T, dtype=torch.long), "next": {"reward": reward}}, batch_size=[E, T])
+    out = agent.evaluation_metrics(rollout, torch.ones(E, T, dtype=torch.bool))
+    torch.testing.assert_close(agent.policy.success_ema, torch.tensor([0.025, 0.0, 0.0]))  # goal 2 had no episode: unchanged
+    assert out["option_usage_mean"] == [1.0, 0.0, 0.0]
+
+
+# ------------------------------------------------------------------------------------------ the recipe
+TINY = ["eval.episodes=2", "ensemble.hidden_sizes=[16]", "ensemble.num_models=2", "ensemble.fit.max_steps=30", "cvae.hidden_sizes=[16]",
+        "cvae.fit.max_steps=30", "algo.batch_size=16", "algo.hidden_sizes=[16]"]
+
+
+@pytest.fixture(scope="module")
+def stacking_file(tmp_path_factory):
+    from torchrl_offhrl.data import save_dataset
+    from torchrl_offhrl.data.stacking import generate_stacking_dataset
+
+    path = tmp_path_factory.mktemp("bs") / "bs2.hdf5"
+    save_dataset(generate_stacking_dataset("BlockStack2-v0", "medium", 800, seed=0, progress=False), path)
+    return path
+
+
+@pytest.mark.parametrize("algo,budget", [("uof", ["train.total_frames=800", "eval.every_frames=400", "algo.buffer_size=5000"]),
+                                         ("sac_her", ["train.total_frames=800", "eval.every_frames=400", "algo.buffer_size=5000", "algo.utd_ratio=0.1"]),
+                                         ("bc", ["train.total_updates=40", "eval.every_updates=20"])])
+def test_goal_conditioned_agents_train_evaluate_per_goal_and_resume(algo, budget, stacking_file, tmp_path, monkeypatch):
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    over = [f"algo={algo}", "env=blockstack2", f"dataset={stacking_file}", f"run_dir={tmp_path / 'run'}", *TINY]
+    summary = train(to_plain(compose("offline_train", [*over, *budget])), progress=False)
+    run = Path(summary["run_dir"])
+    evals = json.loads((run / "evals.json").read_text())
+    assert len(evals) == 3
+    for e in evals:  # 2 episodes of each of the 3 goals: success shares in {0, 0.5, 1}, at horizons 25 and 50
+        assert len(e["success_per_goal"]) == len(e["success_per_goal_h50"]) == 3
+        assert all(x in (0.0, 0.5, 1.0) for x in e["success_per_goal"] + e["success_per_goal_h50"])
+        assert all(a <= b for a, b in zip(e["success_per_goal"], e["success_per_goal_h50"]))
+        assert e["normalized_d4rl"] is None and -25 <= e["return_mean"] <= 0
+    assert (run / "success.png").is_file()
+    if algo == "uof":
+        assert (run / "option_usage.png").is_file()
+        usage = torch.load(run / "option_usage.pt")
+        assert usage.shape[0] == 3 and usage.shape[2] == 3 and torch.allclose(usage.sum(-1), torch.ones(usage.shape[:2]))
+    # resume: a larger budget continues from the checkpoint (the replay buffers included)
+    more = [b.replace("800", "1200").replace("=40", "=60") for b in budget]
+    again = train(to_plain(compose("offline_train", [*over, *more])), progress=False)
+    assert again["step"] in (1200, 60) and len(json.loads((run / "evals.json").read_text())) == 4
+
+
+def test_flat_agents_are_refused_on_block_stacking_before_any_work(tmp_path):
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+
+    for algo in ("ppo", "moc", "iql"):
+        cfg = compose("offline_train", [f"algo={algo}", "env=blockstack2", f"run_dir={tmp_path / algo}"])
+        with pytest.raises(ValueError, match="not goal-conditioned"):
+            train(cfg)
+        assert not (tmp_path / algo).exists()

@@ -1,0 +1,95 @@
+"""SAC + HER on a goal-conditioned task (the paper's flat block-stacking baseline): TorchRL's ``SACLoss`` on the low-level goal.
+
+As the paper ran it: Stable-Baselines3's SAC and HER defaults (networks
+[256, 256] ReLU, two critics, lr 3e-4, buffer 1e6, 100 random steps first,
+batch 256, tau 0.005, gamma 0.99, one gradient step per step, automatic
+entropy with target ``-dim(A)``; HER 'future' with 4 sampled goals per
+transition, i.e. a relabelled share of 0.8), acting in the goal-conditioned
+CVAE's latent space with the low-level goal (``sub_goal``: the env's
+:class:`~torchrl_offhrl.envs.SubGoalTracker` follows the goal's abstract
+demonstration, as the data were collected) as its goal. Relabelling and
+rewards as UOF's low level (:mod:`~torchrl_offhrl.agents.her`): the reward
+is 0 where the sub-goal is met at s', else -1, and the episode's end for
+HER segments (``her_per_option=True`` relabels within option segments as
+UOF does).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from torchrl.objectives import group_optimizers
+
+from ..data.policies.training import make_sac_loss
+from .base import MetricMeans, adam, sum_losses
+from .her import LOW_DONE, LOW_REWARD, SEGMENT_END, low_level_done, prepare_low_level, sub_goal_her_buffer
+from .registry import register_agent
+from .sac import SACAgent
+from .uof import goal_networks
+
+__all__ = ["SACHERAgent"]
+
+
+@register_agent("sac_her")
+class SACHERAgent(SACAgent):
+    """SAC conditioned on ``goal_key`` with hindsight relabelling of it (module docstring); otherwise :class:`SACAgent`'s loop."""
+
+    def __init__(
+        self,
+        env,
+        *,
+        obs_loc=None,
+        obs_scale=None,
+        action_key: str = "latent_action",
+        device="cpu",
+        goal_key: str = "sub_goal",
+        hidden_sizes: Sequence[int] = (256, 256),
+        lr: float = 3e-4,
+        gamma: float = 0.99,
+        tau: float = 0.005,
+        batch_size: int = 256,
+        buffer_size: int = 1_000_000,
+        init_random_frames: int = 100,
+        utd_ratio: float = 1.0,
+        frames_per_batch: int = 400,
+        alpha_init: float = 1.0,
+        her_ratio: float = 0.8,
+        her_per_option: bool = False,
+        fused_adam: bool = True,
+    ):
+        if goal_key != "sub_goal":
+            raise ValueError(f"SAC + HER relabels the low-level goal: goal_key must be 'sub_goal', got {goal_key!r}")
+        self.policy, qvalue = goal_networks(env, action_key, goal_key, hidden_sizes, obs_loc, obs_scale, clip=None, last_layer_init=None,
+                                            stochastic_actor=True)
+        self.loss, self.target_updater = make_sac_loss(self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau,
+                                                       alpha_init=alpha_init, action_key=action_key)
+        self.loss.set_keys(reward=LOW_REWARD[1], done=LOW_DONE[1], terminated=LOW_DONE[1])
+        self.optimizer = group_optimizers(
+            adam(self.loss.actor_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
+            adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
+            adam([self.loss.log_alpha], lr=lr, fused=fused_adam),
+        )
+        self.action_key = action_key
+        self.frames_per_batch = int(frames_per_batch)
+        self.init_random_frames = int(init_random_frames)
+        self.utd_ratio = float(utd_ratio)
+        self.her_per_option = bool(her_per_option)
+        self.replay_buffer = sub_goal_her_buffer(int(buffer_size), int(batch_size), her_ratio=her_ratio, device=device)
+        self._keys = ["observation", goal_key, action_key, "option", ("next", "observation"), ("next", goal_key), ("next", "achieved_sub_goal"),
+                      ("next", "reward"), ("next", "terminated"), ("next", "done"), SEGMENT_END, LOW_REWARD]
+        self.frames = 0
+
+    def update(self, batch):
+        prepare_low_level(batch, per_option=self.her_per_option)
+        keys = self._keys + ([("next", "penalized")] if ("next", "penalized") in batch.keys(True) else [])
+        self.replay_buffer.extend(batch.reshape(-1).select(*keys))
+        self.frames += batch.numel()
+        metrics = MetricMeans()
+        if self.frames >= self.init_random_frames:
+            for _ in range(max(1, round(batch.numel() * self.utd_ratio))):
+                out = self.loss(low_level_done(self.replay_buffer.sample()))
+                self.optimizer.zero_grad()
+                sum_losses(out).backward()
+                self.optimizer.step()
+                self.target_updater.step()
+                metrics.add(out)
+        return {**metrics.means(), "updates": metrics.count}
