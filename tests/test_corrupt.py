@@ -1,4 +1,6 @@
 """Damaged artefacts: each is reported in one line naming the file and the fix; cache entries are rebuilt, a run falls back."""
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -81,6 +83,24 @@ def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
         _, _, info = fit_or_load_models(cfg, data, progress=False)
     assert info["ensemble"] == "fitted" and info["cvae"] == "loaded"
     DynamicsEnsemble.load(e_path)
+
+
+def test_an_ensemble_is_reused_when_only_the_cvae_settings_change(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
+    data = make_toy_dataset(num_episodes=4, episode_length=25)
+    fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
+    cfg = {"seed": 0, "dataset": {"val_ratio": 0.2}, "ensemble": {"num_models": 2, "hidden_sizes": [8], "loss": "l1", "fit": fit},
+           "cvae": {"hidden_sizes": [8], "kl_weight": 0.05, "fit": fit}}
+    ens, _, first = fit_or_load_models(cfg, data, progress=False)
+    other = {**cfg, "cvae": {**cfg["cvae"], "hidden_sizes": [6]}}
+    ens2, cvae2, info = fit_or_load_models(other, data, progress=False)
+    assert info["model_dir"] != first["model_dir"] and info["ensemble"].startswith("loaded from") and info["cvae"] == "fitted"
+    for a, b in zip(ens.state_dict().values(), ens2.state_dict().values()):
+        assert torch.equal(a, b)
+    assert (Path(info["model_dir"]) / "ensemble.pt").is_file()  # a copy of its own
+    # other ensemble settings: fitted, not borrowed
+    third = {**cfg, "ensemble": {**cfg["ensemble"], "hidden_sizes": [6]}}
+    assert fit_or_load_models(third, data, progress=False)[2]["ensemble"] == "fitted"
 
 
 def test_stale_tmp_files_are_removed_and_fresh_ones_kept(tmp_path):

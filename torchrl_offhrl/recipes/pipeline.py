@@ -74,6 +74,27 @@ def _entries_for_other_data(source, ident: dict) -> list[Path]:
     return found
 
 
+def _same_ensemble_elsewhere(ident: dict, folder: Path) -> Path | None:
+    """The ``ensemble.pt`` of another cache entry fitted on the same data with the same ensemble settings (only the CVAE's differ), or None.
+
+    The ensemble does not depend on the CVAE's settings, so a run that only
+    changes the CVAE (e.g. the ablation without goal conditioning) reuses it
+    instead of fitting it again.
+    """
+    keys = ("data", "ensemble", "val_ratio", "seed")
+    want = _as_json({k: ident[k] for k in keys})
+    for meta in sorted((cache_dir() / "models").glob("*/ident.json")):
+        if meta.parent == folder or not (meta.parent / "ensemble.pt").is_file():
+            continue
+        try:
+            other = json.loads(meta.read_text())
+        except (OSError, ValueError):
+            continue
+        if _as_json({k: other.get(k) for k in keys}) == want:
+            return meta.parent / "ensemble.pt"
+    return None
+
+
 def _load_cached(cls, path):
     """A cached model, or None when there is none or it is corrupt (then it is deleted, with a warning, to be fitted again)."""
     if not path.is_file():
@@ -120,8 +141,12 @@ def fit_or_load_models(
     val_ratio = cfg["dataset"].get("val_ratio", 0.1)
     torch.manual_seed(cfg["seed"])
     ensemble = _load_cached(DynamicsEnsemble, e_path)
+    shared = None if ensemble is not None else _same_ensemble_elsewhere(ident, folder)
+    if shared is not None and (ensemble := _load_cached(DynamicsEnsemble, shared)) is not None:
+        ensemble.save(e_path)  # each entry holds its own copy: deleting the other leaves this one whole
+        info["ensemble"] = f"loaded from {shared.parent.name} (fitted with other CVAE settings)"
     if ensemble is not None:
-        info["ensemble"] = "loaded"
+        info.setdefault("ensemble", "loaded")
     else:
         ensemble = DynamicsEnsemble.for_dataset(
             data, num_models=ecfg["num_models"], hidden_sizes=ecfg["hidden_sizes"], loss=ecfg["loss"], learn_reward=ecfg.get("learn_reward", True)

@@ -315,6 +315,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         timing={"update_time_s": train_time, "data_s": t_data, "models_s": t_models, "total_s": time.time() - t_start},
         models=model_info["model_dir"], run_dir=run.path, evaluation_files=agent.evaluation_files, unit=unit,
     )
+    if stacking and data.metadata.get("goal_success"):  # the behaviour data's own per-goal success (its collection's horizon)
+        summary["behaviour_success_per_goal"] = [data.metadata["goal_success"].get(str(k)) for k in range(n_goals)]
     if tcfg is not None:
         summary["transfer"] = {**tcfg, "switch_frame": switch}
         summary["offline_final"] = next((r for r in reversed(run.records) if r.get("phase") == "offline"), None)
