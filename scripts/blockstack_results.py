@@ -1,7 +1,7 @@
 """Offline UOF on block stacking against SAC + HER and BC: resumable runs, then the per-goal table and figures.
 
     python scripts/blockstack_results.py run [--tasks blockstack2] [--datasets medium-expert medium] [--algos uof sac_her bc]
-        [--seeds 4 5 6] [--ablations] [--frames 40000]
+        [--seeds 4 5 6] [--ablations [no_cvae cvae_no_goal no_pessimism]] [--no-main] [--frames 40000]
     python scripts/blockstack_results.py report          # docs/results/block_stacking.md and its figures
 
 Every run is an ordinary run directory of ``offhrl train`` under
@@ -19,7 +19,7 @@ on the dataset, evaluated every 4k. Every evaluation: 30 episodes per goal in
 the real env through the run's decoder, deterministic, success within 25
 steps (training's horizon, the paper's) and within 50 (UOF's tests).
 
-``--ablations`` adds UOF on task 1 without the CVAE (``ablation.no_cvae``),
+``--ablations`` (all three, or those named) adds UOF on task 1 without the CVAE (``ablation.no_cvae``),
 with a CVAE not conditioned on the sub-goal (``cvae.goal_key=null``) and
 without pessimistic termination (``ablation.no_pessimism``), the paper's
 Fig. 5 a-d.
@@ -56,14 +56,14 @@ def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None
     return f"{algo}-{task}-{dataset}" + (f"-{ablation}" if ablation else "") + f"-seed{seed}"
 
 
-def run(tasks, datasets, algos, seeds, ablations: bool, frames: int, transitions: int) -> None:
+def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int, transitions: int) -> None:
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.train import train
     from torchrl_offhrl.utils import to_plain
 
     jobs = [(t, d, a, s, None) for t in tasks for d in datasets for s in seeds for a in algos]
     if ablations:
-        jobs += [("blockstack2", "medium-expert", "uof", s, ab) for s in seeds for ab in ABLATIONS]
+        jobs += [("blockstack2", "medium-expert", "uof", s, ab) for ab in ablations for s in seeds]
     for task, dataset, algo, seed, ab in jobs:
         name = run_name(task, dataset, algo, seed, ab)
         over = [f"algo={algo}", f"env={task}", f"dataset={dataset}", f"num_transitions={transitions}", f"seed={seed}", f"run_dir={BASE / name}",
@@ -188,13 +188,16 @@ def main(argv=None) -> int:
     r.add_argument("--datasets", nargs="+", default=["medium-expert", "medium"])
     r.add_argument("--algos", nargs="+", default=["uof", "sac_her", "bc"])
     r.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
-    r.add_argument("--ablations", action="store_true")
+    r.add_argument("--ablations", nargs="*", choices=sorted(ABLATIONS), default=None,
+                   help="UOF ablations on task 1 medium-expert (no names: all three)")
+    r.add_argument("--no-main", action="store_true", help="only the ablations, not the --algos runs")
     r.add_argument("--frames", type=int, default=40_000)
     r.add_argument("--transitions", type=int, default=100_000)
     sub.add_parser("report")
     a = p.parse_args(argv)
     if a.cmd == "run":
-        run(a.tasks, a.datasets, a.algos, a.seeds, a.ablations, a.frames, a.transitions)
+        ablations = None if a.ablations is None else (a.ablations or sorted(ABLATIONS))
+        run(a.tasks, a.datasets, [] if a.no_main else a.algos, a.seeds, ablations, a.frames, a.transitions)
     else:
         print(report())
     return 0

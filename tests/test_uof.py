@@ -221,15 +221,20 @@ def stacking_file(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def shared_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
 @pytest.mark.parametrize("algo,budget", [("uof", ["train.total_frames=800", "eval.every_frames=400", "algo.buffer_size=5000"]),
                                          ("sac_her", ["train.total_frames=800", "eval.every_frames=400", "algo.buffer_size=5000", "algo.utd_ratio=0.1"]),
                                          ("bc", ["train.total_updates=40", "eval.every_updates=20"])])
-def test_goal_conditioned_agents_train_evaluate_per_goal_and_resume(algo, budget, stacking_file, tmp_path, monkeypatch):
+def test_goal_conditioned_agents_train_evaluate_per_goal_and_resume(algo, budget, stacking_file, shared_cache, tmp_path, monkeypatch):
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.train import train
     from torchrl_offhrl.utils import to_plain
 
-    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(shared_cache))  # the models are fitted once for the three agents
     over = [f"algo={algo}", "env=blockstack2", f"dataset={stacking_file}", f"run_dir={tmp_path / 'run'}", *TINY]
     summary = train(to_plain(compose("offline_train", [*over, *budget])), progress=False)
     run = Path(summary["run_dir"])

@@ -48,11 +48,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import TanhModule, ValueOperator
 from torchrl.objectives import SoftUpdate
 
 from ..blockstack import goals as G
-from ..modules.options import _is_deterministic
 from ..nets import GoalMLP
 from ..objectives import DIOLLoss, TwinDDPGLoss, uof_epsilon
 from ..rollouts import first_episode_mask
@@ -159,7 +159,7 @@ class UOFPolicy(TensorDictModuleBase):
         goal = td.get("desired_goal").argmax(-1)
         repick = is_init | G.option_met(prev, td.get("achieved_goal"))
         greedy = self.option_values(td).argmax(-1)
-        det = _is_deterministic()
+        det = exploration_type() in (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
         demo = torch.zeros_like(is_init)
         chosen = greedy
         if not det:
