@@ -147,7 +147,7 @@ def report() -> str:
             t = min(u.shape[1] for u in usage)
             mean = torch.stack([u[:, :t] for u in usage]).mean(0)
             png = fig_dir / f"option_usage_{task}_{dataset}.png"
-            plot_goal_option_usage(mean, png, title=f"UOF option usage per goal at the final evaluation, {task} {dataset} (mean over {len(usage)} seeds)")
+            plot_goal_option_usage(mean, png, title=f"UOF option usage per goal at the final evaluation, {task} {dataset} (mean over {len(usage)} seed{'s' if len(usage) > 1 else ''})")
             lines += ["Which option (sub-goal) UOF's high level runs at each step of the final evaluation, per goal (the paper's Figs. 6-7):", "",
                       f"![option usage]({png.relative_to(OUT)})", ""]
     lines += ["## The paper's numbers (measured on its own data from partially trained UOF agents, not on ours)", "",

@@ -250,6 +250,11 @@ def test_goal_conditioned_agents_train_evaluate_per_goal_and_resume(algo, budget
         assert (run / "option_usage.png").is_file()
         usage = torch.load(run / "option_usage.pt")
         assert usage.shape[0] == 3 and usage.shape[2] == 3 and torch.allclose(usage.sum(-1), torch.ones(usage.shape[:2]))
+    # a saved run is rebuilt goal-conditioned and evaluated by `offhrl evaluate`
+    from torchrl_offhrl.recipes.evaluation import evaluate_run
+
+    res = evaluate_run(run, episodes=3)
+    assert len(res["success_per_goal"]) == 3 and 0.0 <= res["success_rate"] <= 1.0
     # resume: a larger budget continues from the checkpoint (the replay buffers included)
     more = [b.replace("800", "1200").replace("=40", "=60") for b in budget]
     again = train(to_plain(compose("offline_train", [*over, *more])), progress=False)

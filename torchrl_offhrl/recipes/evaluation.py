@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from ..agents import make_agent
+from ..blockstack import BLOCKSTACK_IDS
 from ..models import ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
@@ -181,7 +182,8 @@ def load_run_agent(run_dir, num_envs: int = 1):
     algo = dict(cfg["algo"])
     if isinstance(algo.get("reward_scale"), str):  # a name resolved from the data at training time (e.g. IQL's return_range)
         algo["reward_scale"] = float(cfg.get("resolved_reward_scale") or 1.0)
-    agent = make_agent(algo["name"], env, algo, action_key="latent_action" if latent else "action")
+    goal_key = "sub_goal" if env_id in BLOCKSTACK_IDS else None  # as the loop built it
+    agent = make_agent(algo["name"], env, algo, action_key="latent_action" if latent else "action", goal_key=goal_key)
     agent.attach(env)
     agent.load_state_dict(state["agent"])
     return cfg, env, agent, state, cvae
@@ -200,7 +202,8 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     env_id = cfg["env"]["env_id"]
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
     task, discard = acting_task(cfg, state)
-    rets = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed)
+    rets, td = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed,
+                               return_rollout=True)
     env.close()
     res = {
         "run_dir": str(run),
@@ -213,6 +216,14 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
         "normalized_d4rl": normalized_score(env_id, float(rets.mean())) if task == "forward" else None,  # D4RL's scale is the forward task's
         "returns": [round(float(r), 2) for r in rets],
     }
+    if env_id in BLOCKSTACK_IDS:  # goals drawn at each reset: the success of each goal's episodes (NaN: none drawn)
+        from ..blockstack.goals import success_by_goal
+
+        alive = first_episode_mask(td["next", "done"].reshape(episodes, -1))
+        goal = td["desired_goal"][:, 0].argmax(-1)
+        per_goal = success_by_goal(td["next", "reward"].reshape(episodes, -1), alive, goal, td["desired_goal"].shape[-1])
+        res["success_per_goal"] = per_goal.tolist()
+        res["success_rate"] = float(((td["next", "reward"].reshape(episodes, -1) == 0) & alive).any(-1).float().mean())
     if frames_dir is not None:
         res["frames_dir"] = str(render_episode(env_id, cvae, bound, agent, Path(frames_dir), int(cfg["eval"]["max_steps"]), seed, deterministic,
                                                     task=task, discard_decoder=discard))
