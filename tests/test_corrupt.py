@@ -85,7 +85,7 @@ def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
     DynamicsEnsemble.load(e_path)
 
 
-def test_an_ensemble_is_reused_when_only_the_cvae_settings_change(tmp_path, monkeypatch):
+def test_a_model_is_reused_when_only_the_other_models_settings_change(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
     data = make_toy_dataset(num_episodes=4, episode_length=25)
     fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
@@ -98,9 +98,10 @@ def test_an_ensemble_is_reused_when_only_the_cvae_settings_change(tmp_path, monk
     for a, b in zip(ens.state_dict().values(), ens2.state_dict().values()):
         assert torch.equal(a, b)
     assert (Path(info["model_dir"]) / "ensemble.pt").is_file()  # a copy of its own
-    # other ensemble settings: fitted, not borrowed
+    # other ensemble settings: the ensemble is fitted, the CVAE borrowed from the first entry
     third = {**cfg, "ensemble": {**cfg["ensemble"], "hidden_sizes": [6]}}
-    assert fit_or_load_models(third, data, progress=False)[2]["ensemble"] == "fitted"
+    info3 = fit_or_load_models(third, data, progress=False)[2]
+    assert info3["ensemble"] == "fitted" and info3["cvae"].startswith("loaded from")
 
 
 def test_stale_tmp_files_are_removed_and_fresh_ones_kept(tmp_path):

@@ -236,6 +236,9 @@ def config_fingerprint(cfg: Mapping) -> str:
     if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}
+    if isinstance(kept.get("ensemble"), Mapping) and kept["ensemble"].get("reward_hidden_sizes", "absent") is None:
+        # the default reward widths (the transition ones): the same run as before the setting existed
+        kept["ensemble"] = {k: v for k, v in kept["ensemble"].items() if k != "reward_hidden_sizes"}
     if learns_from_dataset(cfg):  # a model-free agent fits no model: it is the same run whatever the (unused) model settings
         kept.pop("ensemble", None)
         kept.pop("cvae", None)

@@ -74,24 +74,26 @@ def _entries_for_other_data(source, ident: dict) -> list[Path]:
     return found
 
 
-def _same_ensemble_elsewhere(ident: dict, folder: Path) -> Path | None:
-    """The ``ensemble.pt`` of another cache entry fitted on the same data with the same ensemble settings (only the CVAE's differ), or None.
+def _same_model_elsewhere(ident: dict, folder: Path, part: str) -> Path | None:
+    """``<part>.pt`` of another cache entry fitted on the same data with the same ``part`` settings (``"ensemble"`` or ``"cvae"``), or None.
 
-    The ensemble does not depend on the CVAE's settings, so a run that only
-    changes the CVAE (e.g. the ablation without goal conditioning) reuses it
-    instead of fitting it again.
+    The ensemble does not depend on the CVAE's settings nor the CVAE on the
+    ensemble's, so a run (or a trial of ``offhrl tune models``) that only
+    changes the other model reuses it instead of fitting it again.
     """
-    keys = ("data", "ensemble", "val_ratio", "seed")
+    keys = ("data", part, "val_ratio", "seed")
     want = _as_json({k: ident[k] for k in keys})
     for meta in sorted((cache_dir() / "models").glob("*/ident.json")):
-        if meta.parent == folder or not (meta.parent / "ensemble.pt").is_file():
+        if meta.parent == folder or not (meta.parent / f"{part}.pt").is_file():
             continue
         try:
             other = json.loads(meta.read_text())
         except (OSError, ValueError):
             continue
+        if part == "ensemble" and other.get("ensemble", {}).get("reward_hidden_sizes", "absent") is None:
+            other["ensemble"] = {k: v for k, v in other["ensemble"].items() if k != "reward_hidden_sizes"}
         if _as_json({k: other.get(k) for k in keys}) == want:
-            return meta.parent / "ensemble.pt"
+            return meta.parent / f"{part}.pt"
     return None
 
 
@@ -121,6 +123,8 @@ def fit_or_load_models(
     """
     device = torch.device(cfg.get("device", "cpu"))
     ecfg, ccfg = to_plain(cfg["ensemble"]), to_plain(cfg["cvae"])
+    if ecfg.get("reward_hidden_sizes", "absent") is None:  # the default (the transition widths): the cache key of configs without the key
+        ecfg.pop("reward_hidden_sizes")
     ident = {
         "data": data.content_hash(),  # the content, not the path: a file replaced by other data gets new models
         "ensemble": ecfg,
@@ -141,7 +145,7 @@ def fit_or_load_models(
     val_ratio = cfg["dataset"].get("val_ratio", 0.1)
     torch.manual_seed(cfg["seed"])
     ensemble = _load_cached(DynamicsEnsemble, e_path)
-    shared = None if ensemble is not None else _same_ensemble_elsewhere(ident, folder)
+    shared = None if ensemble is not None else _same_model_elsewhere(ident, folder, "ensemble")
     if shared is not None and (ensemble := _load_cached(DynamicsEnsemble, shared)) is not None:
         ensemble.save(e_path)  # each entry holds its own copy: deleting the other leaves this one whole
         info["ensemble"] = f"loaded from {shared.parent.name} (fitted with other CVAE settings)"
@@ -149,7 +153,8 @@ def fit_or_load_models(
         info.setdefault("ensemble", "loaded")
     else:
         ensemble = DynamicsEnsemble.for_dataset(
-            data, num_models=ecfg["num_models"], hidden_sizes=ecfg["hidden_sizes"], loss=ecfg["loss"], learn_reward=ecfg.get("learn_reward", True)
+            data, num_models=ecfg["num_models"], hidden_sizes=ecfg["hidden_sizes"], loss=ecfg["loss"], learn_reward=ecfg.get("learn_reward", True),
+            reward_hidden_sizes=ecfg.get("reward_hidden_sizes"),
         ).to(device)
         ensemble.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ecfg["fit"])
         ensemble.save(e_path)
@@ -160,6 +165,9 @@ def fit_or_load_models(
         info["cvae"] = "not asked for"
     elif cvae is not None:
         info["cvae"] = "loaded"
+    elif (shared := _same_model_elsewhere(ident, folder, "cvae")) is not None and (cvae := _load_cached(ConditionalVAE, shared)) is not None:
+        cvae.save(c_path)
+        info["cvae"] = f"loaded from {shared.parent.name} (fitted with other ensemble settings)"
     else:
         cvae = ConditionalVAE.for_dataset(data, goal_key=ccfg.get("goal_key"), hidden_sizes=ccfg["hidden_sizes"], kl_weight=ccfg["kl_weight"]).to(device)
         cvae.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ccfg["fit"])

@@ -77,6 +77,7 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "val_ratio": _num(0, 1, lo_open=True, hi_open=True),
     "ensemble.num_models": _int(1),
     "ensemble.hidden_sizes": _sizes(),
+    "ensemble.reward_hidden_sizes": ("null or " + _sizes()[0], lambda v: v is None or _sizes()[1](v)),
     "cvae.hidden_sizes": _sizes(),
     "cvae.kl_weight": _num(0),
     **{f"{m}.fit.{k}": rule for m in ("ensemble", "cvae") for k, rule in _FIT.items()},
