@@ -23,6 +23,8 @@ EPILOG = """examples:
   offhrl evaluate outputs/runs/moc-hopper-medium-seed0 --episodes 10
   offhrl aggregate outputs/runs/moc-hopper-medium-seed* --out outputs/report
   offhrl report outputs/runs/*-seed* --out docs/results/table1   # the paper's Table I
+  offhrl tune models env=hopper dataset=medium        # the paper's model search on Ray Tune (pip install 'torchrl-offhrl[tune]')
+  offhrl sweep --algos moc ppo --seeds 4 5 6 env=hopper   # runs as Ray Tune trials, one per core; --address joins a cluster
 """
 
 
@@ -123,6 +125,42 @@ def cmd_report(args) -> int:
     return 0
 
 
+def _ray_options(s) -> None:
+    s.add_argument("--name", help="experiment name (its folder; the same name resumes an interrupted one)")
+    s.add_argument("--out", default="outputs", help="results go to OUT/tune/<name>/ or OUT/sweeps/<name>/")
+    s.add_argument("--address", help="join this Ray cluster (default: $RAY_ADDRESS, else a local Ray on this machine)")
+    s.add_argument("--num-cpus", type=int, help="CPUs of the local Ray (default: this machine's cores)")
+    s.add_argument("--cpus-per-trial", type=int, default=1, help="CPUs (and torch threads) per trial: trials never oversubscribe")
+    s.add_argument("--gpus-per-trial", type=float, default=0.0)
+    s.add_argument("--max-concurrent", type=int, help="at most this many trials at once (default: as many as the CPUs allow)")
+
+
+def _ray_kwargs(args) -> dict:
+    return {"out_root": args.out, "address": args.address, "num_cpus": args.num_cpus, "cpus_per_trial": args.cpus_per_trial,
+            "gpus_per_trial": args.gpus_per_trial, "max_concurrent": args.max_concurrent}
+
+
+def cmd_tune(args) -> int:
+    from .recipes.tune import tune_search
+
+    best = tune_search(args.preset, args.overrides, name=args.name, **_ray_kwargs(args))
+    print(best["table"])
+    print(f"written: {best['out']}/results.md, results.csv, best.json ({best['wall_s']:.0f} s)")
+    print("best: " + json.dumps(best["settings"]))
+    print(f"reuse it: {best['command']}")
+    return 0
+
+
+def cmd_sweep(args) -> int:
+    from .recipes.tune import sweep
+
+    res = sweep(args.algos, args.envs, args.datasets, args.seeds, args.overrides, name=args.name or "sweep", **_ray_kwargs(args))
+    print(res["table"])
+    print(f"written: {res['out']}/results.md, results.csv; the runs: {res['out']}/<algo>-<env>-<dataset>-seed<k>/ "
+          f"(offhrl aggregate / offhrl report read them)")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from .recipes.demo import run_demo
 
@@ -192,6 +230,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("runs", nargs="+", help="run directories (every algorithm and seed)")
     s.add_argument("--out", default="outputs/report")
     s.set_defaults(func=cmd_report)
+
+    s = sub.add_parser("tune", help="a hyper-parameter search on Ray Tune: the paper's presets (models, pessimism, moc) or your YAML",
+                       description="e.g. `offhrl tune models env=hopper dataset=medium` (configs/tune/models.yaml: 10 random combinations "
+                       "of the paper's grid, each model chosen by its validation loss). Needs `pip install 'torchrl-offhrl[tune]'`.")
+    s.add_argument("preset", help="configs/tune/<preset>.yaml, or a path to a search YAML")
+    s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml for every trial")
+    _ray_options(s)
+    s.set_defaults(func=cmd_tune)
+
+    s = sub.add_parser("sweep", help="algorithms x envs x datasets x seeds as Ray Tune trials (ordinary run directories; finished ones skipped)",
+                       description="e.g. `offhrl sweep --algos moc ppo --envs hopper --seeds 4 5 6 train.total_frames=204800`. Rerunning "
+                       "the same command resumes an interrupted sweep. Needs `pip install 'torchrl-offhrl[tune]'`.")
+    s.add_argument("--algos", nargs="+", required=True)
+    s.add_argument("--envs", nargs="+", default=["hopper"])
+    s.add_argument("--datasets", nargs="+", default=["medium"])
+    s.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
+    s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml for every run")
+    _ray_options(s)
+    s.set_defaults(func=cmd_sweep)
     return p
 
 
@@ -208,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
     try:
         return args.func(args)
-    except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError) as err:
+    except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError, ImportError) as err:
         print(f"offhrl {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -1,0 +1,132 @@
+"""offhrl tune / offhrl sweep on Ray Tune: the paper's search space, a tiny search and sweep on local Ray, resuming an interrupted sweep."""
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from torchrl_offhrl.recipes.tune import load_search, search_grid
+
+
+def test_models_preset_is_the_papers_search_space():
+    spec = load_search("models")
+    assert spec["kind"] == "models" and spec["num_samples"] == 10
+    grid = spec["grid"]
+    assert sorted(grid["ensemble.fit.lr"]) == sorted([1e-3, 1e-4, 1e-5, 2e-4, 5e-4])
+    assert [w[0] for w in grid["ensemble.hidden_sizes"]] == [128, 256, 512, 1024]
+    assert [w[0] for w in grid["ensemble.reward_hidden_sizes"]] == [128, 256, 512, 1024]
+    assert [w[0] for w in grid["cvae.hidden_sizes"]] == [256, 512, 720, 1024]
+    assert spec["tie"] == {"cvae.fit.lr": "ensemble.fit.lr"}
+    trials = search_grid(spec)
+    # 10 distinct combinations of the 5 x 4 x 4 x 4 = 320, the same for the same sample_seed, one learning rate per trial
+    assert len(trials) == 10 and len({json.dumps(t, sort_keys=True) for t in trials}) == 10
+    assert trials == search_grid(spec)
+    assert all(t["cvae.fit.lr"] == t["ensemble.fit.lr"] for t in trials)
+    assert len(search_grid({**spec, "num_samples": None})) == 320
+
+
+def test_every_preset_composes_and_bad_descriptions_are_named(tmp_path):
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.tune import _override
+
+    for name in ("models", "pessimism", "moc"):
+        spec = load_search(name)
+        for point in search_grid(spec)[:2]:  # every trial's overrides are valid hydra overrides of the config
+            cfg = compose("offline_train", [*spec["overrides"], *(_override(k, v) for k, v in point.items())])
+            assert cfg is not None
+    with pytest.raises(FileNotFoundError, match="moc, models, pessimism"):
+        load_search("nonexistent")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("kind: nope\ngrid: {a: []}\ntie: {b: c}\n")
+    with pytest.raises(ValueError, match="kind must be one of.*grid must map.*tie b"):
+        load_search(str(bad))
+
+
+def test_missing_ray_points_at_the_extra(monkeypatch):
+    import builtins
+
+    from torchrl_offhrl.cli import main
+
+    real = builtins.__import__
+
+    def no_ray(name, *args, **kwargs):
+        if name == "ray" or name.startswith("ray."):
+            raise ImportError("No module named 'ray'")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_ray)
+    assert main(["tune", "models"]) == 2  # one line naming the extra, no traceback
+
+
+# ------------------------------------------------------------------------------------------ on local Ray
+@pytest.fixture(scope="module")
+def ray_session():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=100 * 1024 * 1024, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def hopper_file(tmp_path_factory):
+    from torchrl_offhrl.data import collect_dataset, save_dataset
+
+    path = tmp_path_factory.mktemp("data") / "hopper_tiny.hdf5"
+    save_dataset(collect_dataset("Hopper-v5", 600, num_envs=2, seed=0, progress=False), path)
+    return path
+
+
+def test_tiny_model_search_scores_trials_and_picks_each_model_by_its_loss(ray_session, hopper_file, tmp_path, monkeypatch):
+    from torchrl_offhrl.recipes.tune import tune_search
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))  # the workers inherit the driver's environment
+    spec = tmp_path / "tiny.yaml"
+    spec.write_text("kind: models\nnum_samples: 2\ngrid:\n  ensemble.hidden_sizes: [[8], [16]]\n  cvae.hidden_sizes: [[8], [16]]\n"
+                    "overrides: [ensemble.num_models=2, ensemble.fit.max_steps=10, cvae.fit.max_steps=10]\n")
+    best = tune_search(str(spec), [f"dataset={hopper_file}"], out_root=str(tmp_path / "out"), verbose=0)
+    out = Path(best["out"])
+    rows = (out / "results.csv").read_text().splitlines()
+    assert len(rows) == 3 and "ensemble_val_loss" in rows[0]
+    saved = json.loads((out / "best.json").read_text())
+    assert saved["ensemble_val_loss"] <= 10 and saved["cvae_val_loss"] <= 10
+    assert saved["command"].startswith("offhrl fit dataset=") and "++ensemble.hidden_sizes=" in saved["command"]
+    # the winners are in the model cache: fitting with the printed overrides loads them
+    from torchrl_offhrl.recipes.config import compose, model_config, resolve_dataset
+    from torchrl_offhrl.recipes.pipeline import fit_or_load_models
+
+    cfg = compose("offline_train", [f"dataset={hopper_file}", "ensemble.num_models=2", "ensemble.fit.max_steps=10", "cvae.fit.max_steps=10",
+                                    *saved["overrides"]])
+    _, _, info = fit_or_load_models(model_config(cfg), resolve_dataset(cfg), progress=False)
+    assert info["ensemble"].startswith("loaded") and info["cvae"].startswith("loaded")
+
+
+def test_tiny_sweep_resumes_an_interrupted_sweep_without_redoing_finished_trials(ray_session, hopper_file, tmp_path, monkeypatch):
+    from torchrl_offhrl.recipes.tune import sweep
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    over = [f"dataset={hopper_file}", "train.total_updates=20", "eval.every_updates=20", "eval.episodes=2", "eval.max_steps=20",
+            "algo.batch_size=16", "algo.hidden_sizes=[8]"]
+    root = tmp_path / "out" / "sweeps" / "s"
+    seed5 = root / "bc-hopper-hopper_tiny-seed5"
+    seed5.mkdir(parents=True)
+    fd = os.open(seed5 / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # seed 5's run directory is busy: its trial fails, as if interrupted
+    first = sweep(["bc"], ["hopper"], [str(hopper_file)], [4, 5], over, name="s", out_root=str(tmp_path / "out"), verbose=0)
+    os.close(fd)
+    errors = {r["seed"]: r["error"] for r in first["rows"]}
+    assert errors[4] is None and errors[5] is not None
+    done4 = root / "bc-hopper-hopper_tiny-seed4" / "checkpoint.pt"
+    stamp = done4.stat().st_mtime_ns
+    second = sweep(["bc"], ["hopper"], [str(hopper_file)], [4, 5], over, name="s", out_root=str(tmp_path / "out"), verbose=0)
+    rows = {r["seed"]: r for r in second["rows"]}
+    assert rows[5]["error"] is None and (seed5 / "summary.json").is_file()
+    assert done4.stat().st_mtime_ns == stamp  # the finished trial was not run again
+    assert (root / "results.md").is_file()
+    # a larger sweep under the same name: a new experiment, whose finished run directories are reported without training
+    third = sweep(["bc"], ["hopper"], [str(hopper_file)], [4, 5, 6], over, name="s", out_root=str(tmp_path / "out"), verbose=0)
+    rows = {r["seed"]: r for r in third["rows"]}
+    assert rows[4]["skipped"] is True and rows[5]["skipped"] is True and rows[6]["skipped"] is False
+    assert all(r["error"] is None for r in rows.values()) and done4.stat().st_mtime_ns == stamp
