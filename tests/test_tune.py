@@ -125,8 +125,11 @@ def test_tiny_sweep_resumes_an_interrupted_sweep_without_redoing_finished_trials
     assert rows[5]["error"] is None and (seed5 / "summary.json").is_file()
     assert done4.stat().st_mtime_ns == stamp  # the finished trial was not run again
     assert (root / "results.md").is_file()
-    # a larger sweep under the same name: a new experiment, whose finished run directories are reported without training
-    third = sweep(["bc"], ["hopper"], [str(hopper_file)], [4, 5, 6], over, name="s", out_root=str(tmp_path / "out"), verbose=0)
-    rows = {r["seed"]: r for r in third["rows"]}
-    assert rows[4]["skipped"] is True and rows[5]["skipped"] is True and rows[6]["skipped"] is False
-    assert all(r["error"] is None for r in rows.values()) and done4.stat().st_mtime_ns == stamp
+    # a larger sweep under the same name is a new experiment: its trials report finished run directories without training them
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.tune import finished_run
+
+    cfg = compose("offline_train", ["algo=bc", "env=hopper", *over])
+    assert finished_run(root / "bc-hopper-hopper_tiny-seed4", cfg)["step"] == 20
+    assert finished_run(root / "bc-hopper-hopper_tiny-seed4", compose("offline_train", ["algo=bc", *over, "train.total_updates=40"])) is None
+    assert finished_run(root / "bc-hopper-hopper_tiny-seed6", cfg) is None

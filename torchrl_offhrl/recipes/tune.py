@@ -44,7 +44,7 @@ from typing import Any
 from ..utils import to_plain
 from .config import config_dir
 
-__all__ = ["TUNE_EXTRA_HINT", "load_search", "require_ray", "search_grid", "sweep", "tune_search"]
+__all__ = ["TUNE_EXTRA_HINT", "finished_run", "load_search", "require_ray", "search_grid", "sweep", "tune_search"]
 
 TUNE_EXTRA_HINT = "offhrl tune and offhrl sweep need Ray Tune: pip install 'torchrl-offhrl[tune]' (or pip install 'ray[tune]')"
 KINDS = ("models", "agent")
@@ -168,15 +168,21 @@ def _train_trial(config: dict) -> None:
 
     _setup(config)
     run_dir = Path(config["run_dir"])
-    summary_path = run_dir / "summary.json"
     cfg = _compose([*config["overrides"], f"run_dir={run_dir}", f"torch_threads={config['threads']}"])
-    budget = _budget(cfg)
-    if summary_path.is_file():  # a finished run directory is not trained again
-        done = json.loads(summary_path.read_text())
-        if done.get("step", 0) >= budget:
-            tune.report(_metrics(done, skipped=True))
-            return
+    done = finished_run(run_dir, cfg)
+    if done is not None:  # a finished run directory is not trained again
+        tune.report(_metrics(done, skipped=True))
+        return
     tune.report(_metrics(train(cfg, progress=False), skipped=False))
+
+
+def finished_run(run_dir, cfg: Mapping) -> dict | None:
+    """The summary of ``run_dir`` if it already finished the budget of ``cfg`` (frames, or updates for dataset agents), else None."""
+    path = Path(run_dir) / "summary.json"
+    if not path.is_file():
+        return None
+    done = json.loads(path.read_text())
+    return done if done.get("step", 0) >= _budget(cfg) else None
 
 
 def _budget(cfg: Mapping) -> int:
