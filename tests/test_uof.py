@@ -270,3 +270,8 @@ def test_flat_agents_are_refused_on_block_stacking_before_any_work(tmp_path):
         with pytest.raises(ValueError, match="not goal-conditioned"):
             train(cfg)
         assert not (tmp_path / algo).exists()
+    for algo in ("uof", "sac_her"):  # and the goal-conditioned ones on the locomotion tasks
+        cfg = compose("offline_train", [f"algo={algo}", "env=hopper", f"run_dir={tmp_path / algo}"])
+        with pytest.raises(ValueError, match="block-stacking tasks only"):
+            train(cfg)
+        assert not (tmp_path / algo).exists()

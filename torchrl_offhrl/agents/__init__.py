@@ -19,10 +19,10 @@ from collections.abc import Mapping
 
 from ..utils import to_plain
 from .base import Agent, DatasetAgent, MetricMeans, OnPolicyAgent, action_box, adam, sum_losses
-from .registry import AGENTS, agent_class, agent_defaults, goal_conditioned, register_agent
+from .registry import AGENTS, agent_class, agent_defaults, goal_conditioned, register_agent, requires_goal
 
 __all__ = [
-    "AGENTS", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "goal_conditioned", "make_agent", "register_agent",
+    "AGENTS", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "goal_conditioned", "make_agent", "register_agent", "requires_goal",
     "sum_losses",
 ]
 

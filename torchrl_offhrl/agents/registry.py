@@ -5,7 +5,7 @@ import inspect
 
 from .base import Agent
 
-__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "register_agent"]
+__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "register_agent", "requires_goal"]
 
 #: Registered agent classes by name.
 AGENTS: dict[str, type[Agent]] = {}
@@ -44,3 +44,9 @@ def agent_class(name: str) -> type[Agent]:
 def goal_conditioned(name: str) -> bool:
     """Whether agent ``name`` can act on a goal-conditioned task (its builder takes ``goal_key``, e.g. ``uof``, ``sac_her``, ``bc``)."""
     return "goal_key" in inspect.signature(agent_class(name).__init__).parameters
+
+
+def requires_goal(name: str) -> bool:
+    """Whether agent ``name`` acts only on goal-conditioned tasks (its ``goal_key`` has a default: ``uof``, ``sac_her``; not ``bc``)."""
+    p = inspect.signature(agent_class(name).__init__).parameters.get("goal_key")
+    return p is not None and p.default is not None

@@ -30,7 +30,7 @@ from collections.abc import Mapping
 import torch
 from torchrl.envs import RewardScaling, RewardSum
 
-from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent
+from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
 from ..blockstack import BLOCKSTACK_IDS
 from ..blockstack import goals as G
 from ..utils import to_plain
@@ -89,6 +89,9 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     if stacking and not goal_conditioned(algo["name"]):
         raise ValueError(f"algo={algo['name']} is not goal-conditioned; on {env_cfg['env_id']} use one of "
                          f"{sorted(n for n in AGENTS if goal_conditioned(n))}")
+    if not stacking and requires_goal(algo["name"]):
+        raise ValueError(f"algo={algo['name']} acts on the goal-conditioned block-stacking tasks only (env=blockstack2|blockstack3), "
+                         f"not {env_cfg['env_id']}")
     if stacking and tcfg is not None:
         raise ValueError(f"the transfer setting is defined for the locomotion tasks (run backwards), not {env_cfg['env_id']}: leave transfer.task null")
     offline = tcfg is None or not tcfg["from_scratch"]  # from scratch: the online phase only (the transfer setting's baseline)
