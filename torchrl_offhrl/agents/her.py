@@ -23,8 +23,8 @@ from tensordict import TensorDictBase
 
 from ..blockstack.goals import option_met, sub_goal_reward
 
-__all__ = ["LOW_DONE", "LOW_REWARD", "SEGMENT_END", "ReplayBuffers", "low_level_done", "mark_segments", "prepare_low_level", "relabelled_reward",
-           "sub_goal_her_buffer"]
+__all__ = ["LOW_DONE", "LOW_REWARD", "SEGMENT_END", "ReplayBuffers", "low_level_done", "low_level_keys", "mark_segments", "prepare_low_level",
+           "relabelled_reward", "sub_goal_her_buffer"]
 
 #: the key that ends a relabelling segment
 SEGMENT_END = ("next", "segment_end")
@@ -77,6 +77,13 @@ def prepare_low_level(td: TensorDictBase, per_option: bool = True) -> TensorDict
     mark_segments(td, per_option)
     td.set(LOW_REWARD, relabelled_reward(td))
     return td
+
+
+def low_level_keys(td: TensorDictBase, action_key: str) -> list:
+    """What the low level's HER buffer keeps of an annotated batch (:func:`prepare_low_level`): the goal-conditioned transition and its rewards."""
+    keys = ["observation", "sub_goal", action_key, "option", ("next", "observation"), ("next", "sub_goal"), ("next", "achieved_sub_goal"),
+            ("next", "reward"), ("next", "terminated"), ("next", "done"), SEGMENT_END, LOW_REWARD]
+    return keys + ([("next", "penalized")] if ("next", "penalized") in td.keys(True) else [])
 
 
 def low_level_done(td: TensorDictBase) -> TensorDictBase:

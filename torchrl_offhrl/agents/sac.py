@@ -14,7 +14,16 @@ from ..nets import NormalizedMLP, tanh_gaussian_actor
 from .base import Agent, MetricMeans, action_box, adam, sum_losses
 from .registry import register_agent
 
-__all__ = ["SACAgent"]
+__all__ = ["SACAgent", "sac_optimizer"]
+
+
+def sac_optimizer(loss, lr: float, fused_adam: bool = True):
+    """One optimiser over a ``SACLoss``'s actor, critics and temperature (TorchRL's ``group_optimizers`` of one Adam each)."""
+    return group_optimizers(
+        adam(loss.actor_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
+        adam(loss.qvalue_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
+        adam([loss.log_alpha], lr=lr, fused=fused_adam),
+    )
 
 
 @register_agent("sac")
@@ -58,11 +67,7 @@ class SACAgent(Agent):
         self.loss, self.target_updater = make_sac_loss(
             self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau, alpha_init=alpha_init, action_key=action_key,
         )
-        self.optimizer = group_optimizers(
-            adam(self.loss.actor_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
-            adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
-            adam([self.loss.log_alpha], lr=lr, fused=fused_adam),
-        )
+        self.optimizer = sac_optimizer(self.loss, lr, fused_adam)
         self.action_key = action_key
         self.frames_per_batch = int(frames_per_batch)
         self.init_random_frames = int(init_random_frames)
@@ -72,11 +77,15 @@ class SACAgent(Agent):
 
     def update(self, batch):
         self.replay_buffer.extend(batch.reshape(-1))
-        self.frames += batch.numel()
+        return self.gradient_steps(batch.numel(), self.replay_buffer.sample)
+
+    def gradient_steps(self, frames: int, sample) -> dict:
+        """Count ``frames`` collected frames; once ``init_random_frames`` are in, ``utd_ratio`` steps per frame on minibatches from ``sample()``."""
+        self.frames += frames
         metrics = MetricMeans()
         if self.frames >= self.init_random_frames:
-            for _ in range(max(1, round(batch.numel() * self.utd_ratio))):
-                out = self.loss(self.replay_buffer.sample())
+            for _ in range(max(1, round(frames * self.utd_ratio))):
+                out = self.loss(sample())
                 self.optimizer.zero_grad()
                 sum_losses(out).backward()
                 self.optimizer.step()

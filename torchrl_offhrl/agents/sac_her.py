@@ -17,13 +17,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from torchrl.objectives import group_optimizers
-
 from ..data.policies.training import make_sac_loss
-from .base import MetricMeans, adam, sum_losses
-from .her import LOW_DONE, LOW_REWARD, SEGMENT_END, low_level_done, prepare_low_level, sub_goal_her_buffer
+from .her import LOW_DONE, LOW_REWARD, low_level_done, low_level_keys, prepare_low_level, sub_goal_her_buffer
 from .registry import register_agent
-from .sac import SACAgent
+from .sac import SACAgent, sac_optimizer
 from .uof import goal_networks
 
 __all__ = ["SACHERAgent"]
@@ -63,33 +60,17 @@ class SACHERAgent(SACAgent):
         self.loss, self.target_updater = make_sac_loss(self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau,
                                                        alpha_init=alpha_init, action_key=action_key)
         self.loss.set_keys(reward=LOW_REWARD[1], done=LOW_DONE[1], terminated=LOW_DONE[1])
-        self.optimizer = group_optimizers(
-            adam(self.loss.actor_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
-            adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=lr, fused=fused_adam),
-            adam([self.loss.log_alpha], lr=lr, fused=fused_adam),
-        )
+        self.optimizer = sac_optimizer(self.loss, lr, fused_adam)
         self.action_key = action_key
         self.frames_per_batch = int(frames_per_batch)
         self.init_random_frames = int(init_random_frames)
         self.utd_ratio = float(utd_ratio)
         self.her_per_option = bool(her_per_option)
         self.replay_buffer = sub_goal_her_buffer(int(buffer_size), int(batch_size), her_ratio=her_ratio, device=device)
-        self._keys = ["observation", goal_key, action_key, "option", ("next", "observation"), ("next", goal_key), ("next", "achieved_sub_goal"),
-                      ("next", "reward"), ("next", "terminated"), ("next", "done"), SEGMENT_END, LOW_REWARD]
         self.frames = 0
 
     def update(self, batch):
         prepare_low_level(batch, per_option=self.her_per_option)
-        keys = self._keys + ([("next", "penalized")] if ("next", "penalized") in batch.keys(True) else [])
-        self.replay_buffer.extend(batch.reshape(-1).select(*keys))
-        self.frames += batch.numel()
-        metrics = MetricMeans()
-        if self.frames >= self.init_random_frames:
-            for _ in range(max(1, round(batch.numel() * self.utd_ratio))):
-                out = self.loss(low_level_done(self.replay_buffer.sample()))
-                self.optimizer.zero_grad()
-                sum_losses(out).backward()
-                self.optimizer.step()
-                self.target_updater.step()
-                metrics.add(out)
-        return {**metrics.means(), "updates": metrics.count}
+        flat = batch.reshape(-1)
+        self.replay_buffer.extend(flat.select(*low_level_keys(flat, self.action_key)))
+        return self.gradient_steps(batch.numel(), lambda: low_level_done(self.replay_buffer.sample()))

@@ -55,9 +55,8 @@ from torchrl.objectives import SoftUpdate
 from ..blockstack import goals as G
 from ..nets import GoalMLP
 from ..objectives import DIOLLoss, TwinDDPGLoss, uof_epsilon
-from ..rollouts import first_episode_mask
 from .base import Agent, MetricMeans, action_box, adam
-from .her import LOW_DONE, LOW_REWARD, SEGMENT_END, ReplayBuffers, low_level_done, prepare_low_level, sub_goal_her_buffer
+from .her import LOW_DONE, LOW_REWARD, ReplayBuffers, low_level_done, low_level_keys, prepare_low_level, sub_goal_her_buffer
 from .registry import register_agent
 
 __all__ = ["UOFAgent", "UOFPolicy", "goal_option_usage", "goal_networks", "plot_goal_option_usage"]
@@ -304,11 +303,7 @@ class UOFAgent(Agent):
         self.prepare(batch)
         flat = batch.reshape(-1)
         self.replay_buffer["high"].extend(flat.select(*_HIGH_KEYS))
-        low_keys = ["observation", "sub_goal", self.action_key, "option", ("next", "observation"), ("next", "sub_goal"), ("next", "achieved_sub_goal"),
-                    ("next", "reward"), ("next", "terminated"), ("next", "done"), SEGMENT_END, LOW_REWARD]
-        if ("next", "penalized") in flat.keys(True):
-            low_keys.append(("next", "penalized"))
-        self.replay_buffer["low"].extend(flat.select(*low_keys))
+        self.replay_buffer["low"].extend(flat.select(*low_level_keys(flat, self.action_key)))
         self.episodes += int(batch.get("is_init").sum())
         self.policy.epsilon = uof_epsilon(self.episodes, decay_episodes=self.epsilon_decay_episodes)
         metrics = MetricMeans()
