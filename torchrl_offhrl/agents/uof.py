@@ -84,7 +84,7 @@ def goal_networks(env, action_key: str, goal_key: str, hidden_sizes, obs_loc=Non
     obs_dim = env.observation_spec["observation"].shape[-1]
     goal_dim = env.observation_spec[goal_key].shape[-1]
     act_dim, low, high = action_box(env, action_key)
-    n_blocks = {G.obs_dim(2): 2, G.obs_dim(3): 3}.get(obs_dim)
+    n_blocks = G.blocks_for_obs_dim(obs_dim)
     goal_loc = goal_scale = None
     if obs_loc is not None and n_blocks is not None and goal_dim == G.sub_goal_dim(n_blocks):
         goal_loc = G.achieved_sub_goal(torch.as_tensor(obs_loc, dtype=torch.float32), n_blocks)

@@ -43,7 +43,7 @@ from __future__ import annotations
 import torch
 
 __all__ = [
-    "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "check_blocks", "achieved_goal_flags", "achieved_sub_goal",
+    "END_POINT", "GRASP_WIDTH", "REST_Z", "SUCCESS_DISTANCE", "abstract_demonstration", "blocks_for_obs_dim", "check_blocks", "achieved_goal_flags", "achieved_sub_goal",
     "block_positions", "first_option", "goal_fields", "goal_reward", "next_option", "option_met", "n_goals", "obs_dim", "sub_goal_dim", "sub_goal_reached", "sub_goal_reward", "sub_goals", "sub_goals_reference",
     "success_by_goal",
 ]
@@ -81,6 +81,11 @@ def n_goals(n_blocks: int) -> int:
 def obs_dim(n_blocks: int) -> int:
     """Observation size: 34 for task 1, 46 for task 2."""
     return 10 + 12 * check_blocks(n_blocks)
+
+
+def blocks_for_obs_dim(dim: int) -> int | None:
+    """The number of blocks of a task whose observations have ``dim`` entries (2 for 34, 3 for 46), or None for another size."""
+    return {obs_dim(2): 2, obs_dim(3): 3}.get(int(dim))
 
 
 def sub_goal_dim(n_blocks: int) -> int:

@@ -43,7 +43,7 @@ class BlockStackModelEnv(PessimisticModelEnv):
     def __init__(self, ensemble, data, n_blocks: int | None = None, goal_probs=None, penalty: float = 50.0, quantile: float | None = 0.99,
                  horizon: int = 25, **kwargs):
         if n_blocks is None:
-            n_blocks = {G.obs_dim(2): 2, G.obs_dim(3): 3}.get(data.observation_dim)
+            n_blocks = G.blocks_for_obs_dim(data.observation_dim)
             if n_blocks is None:
                 raise ValueError(f"observations of {data.observation_dim} entries are not of a block-stacking task "
                                  f"({G.obs_dim(2)}: 2 blocks, {G.obs_dim(3)}: 3 blocks)")

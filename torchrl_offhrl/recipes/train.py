@@ -100,6 +100,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
 
     # 1. data and models: one dataset for every training seed (its own seed is dataset_seed)
     data = resolve_dataset(cfg)
+    n_goals = G.n_goals(G.check_blocks(G.blocks_for_obs_dim(data.observation_dim))) if stacking else 0
     level = data.metadata.get("level")
     t_data = time.time() - t_start
     pcfg = model_config(cfg)
@@ -119,7 +120,6 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     env = model_eval_env = eval_env = online_env = None
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
 
-    n_goals = G.n_goals(2 if env_cfg["env_id"] == "BlockStack2-v0" else 3) if stacking else 0
 
     def eval_real_env(with_cvae):  # the evaluation env: per goal `episodes` copies on a goal-conditioned task
         if not stacking:
