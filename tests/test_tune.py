@@ -4,6 +4,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import shlex
 from pathlib import Path
 
 import pytest
@@ -84,7 +85,7 @@ def test_tiny_model_search_scores_trials_and_picks_each_model_by_its_loss(ray_se
 
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))  # the workers inherit the driver's environment
     spec = tmp_path / "tiny.yaml"
-    spec.write_text("kind: models\nnum_samples: 2\ngrid:\n  ensemble.hidden_sizes: [[8], [16]]\n  cvae.hidden_sizes: [[8], [16]]\n"
+    spec.write_text("kind: models\nnum_samples: 2\ngrid:\n  ensemble.hidden_sizes: [[8, 8], [16]]\n  cvae.hidden_sizes: [[8], [16]]\n"
                     "overrides: [ensemble.num_models=2, ensemble.fit.max_steps=10, cvae.fit.max_steps=10]\n")
     best = tune_search(str(spec), [f"dataset={hopper_file}"], out_root=str(tmp_path / "out"), verbose=0)
     out = Path(best["out"])
@@ -93,12 +94,13 @@ def test_tiny_model_search_scores_trials_and_picks_each_model_by_its_loss(ray_se
     saved = json.loads((out / "best.json").read_text())
     assert saved["ensemble_val_loss"] <= 10 and saved["cvae_val_loss"] <= 10
     assert saved["command"].startswith("offhrl fit dataset=") and "++ensemble.hidden_sizes=" in saved["command"]
-    # the winners are in the model cache: fitting with the printed overrides loads them
+    # the winners are in the model cache: the printed command, split as a shell splits it, loads them
     from torchrl_offhrl.recipes.config import compose, model_config, resolve_dataset
     from torchrl_offhrl.recipes.pipeline import fit_or_load_models
 
-    cfg = compose("offline_train", [f"dataset={hopper_file}", "ensemble.num_models=2", "ensemble.fit.max_steps=10", "cvae.fit.max_steps=10",
-                                    *saved["overrides"]])
+    words = shlex.split(saved["command"])
+    assert words[:2] == ["offhrl", "fit"] and set(saved["overrides"]) <= set(words)  # one shell word per override ([8,8], no space)
+    cfg = compose("offline_train", words[2:])
     _, _, info = fit_or_load_models(model_config(cfg), resolve_dataset(cfg), progress=False)
     assert info["ensemble"].startswith("loaded") and info["cvae"].startswith("loaded")
 

@@ -36,6 +36,7 @@ import itertools
 import json
 import os
 import random
+import shlex
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -119,8 +120,11 @@ def search_grid(spec: Mapping) -> list[dict]:
 
 
 def _override(key: str, value: Any) -> str:
-    """A hydra override ``++key=value``: set whether or not the key exists (e.g. inside ``model_env.pessimism``); values as JSON."""
-    return f"++{key}={json.dumps(value)}"
+    """A hydra override ``++key=value``: set whether or not the key exists (e.g. inside ``model_env.pessimism``).
+
+    Values as compact JSON (``[1024,1024]``, no spaces): one shell word as printed.
+    """
+    return f"++{key}={json.dumps(value, separators=(',', ':'))}"
 
 
 def _compose(overrides: Sequence[str]) -> dict:
@@ -345,7 +349,7 @@ def tune_search(preset: str, overrides: Sequence[str] = (), *, name: str | None 
     best["settings"] = chosen
     best["overrides"] = [_override(k, v) for k, v in chosen.items()]
     command = "offhrl fit" if spec["kind"] == "models" else "offhrl train"
-    best["command"] = " ".join([command, *overrides, *spec["overrides"], *best["overrides"]])
+    best["command"] = shlex.join([*command.split(), *overrides, *spec["overrides"], *best["overrides"]])  # pasted into a shell as printed
     (root / name / "best.json").write_text(json.dumps(best, indent=2, default=str))
     best["table"] = table
     best["out"] = str(root / name)
