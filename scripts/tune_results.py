@@ -26,6 +26,7 @@ import argparse
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -70,14 +71,16 @@ def report() -> None:
         raise SystemExit("no finished search under outputs/tune/: run `python scripts/tune_results.py run` first")
     trials = json.loads((ROOT / "outputs" / "tune" / name(min(found)) / "offhrl_trials.json").read_text())
     steps = next((o.split("=")[1] for o in trials[0]["overrides"] if o.startswith("ensemble.fit.max_steps=")), "?")
-    rows, best = found[min(found)]
+    rows, best = found[min(found)]  # the table: the search with the fewest trials at a time (fit times least disturbed by each other)
     lines = ["# The paper's model search on hopper-medium (Ray Tune)", "",
              "Made by `python scripts/tune_results.py report` from the searches of `python scripts/tune_results.py run` "
              "(`offhrl tune models env=hopper dataset=medium`, `configs/tune/models.yaml`): 10 random combinations of the paper's "
              f"grid, each trial fitting the ensemble and the CVAE on the 1M-transition hopper-medium dataset for at most {steps} "
              "gradient steps each (batch 256; the fits' default bound is 20k steps, out of reach for 20 models on this 2-core CPU), "
              "scored on the held-out 10% (at most 50k transitions). Each model is chosen by its own validation loss, as the paper "
-             "does. One torch thread per trial.", "",
+             "does. One torch thread per trial. A trial whose CVAE (or ensemble) settings an earlier trial already fitted loads that "
+             "model from the cache instead of fitting it again (the `cvae` column of the search's `results.csv` says which); "
+             f"the table is the search run with {min(found)} trial(s) at a time.", "",
              "| trial | lr | transition width | reward width | CVAE width | ensemble val loss | CVAE val loss | fit (s) |", "|---|---|---|---|---|---|---|---|"]
 
     def width(v):
@@ -100,10 +103,17 @@ def report() -> None:
     if len(found) == 2:
         (r1, _), (r2, _) = found[1], found[2]
         diff = max(abs(float(a[k]) - float(b[k])) for a, b in zip(r1, r2) for k in ("ensemble_val_loss", "cvae_val_loss"))
-        lines += ["", f"The two searches fitted the same 20 models: their validation losses differ by at most {diff:.2g}."]
+        lines += ["", f"Both searches scored every trial alike: their validation losses differ by at most {diff:.2g} (one torch thread "
+                  "per trial, the same seeds: the fits are deterministic)."]
     notes = ROOT / "docs" / "results" / "tune_notes.md"
     if notes.is_file():  # what the runs showed, written by hand after looking at them
         lines += ["", notes.read_text().strip()]
+    for n in found:  # the searches' own tables next to the report (outputs/ is not kept in git)
+        keep = OUT.parent / "tune" / name(n)
+        keep.mkdir(parents=True, exist_ok=True)
+        for f in ("results.csv", "results.md", "best.json"):
+            shutil.copy2(ROOT / "outputs" / "tune" / name(n) / f, keep / f)
+    lines += ["", "Each search's own table (every column Ray reported) and `best.json`: `docs/results/tune/<search>/`."]
     OUT.write_text("\n".join(lines) + "\n")
     print(f"wrote {OUT}")
 
