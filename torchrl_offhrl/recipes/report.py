@@ -512,7 +512,10 @@ def _dataset_name(dataset: str) -> str:
 
 
 def _cell(mean, std, n) -> str:
-    return "—" if mean is None else f"{mean:.1f} ± {std:.1f} ({n})"
+    """``mean ± std (n)``; one seed has no spread to show: ``mean (1)``."""
+    if mean is None:
+        return "—"
+    return f"{mean:.1f} ({n})" if n == 1 else f"{mean:.1f} ± {std:.1f} ({n})"
 
 
 def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets") -> str:
