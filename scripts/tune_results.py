@@ -26,6 +26,7 @@ import argparse
 import csv
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -52,7 +53,7 @@ def run(concurrent: list[int], steps: int) -> None:
             link.symlink_to(datasets.resolve(), target_is_directory=True)
         cmd = [sys.executable, "-m", "torchrl_offhrl.cli", "tune", "models", "env=hopper", "dataset=medium",
                f"ensemble.fit.max_steps={steps}", f"cvae.fit.max_steps={steps}", "--name", name(n), "--max-concurrent", str(n)]
-        print("+", " ".join(cmd), flush=True)
+        print("+", shlex.join(cmd), flush=True)
         subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "TORCHRL_OFFHRL_CACHE": str(cache)})
 
 
@@ -93,7 +94,7 @@ def report() -> None:
     lines += ["", f"Winners: the ensemble of trial {best['ensemble_trial']} (lr {s['ensemble.fit.lr']:g}, transition "
               f"{s['ensemble.hidden_sizes']}, reward {s['ensemble.reward_hidden_sizes']}; val loss {best['ensemble_val_loss']:.4f}) and the CVAE "
               f"of trial {best['cvae_trial']} (lr {s['cvae.fit.lr']:g}, {s['cvae.hidden_sizes']}; val loss {best['cvae_val_loss']:.4f}). "
-              "The command that loads them from the search's model cache:", "", "```bash", found[max(found)][1]["command"], "```", "",
+              "The command that loads them from the search's model cache:", "", "```bash", found[max(found)][1]["command"], "```", "",  # the latest search's: printed shell-quoted
               "## One or two trials at a time", "",
               "| concurrent trials | wall time (min) | sum of the trials' fit times (min) | speed-up |", "|---|---|---|---|"]
     base = found[min(found)][1]["wall_s"]

@@ -120,7 +120,6 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     env = model_eval_env = eval_env = online_env = None
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
 
-
     def eval_real_env(with_cvae):  # the evaluation env: per goal `episodes` copies on a goal-conditioned task
         if not stacking:
             return make_real_env(env_cfg["env_id"], with_cvae, num_envs=episodes, latent_bound=bound)
