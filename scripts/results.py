@@ -33,6 +33,13 @@ checkpoint, so the runs can go to the background and survive interruptions::
 
     nohup python scripts/results.py run --scale full > results.log 2>&1 &
 
+``outputs/`` stays on the machine that ran it, so each finished run is also
+archived at once to ``docs/results/<scale>/runs/<run>/`` (its config,
+evaluations and summary, a few kB; commit them): the report reads the
+archive, and the table grows across machines and sessions. Runs whose
+directories were lost before the archive existed are rebuilt from the
+committed report they appeared in (``runs/legacy.json``).
+
 The report lists, per env and algorithm, the final and (separately) the best
 evaluation, mean +- std over seeds, the untrained agent's score (the CVAE
 decoder's mean action) and the behaviour data's score, plus MOC's option
@@ -83,6 +90,48 @@ def run_dir(scale: str, env: str, algo: str, seed: int) -> Path:
     return ROOT / "outputs" / "results" / scale / f"{algo}-{env}-medium-seed{seed}"
 
 
+def archive_dir(scale: str) -> Path:
+    """Where the finished runs of a scale are kept for good: ``docs/results/<scale>/runs/<run>/`` (committed; outputs/ is not)."""
+    return ROOT / "docs" / "results" / scale / "runs"
+
+
+def archive(scale: str) -> list[Path]:
+    """Archive every finished run under ``outputs/results/<scale>/`` (:func:`~torchrl_offhrl.recipes.report.archive_run`)."""
+    from torchrl_offhrl.recipes.report import archive_run
+
+    base = ROOT / "outputs" / "results" / scale
+    done = sorted(d for d in base.glob("*-seed*") if (d / "summary.json").is_file())
+    return [archive_run(d, archive_dir(scale) / d.name) for d in done]
+
+
+def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
+    """The runs known only from an earlier report (``runs/legacy.json``: see its ``about``) as loaded runs, less those in ``skip``.
+
+    Each becomes a ``partial`` run (:func:`~torchrl_offhrl.recipes.report.aggregate` counts it in the tables and draws
+    no curve) with three evaluations: the untrained one (step 0), the best one and the final one, returns back-computed
+    from the scores. Also returns the file's MOC diagnostics (mean over seeds, per ``moc-<env>``).
+    """
+    from torchrl_offhrl.scores import return_for_score
+
+    path = archive_dir(scale) / "legacy.json"
+    if not path.is_file():
+        return [], {}
+    doc = json.loads(path.read_text())
+    runs = []
+    for e in doc["runs"]:
+        if e["name"] in skip:
+            continue
+        marks = [(0, e["start"])] + ([(e["best_at"], e["best"])] if e["best_at"] < e["budget"] else []) + [(e["budget"], e["final"])]
+        evals = [{"step": k, "frames": k if e["unit"] == "frames" else 0, "normalized_d4rl": v,
+                  "return_mean": return_for_score(e["env_id"], v), "reconstructed": True} for k, v in marks]
+        morel = e["algo"] == "morel"
+        cfg = {"algo": {"name": "ppo" if morel else e["algo"], **({"label": "morel"} if morel else {})}, "env": {"env_id": e["env_id"]},
+               "dataset": e["dataset"], "seed": e["seed"], "ablation": {"no_cvae": True} if morel else {}, "unit": e["unit"]}
+        summary = {"unit": e["unit"], "behaviour_normalized_d4rl": doc["behaviour_score"][e["env_id"]], "reconstructed": True}
+        runs.append({"dir": f"{path}#{e['name']}", "name": e["name"], "config": cfg, "evals": evals, "summary": summary, "partial": True})
+    return runs, doc.get("moc_diagnostics_mean_over_seeds", {})
+
+
 def run(scale: str, envs: list[str], algos: list[str], seeds: list[int]) -> None:
     from torchrl_offhrl.agents import agent_defaults
     from torchrl_offhrl.recipes.config import compose
@@ -101,45 +150,60 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int]) -> None
                     overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
                 cfg = to_plain(compose(CONFIG[scale], overrides))
                 s = train(cfg)
+                archive(scale)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
                 print(f"{scale} {env} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
 def report(scale: str) -> str:
-    from torchrl_offhrl.recipes.report import aggregate, logged_tail_mean, paper_table
+    from torchrl_offhrl.recipes.report import aggregate, load_run, paper_table
 
-    base = ROOT / "outputs" / "results" / scale
-    runs = sorted(d for d in base.glob("*-seed*") if (d / "summary.json").is_file())
+    archive(scale)
+    kept = sorted(d for d in archive_dir(scale).glob("*-seed*") if (d / "summary.json").is_file())
+    legacy, legacy_diag = legacy_runs(scale, {d.name for d in kept})
+    runs = [{**load_run(d), "name": d.name} for d in kept] + legacy
     if not runs:
-        raise SystemExit(f"no finished runs under {base}: run `python scripts/results.py run --scale {scale}` first")
+        raise SystemExit(f"no finished runs under {ROOT / 'outputs' / 'results' / scale} or {archive_dir(scale)}: "
+                         f"run `python scripts/results.py run --scale {scale}` first")
+    runs.sort(key=lambda r: r["name"])
     out = ROOT / "docs" / "results" / scale
     table = aggregate(runs, out)
     paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale")  # table.md: the paper's Table I layout
     lines = [f"# Offline results, `{scale}` scale", "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
-             f"Made by `python scripts/results.py report --scale {scale}` from the finished runs under `outputs/results/{scale}/`.",
+             f"Made by `python scripts/results.py report --scale {scale}` from the finished runs: those under `outputs/results/{scale}/` "
+             f"are first archived to `docs/results/{scale}/runs/<run>/` (config, evaluations, summary, training-scalar tails), and the "
+             "report reads the archive, so that runs finished on other machines and sessions count.",
              "Scores are D4RL-normalised; final and best are separate columns (best: the best evaluation after training began; "
              "it is never reported as the result).", "",
              *([NOTES[scale], ""] if scale in NOTES else []),
+             *([f"{len(legacy)} runs (marked *rebuilt* below) are known only from an earlier version of this page: their run directories "
+                "were lost between sessions, so they count in the tables from their start, best and final scores and draw no curves "
+                "(their curves, made from the run directories: `legacy_curves*.png`); see `runs/legacy.json`.", ""] if legacy else []),
              "The same runs in the paper's Table I layout (every algorithm side by side, published scores apart): [table.md](table.md).", "",
              table, "", "## MOC option diagnostics at the end of training (mean over seeds of the last 5 logged batches)", "",
              "| env | seeds | " + " | ".join(DIAG) + " |", "|---|---|" + "---|" * len(DIAG)]
-    for env in sorted({d.name.split("-")[1] for d in runs}):
-        moc = [d for d in runs if d.name.startswith(f"moc-{env}-")]
-        if moc:
+    for env in sorted({r["name"].split("-")[1] for r in runs}):
+        moc = [r for r in runs if r["name"].startswith(f"moc-{env}-")]
+        whole = [r for r in moc if not r.get("partial")]
+        if whole:
+            tails = [json.loads((Path(r["dir"]) / "diagnostics.json").read_text())["train_tail_means"] for r in whole
+                     if (Path(r["dir"]) / "diagnostics.json").is_file()]
             vals = []
             for k in DIAG:
-                xs = [v for v in (logged_tail_mean(d, k) for d in moc) if v is not None]
+                xs = [t[k] for t in tails if k in t]
                 vals.append(f"{sum(xs) / len(xs):.3g}" if xs else "n/a")
-            lines.append(f"| {env} | {len(moc)} | " + " | ".join(vals) + " |")
-            for d in moc:  # the option-usage plots of every seed's final evaluation
-                if (d / "option_usage.png").is_file():
-                    shutil.copyfile(d / "option_usage.png", out / f"option_usage_{env}_{d.name.rsplit('-', 1)[1]}.png")
+            lines.append(f"| {env} | {len(whole)} | " + " | ".join(vals) + " |")
+        elif moc and f"moc-{env}" in legacy_diag:
+            lines.append(f"| {env} | {len(moc)} (rebuilt) | " + " | ".join(f"{legacy_diag[f'moc-{env}'].get(k, float('nan')):.3g}" for k in DIAG) + " |")
+        for r in whole:  # the option-usage plots of every seed's final evaluation (while the run directory is here)
+            src = ROOT / "outputs" / "results" / scale / r["name"] / "option_usage.png"
+            if src.is_file():
+                shutil.copyfile(src, out / f"option_usage_{env}_{r['name'].rsplit('-', 1)[1]}.png")
     lines += ["", "Per seed (final / best D4RL score, and where the best was: model-env frames, or gradient steps for the dataset agents):", ""]
-    for d in runs:
-        ev = json.loads((d / "evals.json").read_text())
-        unit = json.loads((d / "summary.json").read_text()).get("unit", "frames")
+    for r in runs:
+        ev, unit = r["evals"], (r["summary"] or {}).get("unit", "frames")
         best = max([e for e in ev if e.get("step", e["frames"]) > 0] or ev, key=lambda e: e.get("normalized_d4rl") or float("-inf"))
-        lines.append(f"- `{d.name}`: start {ev[0]['normalized_d4rl']:.1f}, final {ev[-1]['normalized_d4rl']:.1f}, "
-                     f"best {best['normalized_d4rl']:.1f} at {best.get('step', best['frames'])} {unit}")
+        lines.append(f"- `{r['name']}`: start {ev[0]['normalized_d4rl']:.1f}, final {ev[-1]['normalized_d4rl']:.1f}, "
+                     f"best {best['normalized_d4rl']:.1f} at {best.get('step', best['frames'])} {unit}" + (" (rebuilt)" if r.get("partial") else ""))
     text = "\n".join(lines) + "\n"
     (out / "README.md").write_text(text)
     return text

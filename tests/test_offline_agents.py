@@ -252,6 +252,61 @@ def test_paper_table_layout(tmp_path):
     assert (tmp_path / "t" / "curves_hopper-medium.png").is_file() and (tmp_path / "t" / "curves_halfcheetah-medium.png").is_file()
 
 
+def test_archived_run_reads_like_its_run_directory(tmp_path):
+    """archive_run keeps config, evals and summary byte for byte plus the training scalars' tails; the tables read it the same."""
+    from torchrl_offhrl.recipes.report import archive_run, group_stats, load_run
+
+    run = _fake_run(tmp_path / "outputs", "iql", 0, "Hopper-v5", "medium", "updates", (1.0, 45.0, 42.0), behaviour=37.0)
+    logs = run / "logs" / "scalars" / "train"
+    logs.mkdir(parents=True)
+    (logs / "loss_actor.csv").write_text("".join(f"{i},{v}\n" for i, v in enumerate([9.0, 1.0, 2.0, 3.0, 4.0, 5.0])))
+    kept = archive_run(run, tmp_path / "docs" / run.name)
+    for name in ("config.json", "evals.json", "summary.json"):
+        assert (kept / name).read_bytes() == (run / name).read_bytes()
+    assert json.loads((kept / "diagnostics.json").read_text()) == {"train_tail_means": {"loss_actor": 3.0}}  # mean of the last 5
+    assert group_stats([load_run(kept)]) == group_stats([load_run(run)])
+    (run / "summary.json").unlink()
+    with pytest.raises(FileNotFoundError, match="has not finished"):
+        archive_run(run, tmp_path / "docs" / "again")
+
+
+def test_partial_runs_count_in_the_tables_but_draw_no_curves(tmp_path):
+    """A run known by a few evaluations only (a dict with partial=True) enters the mean +- std; the curves show the whole runs only."""
+    from torchrl_offhrl.recipes.report import aggregate, load_run, paper_table
+
+    whole = load_run(_fake_run(tmp_path, "moc", 0, "Hopper-v5", "medium", "frames", (10.0, 50.0, 40.0), behaviour=37.0))
+    part = {**whole, "dir": "legacy#moc-seed1", "partial": True, "evals": [{"step": 0, "frames": 0, "normalized_d4rl": 10.0, "return_mean": 100.0},
+                                                                            {"step": 200, "frames": 200, "normalized_d4rl": 60.0, "return_mean": 600.0}]}
+    text = paper_table([whole, part], tmp_path / "t")
+    assert "| hopper-medium | 50.0 ± 14.1 (2) |" in text.split("## Best")[0]  # finals 40 and 60
+    assert "| hopper-medium | 55.0 ± 7.1 (2) |" in text.split("## Best")[1]  # best after step 0: 50 and 60
+    assert (tmp_path / "t" / "curves_hopper-medium.png").is_file()
+    only_partial = paper_table([part], tmp_path / "p")
+    assert "| hopper-medium | 60.0 (1) |" in only_partial and not list((tmp_path / "p").glob("*.png"))
+    aggregate([part], tmp_path / "a")
+    assert (tmp_path / "a" / "results.csv").is_file() and not (tmp_path / "a" / "curves.png").exists()
+
+
+def test_results_script_rebuilds_lost_runs_from_the_committed_record():
+    """scripts/results.py: the committed legacy record gives back the committed table's per-seed scores, and a rerun takes a run's place."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("results_script", Path(__file__).resolve().parents[1] / "scripts" / "results.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    runs, diag = mod.legacy_runs("full", skip=set())
+    by_name = {r["name"]: r for r in runs}
+    seed4 = by_name["moc-hopper-medium-seed4"]  # start 31.4, final 95.9, best 95.9 at the end: two evaluations
+    assert [e["step"] for e in seed4["evals"]] == [0, 204800] and seed4["evals"][-1]["normalized_d4rl"] == 95.9
+    seed5 = by_name["moc-hopper-medium-seed5"]  # final 83.8, best 88.1 at 163840 frames
+    assert [(e["step"], e["normalized_d4rl"]) for e in seed5["evals"]] == [(0, 30.5), (163840, 88.1), (204800, 83.8)]
+    from torchrl_offhrl.scores import normalized_score
+    assert normalized_score("Hopper-v5", seed5["evals"][-1]["return_mean"]) == pytest.approx(83.8)
+    assert by_name["morel-hopper-medium-seed4"]["config"]["algo"]["label"] == "morel" and all(r["partial"] for r in runs)
+    assert set(diag) == {"moc-hopper", "moc-halfcheetah"}
+    assert "moc-hopper-medium-seed4" not in {r["name"] for r in mod.legacy_runs("full", skip={"moc-hopper-medium-seed4"})[0]}
+
+
 def test_morel_is_one_named_config():
     """algo=morel: PPO in real actions on the P-MDP with MOReL's max-pairwise discrepancy and threshold rule (max / 3)."""
     cfg = to_plain(compose("offline_train", ["algo=morel", "env=hopper", "dataset=medium"]))

@@ -21,7 +21,7 @@ from ..scores import normalized_score
 from .config import transfer_config, transfer_label
 
 __all__ = [
-    "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "fmt_number", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
+    "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "archive_run", "fmt_number", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
     "plot_curve", "plot_goal_success", "plot_training_metrics",
     "plot_transfer", "read_scalar_logs", "run_summary", "run_unit", "transfer_stats",
 ]
@@ -266,9 +266,41 @@ def group_stats(rs: Sequence[dict]) -> dict:
     }
 
 
+def archive_run(run_dir, dest) -> Path:
+    """Copy what the reports read of a finished run into ``dest`` (a folder small enough to commit); returns ``dest``.
+
+    A run directory holds checkpoints, models and logs (megabytes) and lives
+    under ``outputs/``, which is not kept between machines; the archive keeps
+    ``config.json``, ``evals.json`` and ``summary.json`` as they are, plus
+    ``diagnostics.json``: the mean of the last 5 logged values of every
+    training scalar (``{"train_tail_means": {key: value}}``, the numbers
+    :func:`logged_tail_mean` gives). :func:`load_run` reads the archive like
+    the run directory it came from.
+    """
+    src, dest = Path(run_dir), Path(dest)
+    if not (src / "summary.json").is_file():
+        raise FileNotFoundError(f"{src} has no summary.json: the run has not finished; archive it once it has")
+    load_run(src)  # fails with the reason if the run's files are damaged, before anything is written
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in ("config.json", "evals.json", "summary.json"):
+        if (src / name).is_file():
+            tmp = dest / f".{name}.tmp"
+            tmp.write_bytes((src / name).read_bytes())
+            tmp.replace(dest / name)
+    series = read_scalar_logs(src / "logs")
+    tails = {k.split("/", 1)[1]: sum(v[-5:]) / len(v[-5:]) for k, (_, v) in sorted(series.items()) if k.startswith("train/") and v}
+    (dest / "diagnostics.json").write_text(json.dumps({"train_tail_means": tails}, indent=1) + "\n")
+    return dest
+
+
 def _load_runs(run_dirs: Sequence, out_dir, who: str) -> tuple[list[dict], Path]:
-    """The loaded runs (:func:`load_run`) and the output folder, created."""
-    runs = [load_run(d) for d in run_dirs]
+    """The loaded runs (:func:`load_run`; a dict is taken as an already loaded run) and the output folder, created.
+
+    A loaded run with ``"partial": True`` (a run known only by a few of its
+    evaluations, e.g. rebuilt from a committed report after its directory was
+    lost) counts in the tables but draws no curve.
+    """
+    runs = [d if isinstance(d, dict) else load_run(d) for d in run_dirs]
     if not runs:
         raise ValueError(f"{who}: no run directories given")
     out = Path(out_dir)
@@ -345,6 +377,8 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
             w.writerows(trows)
     table = "\n\n".join(tables)
     (out / "results.md").write_text(table + "\n")
+    if all(r.get("partial") for r in runs):  # nothing to draw: runs known only by a few evaluations draw no curves
+        return table
     plt = _plt()
     envs = sorted({k[1] for k in groups})
     panels = sorted({_panel(rs) for rs in groups.values()})  # one row of panels per x-axis: frames, gradient steps, transfer
@@ -354,7 +388,8 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
             switches = [next(e["frames"] for e in r["evals"] if e.get("phase") == "online") for key, rs in transfer.items() if key[1] == env_id
                         for r in rs if any(e.get("phase") == "online" for e in r["evals"])]
             for key, rs in sorted(groups.items()):
-                if key[1] != env_id or _panel(rs) != panel:
+                rs = [r for r in rs if not r.get("partial")]
+                if key[1] != env_id or not rs or _panel(rs) != panel:
                     continue
                 label = f"{key[0]} {key[2]}" + ("" if key[3] == "-" else f" [{key[3]}]")
                 if panel == "transfer":
@@ -584,6 +619,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     plt = _plt()
     for env_id, dataset in datasets:
         keys = [k for k in sorted(groups) if k[:2] == (env_id, dataset)]
+        if all(r.get("partial") for k in keys for r in groups[k]):
+            continue  # no curve to draw (see _load_runs)
         units = sorted({run_unit(groups[k][0]) for k in keys})
         fig, axes = plt.subplots(1, len(units), figsize=(6 * len(units), 4), squeeze=False)
         beh = next((stats[k]["behaviour_score"] for k in keys if stats[k]["behaviour_score"] is not None), None)
@@ -591,8 +628,9 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             if beh is not None:
                 ax.axhline(beh, color="gray", ls="--", label="behaviour data")
             for k in keys:
-                if run_unit(groups[k][0]) == unit:
-                    plot_curve([r["evals"] for r in groups[k]], None, label=TABLE_COLUMNS.get(k[2], k[2]), key="normalized_d4rl", ax=ax,
+                whole = [r for r in groups[k] if not r.get("partial")]
+                if whole and run_unit(groups[k][0]) == unit:
+                    plot_curve([r["evals"] for r in whole], None, label=TABLE_COLUMNS.get(k[2], k[2]), key="normalized_d4rl", ax=ax,
                                title=f"{_env_name(env_id)}-{_dataset_name(dataset)}", xlabel=UNIT_LABELS.get(unit, unit))
             ax.set_ylabel("D4RL-normalised score")
         fig.tight_layout()
