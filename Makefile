@@ -9,6 +9,8 @@ TORCH_VERSION ?= 2.13.0
 TORCH_SPEC ?= torch==$(TORCH_VERSION)
 TORCH_INDEX ?=
 PY := $(VENV)/bin/python
+# pytest-xdist workers for `make test`, one torch thread each (tests/conftest.py); TEST_WORKERS=0 runs one process
+TEST_WORKERS ?= 2
 
 .PHONY: install demo test bench clean
 
@@ -25,7 +27,7 @@ demo: install
 	$(VENV)/bin/offhrl demo
 
 test: install
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 bench: install
 	$(PY) benchmarks/ensemble_training.py
