@@ -275,3 +275,72 @@ def test_flat_agents_are_refused_on_block_stacking_before_any_work(tmp_path):
         with pytest.raises(ValueError, match="block-stacking tasks only"):
             train(cfg)
         assert not (tmp_path / algo).exists()
+
+
+def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stacking_file, tmp_path, monkeypatch):
+    """train.online: UOF in the real env (no models); a snapshot ships as a small policy that acts as the agent did and collects data."""
+    from tensordict import TensorDict
+
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.blockstack import goals as G
+    from torchrl_offhrl.cli import main
+    from torchrl_offhrl.data import load_dataset
+    from torchrl_offhrl.data.stacking import collect_stacking
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.pipeline import make_real_env
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.recipes.uof_policies import is_uof_policy, load_uof_policy, ship_uof_policy
+    from torchrl_offhrl.utils import to_plain
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    run = tmp_path / "run"
+    over = ["algo=uof", "env=blockstack2", f"dataset={stacking_file}", f"run_dir={run}", "train.online=true", "train.total_frames=800",
+            "eval.every_frames=400", "train.snapshot_frames=[400]", "algo.buffer_size=5000", "eval.episodes=2", "algo.batch_size=16",
+            "algo.hidden_sizes=[16]"]
+    train(to_plain(compose("offline_train", over)), progress=False)
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["model_dir"] is None and cfg["resolved_pessimism"] is None and not (tmp_path / "cache" / "models").exists()
+    assert [e["step"] for e in json.loads((run / "evals.json").read_text())] == [0, 400, 800]
+    assert (run / "snapshot-400.pt").is_file() and not (run / "snapshot-800.pt").exists()
+    snap = torch.load(run / "snapshot-400.pt", weights_only=False)
+
+    pt = ship_uof_policy(run, 400, name="bs2-test", dest=tmp_path / "pol")
+    card = json.loads(pt.with_suffix(".json").read_text())
+    assert card["kind"] == "uof" and card["frames"] == 400 and card["eval"]["success_per_goal"] == snap["record"]["success_per_goal"]
+    assert "train.online=true" in card["command"] and is_uof_policy(pt)
+    # what is shipped: the actor and one target Q-network (the agent's state holds both levels, twin critics, targets, optimiser)
+    shipped = torch.load(pt, weights_only=True)
+    assert all(k.startswith(("actor.", "diol.target_value_network_params.")) for k in shipped)
+    ctrl = load_uof_policy(pt)
+    env = make_real_env("BlockStack2-v0", None, num_envs=4)
+    agent = make_agent("uof", env, cfg["algo"], action_key="action", goal_key="sub_goal")
+    agent.load_state_dict(snap["agent"])
+    td = env.reset()
+    obs = {k: td[k] for k in ("observation", "desired_goal", "achieved_goal")}
+    assert torch.equal(ctrl.policy.option_values(td), agent.policy.option_values(td))
+    option = ctrl.select_option(obs, None)
+    assert torch.equal(option, agent.policy.option_values(td).argmax(-1))
+    sub_goal = td["sub_goals"].gather(-2, option[:, None, None].expand(-1, 1, td["sub_goals"].shape[-1])).squeeze(-2)
+    want = agent.policy.actor(TensorDict({"observation": td["observation"], "sub_goal": sub_goal}, batch_size=[4]))["action"]
+    assert torch.allclose(ctrl(td["observation"], option), want)  # the controller's sub-goal is the env's
+    env.close()
+
+    ds = collect_stacking("BlockStack2-v0", 100, num_envs=2, controller=ctrl, progress=False, seed=3)
+    assert ds.metadata["policy"] == "bs2-test" and ds.metadata["policy_card"]["kind"] == "uof"
+    opt, met = ds.data["option"].reshape(-1, 25), G.option_met(ds.data["option"], ds.data["next", "achieved_goal"]).reshape(-1, 25)
+    switched = opt[:, 1:] != opt[:, :-1]
+    assert not (switched & ~met[:, :-1]).any()  # an option runs until its sub-goal is met
+    # the CLI: collect with the shipped policy into a file that `offhrl train dataset=<file>` reads
+    out = tmp_path / "uof-data.hdf5"
+    assert main(["collect", "blockstack2", "--policy", str(pt), "-n", "50", "--num-envs", "2", "--out", str(out)]) == 0
+    back = load_dataset(out)
+    assert len(back) == 50 and back.metadata["policy"] == "bs2-test"
+
+    with pytest.raises(FileNotFoundError, match="snapshot-800.pt does not exist"):
+        ship_uof_policy(run, 800, dest=tmp_path / "pol")
+    with pytest.raises(ValueError, match="multiple of"):
+        train(to_plain(compose("offline_train", [*over[:-8], "train.snapshot_frames=[300]", f"run_dir={tmp_path / 'r2'}", "train.online=true",
+                                                 "train.total_frames=800", "eval.every_frames=400"])), progress=False)
+    with pytest.raises(ValueError, match="learns from the dataset itself"):
+        train(to_plain(compose("offline_train", ["algo=bc", "env=blockstack2", f"dataset={stacking_file}", "train.online=true",
+                                                 f"run_dir={tmp_path / 'r3'}"])), progress=False)

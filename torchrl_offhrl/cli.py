@@ -30,6 +30,7 @@ EPILOG = """examples:
 
 def cmd_policies(args) -> int:
     from .data import list_policies, load_policy
+    from .data.policies import POLICY_DIR
 
     names = list_policies()
     if not names:
@@ -41,6 +42,13 @@ def cmd_policies(args) -> int:
         ev = card["eval"]
         st = ev["stochastic"]
         print(f"{n:22s} {card['env_id']:16s} {card['train_steps']:8d} {st['mean']:10.1f} ± {st['std']:5.1f} {ev.get('normalized_d4rl') or float('nan'):10.1f}")
+    uof = list_policies(kind="uof")
+    if uof:
+        print(f"\n{'UOF policy':22s} {'env':16s} {'frames':>8s}  real-env success per goal (horizon 25)")
+        for n in uof:
+            card = json.loads((POLICY_DIR / f"{n}.json").read_text())
+            rates = " ".join(f"{x:.2f}" for x in card.get("eval", {}).get("success_per_goal") or [])
+            print(f"{n:22s} {card['env_id']:16s} {card['frames']:8d}  {rates}")
     return 0
 
 
@@ -48,17 +56,41 @@ def cmd_collect(args) -> int:
     from .data import export_minari, named_dataset, save_dataset
     from .data.generate import dataset_path
 
-    name = f"{args.env}-{args.level}"
     t0 = time.time()
-    ds = named_dataset(name, num_transitions=args.num_transitions, seed=args.seed, num_envs=args.num_envs)
+    if args.policy:  # the paper's route: a UOF policy trained online collects the block-stacking data
+        from .blockstack import BLOCKSTACK_IDS
+        from .data.stacking import collect_stacking
+        from .recipes.uof_policies import load_uof_policy
+        from .registry import resolve_env
+
+        env_id, _ = resolve_env(args.env)
+        if env_id not in BLOCKSTACK_IDS or args.level not in (None, "uof"):
+            raise ValueError(f"--policy collects block-stacking data with a shipped UOF policy: `offhrl collect blockstack2 --policy "
+                             f"blockstack2-uof-epoch20`; got env {args.env!r}, level {args.level!r}")
+        import torch
+
+        controller = load_uof_policy(args.policy, random_prob=args.random_prob, noise_std=args.noise_std,
+                                     generator=torch.Generator().manual_seed(args.seed))
+        if controller.card["env_id"] != env_id:
+            raise ValueError(f"policy {args.policy!r} acts in {controller.card['env_id']}, not {env_id}")
+        name = f"{args.env}-{controller.card['name'].removeprefix(args.env + '-')}"
+        ds = collect_stacking(env_id, args.num_transitions, num_envs=args.num_envs, seed=args.seed, controller=controller,
+                              metadata={"dataset": name, "level": controller.card["level"], "random_prob": args.random_prob, "noise_std": args.noise_std})
+        args.out = args.out or str(dataset_path(name, args.num_transitions, args.seed, args.num_envs))
+    else:
+        if args.level is None:
+            raise ValueError("give a level (random | medium | expert | medium-expert), or --policy for block stacking")
+        name = f"{args.env}-{args.level}"
+        ds = named_dataset(name, num_transitions=args.num_transitions, seed=args.seed, num_envs=args.num_envs)
     print(ds)
     r = ds.metadata.get("returns", {})
     if not r.get("complete", True):
         eps = f"{r.get('episodes')} episodes (none finished within the budget)"
     else:
         eps = f"{r.get('episodes')} complete episodes" + (f" (+{r['unfinished']} cut short by the budget, left out)" if r.get("unfinished") else "")
+    where = "" if args.policy else f"cached at {dataset_path(name, args.num_transitions, args.seed, args.num_envs)} "
     print(f"{len(ds)} transitions, {eps}, return {r.get('mean', float('nan')):.1f} ± {r.get('std', float('nan')):.1f}; "
-          f"cached at {dataset_path(name, args.num_transitions, args.seed, args.num_envs)} ({time.time() - t0:.0f} s)")
+          f"{where}({time.time() - t0:.0f} s)")
     if "goal_success" in ds.metadata:  # the block-stacking datasets
         rates = ", ".join(f"goal {k}: {v:.2f}" for k, v in ds.metadata["goal_success"].items() if v is not None)
         print(f"episodes that reached their goal (horizon {ds.metadata.get('horizon')}): {rates}")
@@ -192,12 +224,18 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Rolls out a shipped behaviour policy (stochastic, as D4RL) or uniform actions in the real env. "
                        "Cached under $TORCHRL_OFFHRL_CACHE (default ~/.cache/torchrl_offhrl)/datasets; asking again loads the file.")
     s.add_argument("env", help="hopper | halfcheetah | blockstack2 | blockstack3 (block stacking: a scripted controller with noise)")
-    s.add_argument("level", help="random | medium | expert | medium-expert (block stacking: medium | expert | medium-expert)")
+    s.add_argument("level", nargs="?", help="random | medium | expert | medium-expert (block stacking: medium | expert | medium-expert); "
+                                            "leave out with --policy")
     s.add_argument("-n", "--num-transitions", type=int, default=1_000_000, help="transitions (per part for medium-expert); default 1M as D4RL")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--num-envs", type=int, default=8, help="envs stepped side by side")
     s.add_argument("--out", help="also write the dataset to this HDF5 file")
     s.add_argument("--minari-id", help="also export it as a local Minari dataset with this id (needs `pip install minari`)")
+    s.add_argument("--policy", help="block stacking: collect with this shipped UOF policy (e.g. blockstack2-uof-epoch20, or a .pt path; "
+                                    "`offhrl policies` lists them) instead of the scripted controller; written to --out (default: the "
+                                    "datasets cache), train on it with dataset=<that file>")
+    s.add_argument("--random-prob", type=float, default=0.0, help="with --policy: share of uniform actions (default 0: the greedy policy)")
+    s.add_argument("--noise-std", type=float, default=0.0, help="with --policy: Gaussian noise on the displacement (default 0)")
     s.set_defaults(func=cmd_collect)
 
     s = sub.add_parser("fit", help="fit (or load from the cache) the dynamics ensemble and the CVAE on a dataset",

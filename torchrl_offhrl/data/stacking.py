@@ -143,7 +143,12 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     level's) every transition carries :data:`GOAL_FIELDS`. ``controller``
     replaces the script (``random_prob`` and ``noise_std`` then unused): any
     callable ``(observation [B, obs_dim], option [B]) -> action [B, 4]``, the
-    hook for the paper's route of data from partially trained UOF agents.
+    hook for the paper's route of data from partially trained UOF agents
+    (:class:`~torchrl_offhrl.recipes.uof_policies.UOFController`); a
+    controller with a ``select_option(obs, option)`` method (``obs`` the env's
+    dict of tensors, ``option`` None at the start of an episode) picks the
+    options itself instead of following the goal's abstract demonstration,
+    and its ``card`` attribute (a dict) goes into the metadata.
     ``metadata["goal_success"]`` holds the fraction of episodes of each goal
     that reached it (high-level reward 0 at some step) and
     ``metadata["goal_episodes"]`` their counts. The same seed gives the same
@@ -170,6 +175,7 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     gen = torch.Generator().manual_seed(seed)
     scripted = controller is None
     controller = ScriptedStacker(n_blocks, random_prob, noise_std, generator=gen) if scripted else controller
+    choose = getattr(controller, "select_option", None)  # a controller with its own high level picks the options
     rounds = -(-int(num_transitions) // (num_envs * horizon))
     rows = torch.arange(num_envs)
     steps: list[dict] = []
@@ -179,7 +185,7 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
         obs, _ = venv.reset(seed=seed if r == 0 else None)  # env i is seeded with seed + i, then continues its own stream
         obs = {k: torch.from_numpy(v) for k, v in obs.items()}
         goal = obs["desired_goal"].argmax(-1)
-        option = first_option(goal)
+        option = choose(obs, None) if choose else first_option(goal)
         for t in range(horizon):
             action = torch.as_tensor(controller(obs["observation"].float(), option), dtype=torch.float32)
             nobs, reward, terminated, truncated, _ = venv.step(action.double().numpy())
@@ -195,7 +201,7 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
                 ("next", "achieved_goal"): flags, ("next", "achieved_sub_goal"): nobs["achieved_sub_goal"],
                 ("next", "sub_goal_reward"): done_opt.float() - 1.0, ("next", "option_done"): done_opt,
             })
-            option = next_option(option, goal, flags)
+            option = choose(nobs, option) if choose else next_option(option, goal, flags)
             obs = nobs
             bar.update(num_envs)
         if not bool(steps[-1][("next", "truncated")].all()):
@@ -216,9 +222,9 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     success = {str(k): (float(reached[goals == k].float().mean()) if bool((goals == k).any()) else None) for k in range(n_goals)}
     meta = {
         "env_id": env_id, "seed": seed, "num_envs": num_envs, "horizon": horizon, "n_blocks": n_blocks,
-        "policy": "scripted-stacker" if scripted else type(controller).__name__,
+        "policy": "scripted-stacker" if scripted else (getattr(controller, "card", None) or {}).get("name", type(controller).__name__),
         "policy_card": {"name": "scripted-stacker", "version": SCRIPT_VERSION, "random_prob": random_prob, "noise_std": noise_std}
-        if scripted else {"name": type(controller).__name__},
+        if scripted else {"name": type(controller).__name__, **(getattr(controller, "card", None) or {})},
         "goal_success": success, "goal_episodes": {str(k): int((goals == k).sum()) for k in range(n_goals)},
         "success_rate": float(reached.float().mean()),
         "goal_fields": {"/".join(k) if isinstance(k, tuple) else k: v for k, v in GOAL_FIELDS.items()},
@@ -248,8 +254,9 @@ def generate_stacking_dataset(env_id: str, level: str, num_transitions: int = 1_
     """A block-stacking dataset of a scripted ``level`` (:data:`SCRIPT_LEVELS`; ``medium-expert`` = medium + expert, each ``num_transitions``).
 
     The paper's data came from partially trained UOF agents (task 1: 20 and
-    50 epochs, task 2: 200); UOF agents are the next step of this project
-    (issue 18), and a trained agent's policy plugs in through
+    50 epochs, task 2: 200): ``offhrl collect blockstack2 --policy
+    blockstack2-uof-epoch20`` collects with a UOF policy trained online
+    (:mod:`~torchrl_offhrl.recipes.uof_policies`) through
     :func:`collect_stacking`'s ``controller`` hook.
     """
     if level == "medium-expert":

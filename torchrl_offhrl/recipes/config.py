@@ -173,7 +173,7 @@ def auto_reward_scale(data: OfflineDataset, gamma: float = 0.99) -> float:
 
 
 def default_run_dir(cfg: Mapping) -> Path:
-    """``<out_root>/<algo label>-<env>-<dataset>[-<ablations>][-<transfer label>]-seed<seed>``.
+    """``<out_root>/<algo label>-<env>-<dataset>[-<ablations>][-<transfer label>][-online]-seed<seed>``.
 
     A dataset given as a file or a Minari id is named by its stem plus a short
     hash of the full path, so two files with the same name never share a run.
@@ -186,6 +186,7 @@ def default_run_dir(cfg: Mapping) -> Path:
     abl = "".join(f"-{k}" for k, v in to_plain(cfg.get("ablation", {})).items() if v)
     transfer = transfer_label(cfg)
     abl += f"-{transfer}" if transfer else ""
+    abl += "-online" if (cfg.get("train") or {}).get("online") else ""
     return Path(cfg.get("out_root", "outputs/runs")) / f"{algo_label(cfg['algo'])}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
 
 

@@ -90,6 +90,8 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "torch_threads": _int(1, optional=True),
     "train.total_frames": _int(1),
     "train.total_updates": _int(1),
+    "train.online": ("true or false", lambda v: isinstance(v, bool)),
+    "train.snapshot_frames": ("a list of positive integers (frames)", lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in v)),
     "eval.every_frames": _int(1),
     "eval.every_updates": _int(1),
     "eval.episodes": _int(1),

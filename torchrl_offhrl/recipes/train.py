@@ -94,8 +94,13 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                          f"not {env_cfg['env_id']}")
     if stacking and tcfg is not None:
         raise ValueError(f"the transfer setting is defined for the locomotion tasks (run backwards), not {env_cfg['env_id']}: leave transfer.task null")
+    online = bool(cfg["train"].get("online", False))  # the agent trains in the real env from scratch: no models, real actions
+    if online and (from_dataset or tcfg is not None):
+        raise ValueError(f"train.online=true trains an agent that collects (moc, ppo, sac, uof, ...) in the real env from scratch; "
+                         f"{'algo=' + algo['name'] + ' learns from the dataset itself' if from_dataset else 'the transfer setting has its own online phase'}: "
+                         "leave train.online false")
     offline = tcfg is None or not tcfg["from_scratch"]  # from scratch: the online phase only (the transfer setting's baseline)
-    latent = acts_in_latent_space(cfg)
+    latent = acts_in_latent_space(cfg) and not online
     keep_decoder = latent and tcfg is not None and tcfg["decoder"] == "keep"
 
     # 1. data and models: one dataset for every training seed (its own seed is dataset_seed)
@@ -104,7 +109,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     level = data.metadata.get("level")
     t_data = time.time() - t_start
     pcfg = model_config(cfg)
-    if from_dataset or not (offline or keep_decoder):  # a from-scratch run without the decoder needs no model
+    if from_dataset or online or not (offline or keep_decoder):  # a from-scratch run without the decoder needs no model
         ensemble = cvae = None
         model_info = {"model_dir": None}
     else:
@@ -143,6 +148,10 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
             algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), data, float(algo.get("gamma", 0.99)))}
             pcfg["env"]["reward_scale"] = algo["reward_scale"]
         eval_env = eval_real_env(None)  # the env whose specs the agent is built for
+    elif online:  # the real env in real actions, as many copies as collector.num_envs; goals drawn by the env at each reset
+        pcfg["env"] = {"horizon": cfg.get("model_env", {}).get("horizon", 25)} if stacking else {}
+        env = make_real_env(env_cfg["env_id"], None, num_envs=int(cfg["collector"]["num_envs"]),
+                            **({"max_episode_steps": int(pcfg["env"]["horizon"])} if stacking else {}))
     else:
         pcfg["env"], pess = model_env_config(cfg, level, data)
         if offline:
@@ -165,7 +174,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         eval_env = eval_real_env(cvae if latent else None)
     if eval_env is not None:
         agent.attach(eval_env)
-    if env is not None and cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
+    if env is not None and not online and cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
         model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold,
                                          reset_states="initial")  # the real env's start states, whatever training uses
         agent.attach(model_eval_env)
@@ -244,11 +253,19 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                 where = f"{env_cfg['env_id']}" + (f" ({rec['task']} task)" if "task" in rec else "")
                 bar.write(f"[{run.step} {unit}] real {where} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f}{score}")
                 run.checkpoint(agent)
+                if run.step in snapshots:  # a state kept for good (e.g. UOF's 20-epoch policy): the checkpoint moves on
+                    torch.save({"agent": agent.state_dict(), "frames": run.frames, "updates": run.updates, "record": rec},
+                               run.path / f"snapshot-{run.step}.pt")
                 next_eval = start + ((run.step - start) // every + 1) * every
                 if run.step >= end:
                     break
         bar.close()
 
+    snapshots = {int(x) for x in cfg["train"].get("snapshot_frames") or []}
+    every = int(cfg["eval"][f"every_{unit}"])
+    if any(x % every for x in snapshots):
+        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
+                         f"eval.every_{unit} ({every})")
     frames_at_start, updates_at_start = run.frames, run.updates
     timing = {"update_time_s": 0.0}
     t_train = time.time()
@@ -270,7 +287,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                 source = dataset_batches(data, agent, remaining, device=device)
             else:
                 source = env_collector(env, agent, remaining, frames_done=run.frames, device=device)
-            train_phase(source, 0, total, eval_every, evaluator, f"{algo['name']} on {env_cfg['name']}-{level}", None if from_dataset else model_env_metrics,
+            train_phase(source, 0, total, eval_every, evaluator, f"{algo['name']} on {env_cfg['name']}" + (" (online)" if online else f"-{level}"),
+                        None if from_dataset else online_metrics if online else model_env_metrics,
                         phase_name, final_dir)
             if not from_dataset:
                 source.shutdown()

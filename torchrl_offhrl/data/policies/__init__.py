@@ -50,8 +50,13 @@ class PolicyNotFoundError(LookupError):
     """No shipped policy has this name (the message lists the shipped ones and how to make one)."""
 
 
-def list_policies(folder: str | os.PathLike | None = None) -> list[str]:
-    """Names of the shipped policies, sorted (those with both a ``.pt`` and a ``.json``).
+def list_policies(folder: str | os.PathLike | None = None, kind: str = "behaviour") -> list[str]:
+    """Names of the shipped policies of a ``kind``, sorted (those with both a ``.pt`` and a ``.json``).
+
+    ``kind`` is the card's ``"kind"``: ``"behaviour"`` (the default, and
+    cards without one: the locomotion actors :func:`load_policy` builds),
+    ``"uof"`` (block-stacking UOF policies,
+    :func:`torchrl_offhrl.recipes.uof_policies.load_uof_policy`) or ``"all"``.
 
     Examples:
         >>> from torchrl_offhrl.data.policies import list_policies
@@ -59,7 +64,12 @@ def list_policies(folder: str | os.PathLike | None = None) -> list[str]:
         True
     """
     root = Path(folder) if folder is not None else POLICY_DIR
-    return sorted(p.stem for p in root.glob("*.pt") if p.with_suffix(".json").is_file())
+    names = []
+    for p in sorted(root.glob("*.pt")):
+        card = p.with_suffix(".json")
+        if card.is_file() and kind in ("all", json.loads(card.read_text()).get("kind", "behaviour")):
+            names.append(p.stem)
+    return names
 
 
 def load_policy(name_or_path: str | os.PathLike) -> tuple[torch.nn.Module, dict[str, Any]]:
@@ -92,6 +102,9 @@ def load_policy(name_or_path: str | os.PathLike) -> tuple[torch.nn.Module, dict[
             f"torchrl_offhrl.data.policies.ship_policy."
         )
     card = json.loads(card_path.read_text())
+    if card.get("kind", "behaviour") != "behaviour":
+        raise ValueError(f"{card_path} is a {card['kind']!r} policy, not a behaviour actor: load it with "
+                         "torchrl_offhrl.recipes.uof_policies.load_uof_policy (or collect with `offhrl collect <env> --policy NAME`)")
     lacking = [k for k in _CARD_KEYS if k not in card]
     if lacking:
         raise ValueError(f"{card_path}: the card lacks {lacking}; cannot build the actor.")
