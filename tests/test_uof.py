@@ -336,6 +336,11 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
     back = load_dataset(out)
     assert len(back) == 50 and back.metadata["policy"] == "bs2-test"
 
+    from torchrl_offhrl.recipes.config import config_fingerprint
+
+    offline = to_plain(compose("offline_train", [o for o in over if o != "train.online=true"]))
+    assert config_fingerprint(offline) != config_fingerprint(to_plain(compose("offline_train", over)))  # never resumed as the other
+    assert config_fingerprint(to_plain(compose("offline_train", [*over, "train.total_frames=1200"]))) == config_fingerprint(to_plain(compose("offline_train", over)))
     with pytest.raises(FileNotFoundError, match="snapshot-800.pt does not exist"):
         ship_uof_policy(run, 800, dest=tmp_path / "pol")
     with pytest.raises(ValueError, match="multiple of"):

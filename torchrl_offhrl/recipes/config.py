@@ -243,6 +243,8 @@ def config_fingerprint(cfg: Mapping) -> str:
     if learns_from_dataset(cfg):  # a model-free agent fits no model: it is the same run whatever the (unused) model settings
         kept.pop("ensemble", None)
         kept.pop("cvae", None)
+    if (cfg.get("train") or {}).get("online"):  # the budget may change on resume, not where the agent trains
+        kept["train_online"] = True
     t = transfer_config(cfg)
     if t is None:  # an offline-only run is the same run whatever the (unused) transfer settings, and as before they existed
         kept.pop("transfer", None)

@@ -1,0 +1,115 @@
+"""The paper's route to its block-stacking data: UOF trained online in the real env, its 20- and 50-epoch policies shipped.
+
+    python scripts/uof_online.py run [--env blockstack2] [--epochs 20 50] [--seed 0]    # resumable; outputs/uof_online/
+    python scripts/uof_online.py ship [--env blockstack2] [--epochs 20 50]              # torchrl_offhrl/data/policies/<env>-uof-epoch<N>
+    python scripts/uof_online.py report [--env blockstack2]                             # docs/results/uof_online.md + figure
+
+``run`` is ``offhrl train algo=uof env=<env> dataset=medium-expert train.online=true``
+with UOF's schedule: epochs of 50 cycles x 16 episodes x 25 steps (20k
+frames; 40 + 40 updates per cycle: ``configs/algo/uof.yaml``), a real-env
+evaluation per epoch (30 episodes per goal, success within 25 and 50 steps),
+and a snapshot at each epoch of ``--epochs`` (the paper: task 1 20 and 50,
+task 2 200). The scripted medium-expert data (100k transitions per level)
+gives only the input statistics. Rerunning resumes from the checkpoint, and
+a larger ``--epochs`` continues the same run.
+
+``ship`` writes each snapshot as a policy with its card
+(:func:`torchrl_offhrl.recipes.uof_policies.ship_uof_policy`); then
+``offhrl collect blockstack2 --policy blockstack2-uof-epoch20 --out data.hdf5``
+collects a dataset with it and ``offhrl train ... dataset=data.hdf5`` trains on it.
+
+``report`` archives the run (config, evaluations, summary) to
+``docs/results/uof_online/`` and writes the per-epoch success table and curve.
+Seed 0: this run makes data, it is not an evaluation of UOF.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+EPOCH = 50 * 16 * 25  # frames of one UOF epoch
+
+
+def run_dir(env: str, seed: int) -> Path:
+    return ROOT / "outputs" / "uof_online" / f"uof-{env}-online-seed{seed}"
+
+
+def overrides(env: str, epochs: list[int], seed: int) -> list[str]:
+    frames = sorted(e * EPOCH for e in epochs)
+    return ["algo=uof", f"env={env}", "dataset=medium-expert", "num_transitions=100000", "train.online=true", f"train.total_frames={frames[-1]}",
+            f"eval.every_frames={EPOCH}", f"train.snapshot_frames=[{','.join(map(str, frames))}]", f"seed={seed}", f"run_dir={run_dir(env, seed)}"]
+
+
+def run(env: str, epochs: list[int], seed: int) -> None:
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
+
+    train(to_plain(compose("offline_train", overrides(env, epochs, seed))))
+
+
+def ship(env: str, epochs: list[int], seed: int) -> None:
+    from torchrl_offhrl.recipes.uof_policies import ship_uof_policy
+
+    cmd = "python scripts/uof_online.py run " + shlex.join(["--env", env, "--epochs", *map(str, epochs), "--seed", str(seed)])
+    for e in epochs:
+        pt = ship_uof_policy(run_dir(env, seed), e * EPOCH, command=cmd)
+        card = json.loads(pt.with_suffix(".json").read_text())
+        print(f"{pt} ({pt.stat().st_size / 1e6:.2f} MB): success per goal {card['eval'].get('success_per_goal')}")
+
+
+def report(env: str, seed: int) -> str:
+    from torchrl_offhrl.recipes.report import archive_run, load_run, plot_goal_success
+
+    out = ROOT / "docs" / "results" / "uof_online"
+    src = run_dir(env, seed)
+    kept = out / src.name
+    if (src / "summary.json").is_file():
+        archive_run(src, kept)
+    elif (src / "evals.json").is_file():  # still running: what it has so far
+        kept.mkdir(parents=True, exist_ok=True)
+        for name in ("config.json", "evals.json"):
+            (kept / name).write_bytes((src / name).read_bytes())
+    r = load_run(kept)
+    evals = r["evals"]
+    plot_goal_success([evals], out / f"success_{env}.png", label="UOF online", title=f"UOF trained online in {r['config']['env']['env_id']}",
+                      xlabel="real-env frames")
+    lines = [f"# UOF trained online in the real env ({env})", "",
+             "The paper's route to its block-stacking data: UOF trained online, its 20- and 50-epoch policies collect the task-1 datasets "
+             "(task 2: 200 epochs). Made by `python scripts/uof_online.py report` from the run of `python scripts/uof_online.py run` "
+             f"(seed {seed}; one epoch = 50 cycles x 16 episodes x 25 steps = {EPOCH} frames; 30 evaluation episodes per goal, "
+             "deterministic, success within 25 and 50 steps).", "",
+             f"![success per goal](success_{env}.png)", "",
+             "| epoch | frames | success per goal, horizon 25 | horizon 50 | wall time (min) |", "|---|---|---|---|---|"]
+    for e in evals:
+        lines.append(f"| {e['step'] / EPOCH:g} | {e['step']} | {' '.join(f'{x:.2f}' for x in e['success_per_goal'])} | "
+                     f"{' '.join(f'{x:.2f}' for x in e['success_per_goal_h50'])} | {e.get('wall_s', 0) / 60:.0f} |")
+    if r["summary"] is None:
+        lines += ["", f"The run had not finished when this page was made ({evals[-1]['step']} frames of {r['config']['train']['total_frames']})."]
+    text = "\n".join(lines) + "\n"
+    (out / "README.md").write_text(text)
+    return text
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("cmd", choices=["run", "ship", "report"])
+    p.add_argument("--env", default="blockstack2", choices=["blockstack2", "blockstack3"])
+    p.add_argument("--epochs", nargs="+", type=int, default=[20, 50], help="epochs to keep (and ship); the run lasts the largest")
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    if a.cmd == "run":
+        run(a.env, a.epochs, a.seed)
+    elif a.cmd == "ship":
+        ship(a.env, a.epochs, a.seed)
+    else:
+        print(report(a.env, a.seed))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
