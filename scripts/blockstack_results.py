@@ -6,7 +6,12 @@
 
 Every run is an ordinary run directory of ``offhrl train`` under
 ``outputs/results/blockstack/`` (rerunning resumes from its checkpoint, so the
-runs can go to the background and span sessions). The datasets are the
+runs can go to the background and survive interruptions). ``outputs/`` stays
+on the machine, so each finished run is archived at once to
+``docs/results/blockstack/runs/<run>/`` (config, evaluations, summary, option
+usage: commit them) and the report reads the archive. A (task, dataset) group
+with no archived run is printed from the earlier page it appeared in
+(``docs/results/blockstack/legacy.json``: runs lost between sessions). The datasets are the
 scripted ones of ``offhrl collect`` (``--transitions`` per level, 100k by
 default: medium-expert holds twice as many), the models the paper's sizes
 (``configs/env/blockstack*.yaml``), fitted once and cached.
@@ -38,6 +43,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "outputs" / "results" / "blockstack"
 OUT = ROOT / "docs" / "results"
+ARCHIVE = OUT / "blockstack" / "runs"
 ABLATIONS = {"no_cvae": ["ablation.no_cvae=true"], "cvae_no_goal": ["cvae.goal_key=null"], "no_pessimism": ["ablation.no_pessimism=true"]}
 LABELS = {"uof": "UOF (ours)", "sac_her": "SAC + HER", "bc": "BC", "uof-no_cvae": "UOF, no CVAE", "uof-cvae_no_goal": "UOF, CVAE without goal",
           "uof-no_pessimism": "UOF, no pessimistic termination"}
@@ -69,7 +75,21 @@ def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int,
         over = [f"algo={algo}", f"env={task}", f"dataset={dataset}", f"num_transitions={transitions}", f"seed={seed}", f"run_dir={BASE / name}",
                 "torch_threads=1", *budget(algo, frames), *(ABLATIONS[ab] if ab else [])]
         s = train(to_plain(compose("offline_train", over)))
+        archive()  # kept in docs/results/blockstack/runs/ at once: outputs/ does not outlive the machine
         print(f"{name}: final success per goal {s['final'].get('success_per_goal')}", flush=True)
+
+
+def archive() -> list[Path]:
+    """Archive every finished run under ``outputs/results/blockstack/`` to ``docs/results/blockstack/runs/<run>/``."""
+    from torchrl_offhrl.recipes.report import archive_run
+
+    done = sorted(d for d in BASE.glob("*-seed*") if (d / "summary.json").is_file())
+    return [archive_run(d, ARCHIVE / d.name, extra=("option_usage.pt",)) for d in done]
+
+
+def _legacy() -> dict:
+    path = OUT / "blockstack" / "legacy.json"
+    return json.loads(path.read_text()) if path.is_file() else {"sections": {}, "runs": {}}
 
 
 def _fmt(xs) -> str:
@@ -90,9 +110,11 @@ def report() -> str:
 
     from torchrl_offhrl.recipes.report import plot_goal_success
 
-    runs = sorted(d for d in BASE.glob("*-seed*") if (d / "summary.json").is_file())
-    if not runs:
-        raise SystemExit(f"no finished runs under {BASE}: run `python scripts/blockstack_results.py run` first")
+    archive()
+    runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
+    legacy = _legacy()
+    if not runs and not legacy["sections"]:
+        raise SystemExit(f"no finished runs under {BASE} or {ARCHIVE}: run `python scripts/blockstack_results.py run` first")
     fig_dir = OUT / "blockstack"
     fig_dir.mkdir(parents=True, exist_ok=True)
     groups: dict[tuple[str, str], dict[str, list[Path]]] = {}
@@ -105,13 +127,23 @@ def report() -> str:
         dataset = tail[: -len(ab) - 1] if ab else tail
         groups.setdefault((task, dataset), {}).setdefault(algo + (f"-{ab}" if ab else ""), []).append(d)
     lines = ["# Offline UOF on block stacking: per-goal success", "",
-             "Made by `python scripts/blockstack_results.py report` from the finished runs under `outputs/results/blockstack/` "
-             "(`python scripts/blockstack_results.py run` makes them).", "", __doc__.split("Budgets (CPU):")[1].split("``--ablations``")[0].strip(), "",
+             "Made by `python scripts/blockstack_results.py report` from the finished runs (`python scripts/blockstack_results.py run` "
+             "makes them under `outputs/results/blockstack/` and archives each to `docs/results/blockstack/runs/<run>/`). Groups marked "
+             "*(earlier page)* are printed as an earlier version of this page gave them: their run directories were lost between sessions "
+             "(`docs/results/blockstack/legacy.json`).", "", __doc__.split("Budgets (CPU):")[1].split("``--ablations``")[0].strip(), "",
              "Success: the share of an evaluation's episodes of that goal whose success flags equalled the goal at some step (the "
              "env's high-level reward 0), for every agent the same test; mean ± std over seeds. *Final*: the last evaluation; *best*: "
              "the best mean success over the evaluations after training began, per seed (never the reported result). *Data*: the "
              "behaviour data's own per-goal success at horizon 25.", ""]
+    for key, section in legacy["sections"].items():  # groups known only from the earlier page
+        task, dataset = (x.strip() for x in key.split(","))
+        if (task, dataset) not in groups:
+            groups[(task, dataset)] = section
     for (task, dataset), algos in sorted(groups.items()):
+        if isinstance(algos, str):
+            head, _, body = algos.partition("\n")
+            lines += [f"{head} *(earlier page)*", body.rstrip(), ""]
+            continue
         meta = _dataset_success(algos)
         lines += [f"## {task}, {dataset}", "", "| agent | seeds | final, horizon 25 | final, horizon 50 | best (mean over goals) |", "|---|---|---|---|---|"]
         if meta:
@@ -132,7 +164,8 @@ def report() -> str:
                 continue  # another x-axis (gradient steps); its final numbers are in the table
             recs = [json.loads((d / "evals.json").read_text()) for d in ds]
             plot_goal_success(recs, None, label=LABELS.get(algo, algo), axes=axes[0], xlabel="model-env frames")
-        axes[0][0].legend(fontsize=7)
+        if axes[0][0].get_legend_handles_labels()[0]:  # BC alone draws no curve
+            axes[0][0].legend(fontsize=7)
         fig.suptitle(f"{task}, {dataset}: success per goal (horizon 25), mean ± std over seeds", fontsize=9)
         fig.tight_layout()
         png = fig_dir / f"success_{task}_{dataset}.png"
@@ -157,16 +190,24 @@ def report() -> str:
             lines.append(f"| {task} | {LABELS[algo]} | {' / '.join(f'{x:.2f}' for x in xs)} |")
     lines += ["| blockstack2, medium-expert | UOF (ours) | about 0.8 on the final goal (iii) |", ""]
     lines += ["Per run (final success per goal at horizon 25):", ""]
+    per_run = {}
     for d in runs:
         e = json.loads((d / "evals.json").read_text())[-1]
-        lines.append(f"- `{d.name}`: {' / '.join(f'{x:.2f}' for x in e['success_per_goal'])} at {e.get('step', e['frames'])} "
-                     f"{json.loads((d / 'summary.json').read_text()).get('unit', 'frames')}")
+        per_run[d.name] = (f"{' / '.join(f'{x:.2f}' for x in e['success_per_goal'])} at {e.get('step', e['frames'])} "
+                           f"{json.loads((d / 'summary.json').read_text()).get('unit', 'frames')}")
+    shown = {(t, ds) for (t, ds), v in groups.items() if isinstance(v, str)}
+    for name, line in legacy["runs"].items():  # the lost runs of the groups printed from the earlier page
+        rest = name.split("-", 1)[1].rsplit("-seed", 1)[0]
+        rest = next((rest[: -len(a) - 1] for a in ABLATIONS if rest.endswith("-" + a)), rest)
+        if name not in per_run and any(rest == f"{t}-{ds}" for t, ds in shown):
+            per_run[name] = f"{line} (earlier page)"
+    lines += [f"- `{name}`: {line}" for name, line in sorted(per_run.items())]
     text = "\n".join(lines) + "\n"
     (OUT / "block_stacking.md").write_text(text)
-    for d in runs:  # keep each run's own figures next to the report
+    for d in runs:  # keep each run's own figures next to the report (while its run directory is here)
         for f in ("success.png",):
-            if (d / f).is_file():
-                shutil.copyfile(d / f, fig_dir / f"{d.name}_{f}")
+            if (BASE / d.name / f).is_file():
+                shutil.copyfile(BASE / d.name / f, fig_dir / f"{d.name}_{f}")
     return text
 
 

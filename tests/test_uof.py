@@ -349,3 +349,37 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
     with pytest.raises(ValueError, match="learns from the dataset itself"):
         train(to_plain(compose("offline_train", ["algo=bc", "env=blockstack2", f"dataset={stacking_file}", "train.online=true",
                                                  f"run_dir={tmp_path / 'r3'}"])), progress=False)
+
+
+def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_earlier_page(tmp_path, monkeypatch):
+    """scripts/blockstack_results.py: a finished run is archived and reported; a group with no archived run is the earlier page's text."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bs_results", Path(__file__).resolve().parents[1] / "scripts" / "blockstack_results.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr(mod, "BASE", tmp_path / "outputs")
+    monkeypatch.setattr(mod, "OUT", tmp_path / "docs")
+    monkeypatch.setattr(mod, "ARCHIVE", tmp_path / "docs" / "blockstack" / "runs")
+    (tmp_path / "docs" / "blockstack").mkdir(parents=True)
+    old = "## blockstack2, medium-expert\n\n| agent | seeds | final, horizon 25 |\n|---|---|---|\n| BC | 3 | 1.00 / 1.00 / 0.69 |\n"
+    (tmp_path / "docs" / "blockstack" / "legacy.json").write_text(json.dumps({
+        "sections": {"blockstack2, medium-expert": old},
+        "runs": {"bc-blockstack2-medium-expert-seed4": "1.00 / 1.00 / 0.40 at 20000 updates",
+                 "bc-blockstack2-medium-seed9": "0.50 / 0.00 / 0.00 at 20000 updates"}}))
+    for seed, last in ((4, [1.0, 0.5, 0.0]), (5, [1.0, 0.7, 0.2])):  # two finished BC runs on task 1 medium
+        run = tmp_path / "outputs" / f"bc-blockstack2-medium-seed{seed}"
+        run.mkdir(parents=True)
+        evals = [{"step": s, "frames": 0, "return_mean": -20.0, "success_per_goal": v, "success_per_goal_h50": v, "success_rate": sum(v) / 3}
+                 for s, v in ((0, [0.0, 0.0, 0.0]), (20000, last))]
+        (run / "evals.json").write_text(json.dumps(evals))
+        (run / "config.json").write_text(json.dumps({"algo": {"name": "bc"}, "env": {"env_id": "BlockStack2-v0"}, "dataset": "medium"}))
+        (run / "summary.json").write_text(json.dumps({"unit": "updates", "behaviour_success_per_goal": [0.9, 0.6, 0.3]}))
+    text = mod.report()
+    assert (tmp_path / "docs" / "blockstack" / "runs" / "bc-blockstack2-medium-seed4" / "evals.json").is_file()
+    medium = text.split("## blockstack2, medium\n")[1].split("## ")[0]
+    assert "| BC | 2 | 1.00 ± 0.00 / 0.60 ± 0.14 / 0.10 ± 0.14 | 1.00 ± 0.00 / 0.60 ± 0.14 / 0.10 ± 0.14 | 0.57 ± 0.09 |" in medium and "| data (behaviour) | | 0.90 / 0.60 / 0.30 |" in medium
+    assert "## blockstack2, medium-expert *(earlier page)*" in text and "| BC | 3 | 1.00 / 1.00 / 0.69 |" in text
+    assert "- `bc-blockstack2-medium-expert-seed4`: 1.00 / 1.00 / 0.40 at 20000 updates (earlier page)" in text
+    assert "bc-blockstack2-medium-seed9" not in text  # a lost run of a group now reported from its archived runs
+    assert "- `bc-blockstack2-medium-seed5`: 1.00 / 0.70 / 0.20 at 20000 updates" in text

@@ -266,7 +266,7 @@ def group_stats(rs: Sequence[dict]) -> dict:
     }
 
 
-def archive_run(run_dir, dest) -> Path:
+def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:
     """Copy what the reports read of a finished run into ``dest`` (a folder small enough to commit); returns ``dest``.
 
     A run directory holds checkpoints, models and logs (megabytes) and lives
@@ -274,15 +274,16 @@ def archive_run(run_dir, dest) -> Path:
     ``config.json``, ``evals.json`` and ``summary.json`` as they are, plus
     ``diagnostics.json``: the mean of the last 5 logged values of every
     training scalar (``{"train_tail_means": {key: value}}``, the numbers
-    :func:`logged_tail_mean` gives). :func:`load_run` reads the archive like
-    the run directory it came from.
+    :func:`logged_tail_mean` gives), and the files named in ``extra`` that the
+    run has (e.g. ``option_usage.pt``). :func:`load_run` reads the archive
+    like the run directory it came from.
     """
     src, dest = Path(run_dir), Path(dest)
     if not (src / "summary.json").is_file():
         raise FileNotFoundError(f"{src} has no summary.json: the run has not finished; archive it once it has")
     load_run(src)  # fails with the reason if the run's files are damaged, before anything is written
     dest.mkdir(parents=True, exist_ok=True)
-    for name in ("config.json", "evals.json", "summary.json"):
+    for name in ("config.json", "evals.json", "summary.json", *extra):
         if (src / name).is_file():
             tmp = dest / f".{name}.tmp"
             tmp.write_bytes((src / name).read_bytes())
