@@ -34,6 +34,8 @@ KINDS = {
     "nocvae": ["transfer.task=backward", "ablation.no_cvae=true"],
 }
 OUT = ROOT / "outputs" / "results" / "transfer"
+DOCS = ROOT / "docs" / "results" / "transfer"
+ARCHIVE = DOCS / "runs"  # finished runs kept for good (outputs/ stays on the machine that ran them)
 
 
 def run_dir(env: str, algo: str, kind: str, seed: int) -> Path:
@@ -57,16 +59,43 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
                     if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
                         overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
                     print(format_summary(train(to_plain(compose("demo", overrides)))), flush=True)
+                    archive()
+
+
+def archive() -> list[Path]:
+    """Archive every finished run under ``outputs/results/transfer/`` to ``docs/results/transfer/runs/<run>/``."""
+    from torchrl_offhrl.recipes.report import archive_run
+
+    return [archive_run(d, ARCHIVE / d.name) for d in sorted(OUT.glob("*-seed*")) if (d / "summary.json").is_file()]
+
+
+def _label(cfg: dict) -> str:
+    """A run's group label as the table writes it: its ablations, then its transfer label (e.g. ``to-backward``)."""
+    from torchrl_offhrl.recipes.config import transfer_label
+
+    abl = ",".join(k for k, v in sorted((cfg.get("ablation") or {}).items()) if v)
+    return ",".join(x for x in (abl, transfer_label(cfg)) if x) or "-"
 
 
 def report() -> str:
+    import json
+
     from torchrl_offhrl.recipes.report import aggregate
 
-    runs = sorted(d for d in OUT.glob("*-seed*") if (d / "summary.json").is_file())
-    if not runs:
-        raise SystemExit(f"no finished runs under {OUT}: run `python scripts/transfer.py run` first")
-    out = ROOT / "docs" / "results" / "transfer"
-    table = aggregate(runs, out)
+    archive()
+    runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
+    legacy_path = DOCS / "legacy.json"
+    legacy = json.loads(legacy_path.read_text()) if legacy_path.is_file() else {"rows": {}, "runs": {}}
+    groups = {f"{c['algo'].get('label') or c['algo']['name']}-{_label(c)}" for c in (json.loads((d / "config.json").read_text()) for d in runs)}
+    old_rows = {k: r for k, r in legacy["rows"].items() if k not in groups}  # a group rerun here replaces the earlier page's row
+    if not runs and not old_rows:
+        raise SystemExit(f"no finished runs under {OUT} or {ARCHIVE}: run `python scripts/transfer.py run` first")
+    out = DOCS
+    table = aggregate(runs, out) if runs else ""
+    if old_rows:
+        table = (table + "\n\n" if table else "") + (
+            "Rows of an earlier version of this page (their run directories were lost between sessions; `transfer/legacy.json`; "
+            "their curves: `transfer/legacy_curves.png`):\n\n" + "\n".join([legacy["header"], "|" + "---|" * 13, *old_rows.values()]))
     lines = ["# Transfer: offline on forward-running data, then online on running backwards", "",
              __doc__.split("Kinds of run")[1].split("\n", 1)[1].strip(), "",
              "Made by `python scripts/transfer.py report` from the finished runs under `outputs/results/transfer/`. "
@@ -74,17 +103,22 @@ def report() -> str:
              "the offline column is the last evaluation of the offline phase on the forward task. On Hopper a return of about 1,000 "
              "on the backward task is the healthy reward of standing through the whole episode (1 per step) with no backward "
              "progress.", "",
-             f"{len(runs)} finished run(s) so far: the `seeds` column says how many seeds each row has; kinds and algorithms "
+             f"{len(runs)} archived run(s) and {{n_old}} from the earlier page so far: the `seeds` column says how many seeds each row has; kinds and algorithms "
              "without a row have not been run yet (the runs are long on CPU and span sessions).", "",
-             table, "", "![curves](transfer/curves.png)", "",
+             table, "", *(["![curves](transfer/curves.png)", ""] if runs else []), *(["![earlier curves](transfer/legacy_curves.png)", ""] if old_rows else []),
              "Per run (return on the backward task at the switch and at the end of the online phase):", ""]
-    import json
-
+    per_run = {}
     for d in runs:
         ev = json.loads((d / "evals.json").read_text())
         online = [e for e in ev if e.get("phase") == "online"]
-        lines.append(f"- `{d.name}`: {online[0]['return_mean']:.1f} at the switch, {online[-1]['return_mean']:.1f} after "
-                     f"{online[-1]['frames'] - online[0]['frames']} online frames")
+        per_run[d.name] = (f"{online[0]['return_mean']:.1f} at the switch, {online[-1]['return_mean']:.1f} after "
+                           f"{online[-1]['frames'] - online[0]['frames']} online frames")
+    kinds = {"to-backward": "transfer", "scratch-backward": "scratch"}
+    for name, line in legacy["runs"].items():
+        if name not in per_run and any(name.startswith(f"{k.split('-', 1)[0]}-") and f"-{kinds.get(k.split('-', 1)[1], '?')}-seed" in name for k in old_rows):
+            per_run[name] = f"{line} (earlier page)"
+    lines += [f"- `{n}`: {line}" for n, line in sorted(per_run.items())]
+    lines = [x.replace("{n_old}", str(sum(v.endswith("(earlier page)") for v in per_run.values()))) for x in lines]
     text = "\n".join(lines) + "\n"
     (ROOT / "docs" / "results" / "transfer.md").write_text(text)
     return text
