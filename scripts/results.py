@@ -82,7 +82,13 @@ NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by l
                  "ensemble was fitted at lr 1e-3: the first MOC runs, on the paper's lr 1e-4 fitted for the same 20k steps (kept in "
                  "`outputs/results/full_fitlr1e-4/`; seed 4: 28.5 from 31.7 after 1M frames), exploited the model, whose members agreed "
                  "where they were wrong (held-out error 1.8x their disagreement), so the pessimism never fired; the development-seed "
-                 "experiments behind the change and the 205k-frame schedule are in [experiments.md](experiments.md).")
+                 "experiments behind the change and the 205k-frame schedule are in [experiments.md](experiments.md). "
+                 "Where the dataset agents stand: BC recovers the behaviour policy's mean action, and the shipped behaviour policies' "
+                 "cards (`torchrl_offhrl/data/policies/*-medium.json`, 10 episodes) give that mean action 899.9 ± 31.6 on Hopper (D4RL "
+                 "28.3) against 1066.4 ± 305.9 when it samples (33.4; the dataset's episodes: 36.0), and 4775 ± 82 on HalfCheetah "
+                 "(40.7) against 4464 ± 157 (38.2): BC's 29.3 and 40.5 are that deterministic policy, so on Hopper every dataset "
+                 "agent that stays near the data's actions (BC, TD3+BC, IQL) ends below the behaviour data's average, which its "
+                 "exploration noise helps.")
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy")
 
 
