@@ -44,3 +44,23 @@ def test_relabelled_reward_by_hand():
     t = TensorDict({"sub_goal": td["sub_goal"], "next": {"achieved_sub_goal": achieved}}, batch_size=[3])
     torch.testing.assert_close(relabelled_reward(t), torch.tensor([[0.0], [0.0], [-1.0]]))
     assert G.SUCCESS_DISTANCE == 0.02
+
+
+def test_the_buffer_keeps_sampling_once_it_is_full_and_wraps():
+    """TorchRL 0.14.1's HERReplayBuffer fails once its storage wraps (its episode cache compares a tensor cursor); ours does not.
+
+    Seen after 200k frames of online UOF (buffer_size 200k): 'Boolean value of Tensor with more than one value is ambiguous'.
+    After the wrap, relabelled goals still come from the same segment, at or after the transition.
+    """
+    from torchrl_offhrl.data.stacking import collect_stacking
+
+    ds = collect_stacking("BlockStack2-v0", 100, 0.0, 0.05, num_envs=2, seed=3, progress=False)
+    data = mark_segments(ds.data.clone())
+    data.set(LOW_REWARD, relabelled_reward(data))
+    rb = sub_goal_her_buffer(60, 16, her_ratio=1.0)
+    for start in range(0, 100, 25):  # 100 transitions through a 60-slot storage: the last extends wrap around
+        rb.extend(data[start:start + 25])
+        batch = rb.sample()
+        assert batch.shape == (16,)
+    torch.testing.assert_close(batch[LOW_REWARD], relabelled_reward(batch))
+    assert len(rb) == 60

@@ -97,15 +97,37 @@ def low_level_done(td: TensorDictBase) -> TensorDictBase:
     return td
 
 
+def _her_buffer_class():
+    """TorchRL's ``HERReplayBuffer`` with an episode-cache key that survives a full storage.
+
+    TorchRL 0.14.1 keys its cache of episode ends on ``storage._last_cursor``,
+    which becomes a tensor of indices once the storage wraps around, and then
+    compares the keys with ``!=``: every sample after the wrap raises
+    'Boolean value of Tensor with more than one value is ambiguous' (seen at
+    200k frames of online UOF, ``buffer_size`` 200k). The key here holds the
+    cursor's indices as a tuple; the relabelling itself is TorchRL's.
+    """
+    from torchrl.data import HERReplayBuffer
+
+    class WrapSafeHERReplayBuffer(HERReplayBuffer):
+        def _storage_cache_key(self, storage) -> tuple:
+            size, cursor, full = super()._storage_cache_key(storage)
+            if isinstance(cursor, torch.Tensor):
+                cursor = tuple(cursor.reshape(-1).tolist())
+            return size, cursor, full
+
+    return WrapSafeHERReplayBuffer
+
+
 def sub_goal_her_buffer(capacity: int, batch_size: int, her_ratio: float = 0.8, strategy: str = "future", device="cpu"):
     """A TorchRL ``HERReplayBuffer`` relabelling ``sub_goal`` within segments and recomputing :data:`LOW_REWARD`.
 
     Add batches through :func:`prepare_low_level` (or :func:`mark_segments`
     and :data:`LOW_REWARD`) first; run :func:`low_level_done` on samples.
     """
-    from torchrl.data import HERReplayBuffer, LazyTensorStorage
+    from torchrl.data import LazyTensorStorage
 
-    return HERReplayBuffer(relabelled_reward, her_ratio=her_ratio, strategy=strategy, goal_key="sub_goal", reward_key=LOW_REWARD,
+    return _her_buffer_class()(relabelled_reward, her_ratio=her_ratio, strategy=strategy, goal_key="sub_goal", reward_key=LOW_REWARD,
                            achieved_goal_key=("next", "achieved_sub_goal"), end_key=SEGMENT_END,
                            storage=LazyTensorStorage(int(capacity), device=device), batch_size=int(batch_size))
 
