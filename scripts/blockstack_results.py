@@ -9,9 +9,10 @@ Every run is an ordinary run directory of ``offhrl train`` under
 runs can go to the background and survive interruptions). ``outputs/`` stays
 on the machine, so each finished run is archived at once to
 ``docs/results/blockstack/runs/<run>/`` (config, evaluations, summary, option
-usage: commit them) and the report reads the archive. A (task, dataset) group
-with no archived run is printed from the earlier page it appeared in
-(``docs/results/blockstack/legacy.json``: runs lost between sessions). The datasets are the
+usage: commit them) and the report reads the archive. The groups of the
+earlier page whose runs were lost between sessions are printed as it gave
+them (``docs/results/blockstack/legacy.json``), followed by a section of the
+runs archived since for the same (task, dataset), if any. The datasets are the
 scripted ones of ``offhrl collect`` (``--transitions`` per level, 100k by
 default: medium-expert holds twice as many), the models the paper's sizes
 (``configs/env/blockstack*.yaml``), fitted once and cached.
@@ -135,15 +136,14 @@ def report() -> str:
              "env's high-level reward 0), for every agent the same test; mean ± std over seeds. *Final*: the last evaluation; *best*: "
              "the best mean success over the evaluations after training began, per seed (never the reported result). *Data*: the "
              "behaviour data's own per-goal success at horizon 25.", ""]
-    for key, section in legacy["sections"].items():  # groups known only from the earlier page
-        task, dataset = (x.strip() for x in key.split(","))
-        if (task, dataset) not in groups:
-            groups[(task, dataset)] = section
-    for (task, dataset), algos in sorted(groups.items()):
-        if isinstance(algos, str):
-            head, _, body = algos.partition("\n")
+    earlier = {tuple(x.strip() for x in key.split(",")): section for key, section in legacy["sections"].items()}
+    for (task, dataset) in sorted(set(groups) | set(earlier)):
+        if (task, dataset) in earlier:  # as the earlier page gave it (its runs were lost); rows rerun since are in the section after it
+            head, _, body = earlier[(task, dataset)].partition("\n")
             lines += [f"{head} *(earlier page)*", body.rstrip(), ""]
+        if (task, dataset) not in groups:
             continue
+        algos = groups[(task, dataset)]
         meta = _dataset_success(algos)
         lines += [f"## {task}, {dataset}", "", "| agent | seeds | final, horizon 25 | final, horizon 50 | best (mean over goals) |", "|---|---|---|---|---|"]
         if meta:
@@ -195,11 +195,8 @@ def report() -> str:
         e = json.loads((d / "evals.json").read_text())[-1]
         per_run[d.name] = (f"{' / '.join(f'{x:.2f}' for x in e['success_per_goal'])} at {e.get('step', e['frames'])} "
                            f"{json.loads((d / 'summary.json').read_text()).get('unit', 'frames')}")
-    shown = {(t, ds) for (t, ds), v in groups.items() if isinstance(v, str)}
-    for name, line in legacy["runs"].items():  # the lost runs of the groups printed from the earlier page
-        rest = name.split("-", 1)[1].rsplit("-seed", 1)[0]
-        rest = next((rest[: -len(a) - 1] for a in ABLATIONS if rest.endswith("-" + a)), rest)
-        if name not in per_run and any(rest == f"{t}-{ds}" for t, ds in shown):
+    for name, line in legacy["runs"].items():  # the lost runs of the earlier page, unless rerun since
+        if name not in per_run:
             per_run[name] = f"{line} (earlier page)"
     lines += [f"- `{name}`: {line}" for name, line in sorted(per_run.items())]
     text = "\n".join(lines) + "\n"

@@ -86,7 +86,8 @@ def report() -> str:
     runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
     legacy_path = DOCS / "legacy.json"
     legacy = json.loads(legacy_path.read_text()) if legacy_path.is_file() else {"rows": {}, "runs": {}}
-    groups = {f"{c['algo'].get('label') or c['algo']['name']}-{_label(c)}" for c in (json.loads((d / "config.json").read_text()) for d in runs)}
+    groups = {"|".join([c["algo"].get("label") or c["algo"]["name"], c["env"]["env_id"], str(c["dataset"]), _label(c)])
+              for c in (json.loads((d / "config.json").read_text()) for d in runs)}  # as the table's first four columns
     old_rows = {k: r for k, r in legacy["rows"].items() if k not in groups}  # a group rerun here replaces the earlier page's row
     if not runs and not old_rows:
         raise SystemExit(f"no finished runs under {OUT} or {ARCHIVE}: run `python scripts/transfer.py run` first")
@@ -95,10 +96,11 @@ def report() -> str:
     if old_rows:
         table = (table + "\n\n" if table else "") + (
             "Rows of an earlier version of this page (their run directories were lost between sessions; `transfer/legacy.json`; "
-            "their curves: `transfer/legacy_curves.png`):\n\n" + "\n".join([legacy["header"], "|" + "---|" * 13, *old_rows.values()]))
+            "their curves: `transfer/legacy_curves.png`):\n\n" + "\n".join([legacy["header"], "|" + "---|" * 14, *old_rows.values()]))
     lines = ["# Transfer: offline on forward-running data, then online on running backwards", "",
              __doc__.split("Kinds of run")[1].split("\n", 1)[1].strip(), "",
-             "Made by `python scripts/transfer.py report` from the finished runs under `outputs/results/transfer/`. "
+             "Made by `python scripts/transfer.py report` from the finished runs, archived from `outputs/results/transfer/` to "
+             "`docs/results/transfer/runs/`. "
              "Returns are raw real-env returns on the backward task (D4RL's normalisation is the forward task's); "
              "the offline column is the last evaluation of the offline phase on the forward task. On Hopper a return of about 1,000 "
              "on the backward task is the healthy reward of standing through the whole episode (1 per step) with no backward "
@@ -114,8 +116,10 @@ def report() -> str:
         per_run[d.name] = (f"{online[0]['return_mean']:.1f} at the switch, {online[-1]['return_mean']:.1f} after "
                            f"{online[-1]['frames'] - online[0]['frames']} online frames")
     kinds = {"to-backward": "transfer", "scratch-backward": "scratch"}
-    for name, line in legacy["runs"].items():
-        if name not in per_run and any(name.startswith(f"{k.split('-', 1)[0]}-") and f"-{kinds.get(k.split('-', 1)[1], '?')}-seed" in name for k in old_rows):
+    shown = {(a, e.split("-")[0].lower(), kinds.get(k, "?")) for a, e, _, k in (r.split("|") for r in old_rows)}
+    for name, line in legacy["runs"].items():  # the lost runs of the rows printed from the earlier page
+        algo, env, _, kind = name.rsplit("-seed", 1)[0].split("-", 3)
+        if name not in per_run and (algo, env, kind) in shown:
             per_run[name] = f"{line} (earlier page)"
     lines += [f"- `{n}`: {line}" for n, line in sorted(per_run.items())]
     lines = [x.replace("{n_old}", str(sum(v.endswith("(earlier page)") for v in per_run.values()))) for x in lines]

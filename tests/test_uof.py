@@ -335,6 +335,16 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
     assert main(["collect", "blockstack2", "--policy", str(pt), "-n", "50", "--num-envs", "2", "--out", str(out)]) == 0
     back = load_dataset(out)
     assert len(back) == 50 and back.metadata["policy"] == "bs2-test"
+    # without --out: into the datasets cache, the noise in the name (greedy and noisy collections never share a file)
+    assert main(["collect", "blockstack2", "--policy", str(pt), "-n", "50", "--num-envs", "2", "--random-prob", "0.1"]) == 0
+    assert [p.name for p in (tmp_path / "cache" / "datasets").glob("*.hdf5")] == ["blockstack2-bs2-test-50-seed0-envs2-rp0.1-ns0.hdf5"]
+    # a shipped UOF policy is listed apart and refused by the behaviour-policy loader with what to use instead
+    import torchrl_offhrl.data.policies as pol
+
+    monkeypatch.setattr(pol, "POLICY_DIR", tmp_path / "pol")
+    assert pol.list_policies() == [] and pol.list_policies(kind="uof") == ["bs2-test"]
+    with pytest.raises(ValueError, match="load_uof_policy"):
+        pol.load_policy("bs2-test")
 
     from torchrl_offhrl.recipes.config import config_fingerprint
 
@@ -366,7 +376,7 @@ def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_ea
     (tmp_path / "docs" / "blockstack" / "legacy.json").write_text(json.dumps({
         "sections": {"blockstack2, medium-expert": old},
         "runs": {"bc-blockstack2-medium-expert-seed4": "1.00 / 1.00 / 0.40 at 20000 updates",
-                 "bc-blockstack2-medium-seed9": "0.50 / 0.00 / 0.00 at 20000 updates"}}))
+                 "bc-blockstack2-medium-seed4": "0.50 / 0.00 / 0.00 at 20000 updates"}}))
     for seed, last in ((4, [1.0, 0.5, 0.0]), (5, [1.0, 0.7, 0.2])):  # two finished BC runs on task 1 medium
         run = tmp_path / "outputs" / f"bc-blockstack2-medium-seed{seed}"
         run.mkdir(parents=True)
@@ -381,5 +391,13 @@ def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_ea
     assert "| BC | 2 | 1.00 ± 0.00 / 0.60 ± 0.14 / 0.10 ± 0.14 | 1.00 ± 0.00 / 0.60 ± 0.14 / 0.10 ± 0.14 | 0.57 ± 0.09 |" in medium and "| data (behaviour) | | 0.90 / 0.60 / 0.30 |" in medium
     assert "## blockstack2, medium-expert *(earlier page)*" in text and "| BC | 3 | 1.00 / 1.00 / 0.69 |" in text
     assert "- `bc-blockstack2-medium-expert-seed4`: 1.00 / 1.00 / 0.40 at 20000 updates (earlier page)" in text
-    assert "bc-blockstack2-medium-seed9" not in text  # a lost run of a group now reported from its archived runs
-    assert "- `bc-blockstack2-medium-seed5`: 1.00 / 0.70 / 0.20 at 20000 updates" in text
+    assert "0.50 / 0.00 / 0.00" not in text  # a lost run rerun since: the archived run's line replaces it
+    assert "- `bc-blockstack2-medium-seed4`: 1.00 / 0.50 / 0.00 at 20000 updates\n" in text
+    # a rerun of an agent in a group of the earlier page: the earlier section stays, the new runs follow in their own section
+    run = tmp_path / "outputs" / "bc-blockstack2-medium-expert-seed7"
+    run.mkdir()
+    for f in ("evals.json", "config.json", "summary.json"):
+        (run / f).write_bytes((tmp_path / "outputs" / "bc-blockstack2-medium-seed5" / f).read_bytes())
+    text = mod.report()
+    assert "## blockstack2, medium-expert *(earlier page)*" in text and "| BC | 3 | 1.00 / 1.00 / 0.69 |" in text
+    assert "| BC | 1 | 1.00 / 0.70 / 0.20 |" in text.split("## blockstack2, medium-expert\n")[1].split("## ")[0]

@@ -35,8 +35,8 @@ def cmd_policies(args) -> int:
     names = list_policies()
     if not names:
         print("no behaviour policies are shipped; train one with scripts/train_behaviour.py")
-        return 0
-    print(f"{'name':22s} {'env':16s} {'steps':>8s} {'return (stoch.)':>18s} {'D4RL score':>10s}")
+    if names:
+        print(f"{'name':22s} {'env':16s} {'steps':>8s} {'return (stoch.)':>18s} {'D4RL score':>10s}")
     for n in names:
         _, card = load_policy(n)
         ev = card["eval"]
@@ -74,9 +74,13 @@ def cmd_collect(args) -> int:
         if controller.card["env_id"] != env_id:
             raise ValueError(f"policy {args.policy!r} acts in {controller.card['env_id']}, not {env_id}")
         name = f"{args.env}-{controller.card['name'].removeprefix(args.env + '-')}"
+        if not args.out:  # decided before the collection: a bad path fails first
+            from .utils import cache_dir
+
+            noise = f"-rp{args.random_prob:g}-ns{args.noise_std:g}" if (args.random_prob or args.noise_std) else ""
+            args.out = str(cache_dir() / "datasets" / f"{name}-{args.num_transitions}-seed{args.seed}-envs{args.num_envs}{noise}.hdf5")
         ds = collect_stacking(env_id, args.num_transitions, num_envs=args.num_envs, seed=args.seed, controller=controller,
                               metadata={"dataset": name, "level": controller.card["level"], "random_prob": args.random_prob, "noise_std": args.noise_std})
-        args.out = args.out or str(dataset_path(name, args.num_transitions, args.seed, args.num_envs))
     else:
         if args.level is None:
             raise ValueError("give a level (random | medium | expert | medium-expert), or --policy for block stacking")

@@ -323,7 +323,7 @@ def transfer_table(groups: dict[tuple, list[dict]], marks: Sequence[int] = TRANS
     """The Markdown table (and its CSV rows) of the transfer groups: returns on the new task, mean ± std over seeds."""
     header = ("| algo | env | dataset | runs | seeds | online frames | offline final (old task) | at the switch | "
               + " | ".join(f"after {k // 1000}k" for k in marks) + " | final | best | mean over the online phase |")
-    lines = [header, "|" + "---|" * (10 + len(marks))]
+    lines = [header, "|" + "---|" * (11 + len(marks))]
     rows = []
     for key, rs in sorted(groups.items()):
         st = transfer_stats(rs, marks)

@@ -33,7 +33,7 @@ from torchrl.envs import RewardScaling, RewardSum
 from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
 from ..blockstack import BLOCKSTACK_IDS
 from ..blockstack import goals as G
-from ..utils import to_plain
+from ..utils import atomic_write, to_plain
 from .config import (
     acts_in_latent_space, config_fingerprint, default_run_dir, learns_from_dataset, model_config, model_env_config, resolve_dataset, resolve_reward_scale,
     transfer_config,
@@ -99,6 +99,9 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         raise ValueError(f"train.online=true trains an agent that collects (moc, ppo, sac, uof, ...) in the real env from scratch; "
                          f"{'algo=' + algo['name'] + ' learns from the dataset itself' if from_dataset else 'the transfer setting has its own online phase'}: "
                          "leave train.online false")
+    if online and any(cfg.get("ablation", {}).values()):
+        raise ValueError(f"train.online=true trains in the real env in real actions, with no models or CVAE: the ablations "
+                         f"{[k for k, v in cfg['ablation'].items() if v]} do not apply to it; leave them false")
     offline = tcfg is None or not tcfg["from_scratch"]  # from scratch: the online phase only (the transfer setting's baseline)
     latent = acts_in_latent_space(cfg) and not online
     keep_decoder = latent and tcfg is not None and tcfg["decoder"] == "keep"
@@ -149,7 +152,10 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
             pcfg["env"]["reward_scale"] = algo["reward_scale"]
         eval_env = eval_real_env(None)  # the env whose specs the agent is built for
     elif online:  # the real env in real actions, as many copies as collector.num_envs; goals drawn by the env at each reset
-        pcfg["env"] = {"horizon": cfg.get("model_env", {}).get("horizon", 25)} if stacking else {}
+        settings, _ = model_env_config(cfg, level, data)  # the reward scale the agent learns with (resolved as on the model env) and the horizon
+        pcfg["env"] = {k: settings[k] for k in ("reward_scale", "horizon") if k in settings}
+        if stacking:
+            pcfg["env"].setdefault("horizon", 25)
         env = make_real_env(env_cfg["env_id"], None, num_envs=int(cfg["collector"]["num_envs"]),
                             **({"max_episode_steps": int(pcfg["env"]["horizon"])} if stacking else {}))
     else:
@@ -201,7 +207,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     # 4. resume, log, train, evaluate, checkpoint
     run.data_hash = data.content_hash()  # a run never resumes on other data found at the same path
     run.unit = unit
-    run.resume(agent, device)
+    if run.resume(agent, device) and (run.path / "summary.json").is_file():
+        (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
     run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "resolved_reward_scale": pcfg["env"].get("reward_scale", 1.0),
                                    "model_dir": model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
     logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
@@ -252,10 +259,12 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                 bar.set_postfix(ret=f"{rec['return_mean']:.0f}", score=fmt_number(rec["normalized_d4rl"]))
                 where = f"{env_cfg['env_id']}" + (f" ({rec['task']} task)" if "task" in rec else "")
                 bar.write(f"[{run.step} {unit}] real {where} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f}{score}")
+                for snap in sorted(x for x in snapshots if x <= run.step and not (run.path / f"snapshot-{x}.pt").is_file()):
+                    # a state kept for good (e.g. UOF's 20-epoch policy), at the first evaluation at or past it, before the checkpoint
+                    # moves on (a run killed in between takes it again on resume)
+                    with atomic_write(run.path / f"snapshot-{snap}.pt") as tmp:
+                        torch.save({"agent": agent.state_dict(), "frames": run.frames, "updates": run.updates, "step": run.step, "record": rec}, tmp)
                 run.checkpoint(agent)
-                if run.step in snapshots:  # a state kept for good (e.g. UOF's 20-epoch policy): the checkpoint moves on
-                    torch.save({"agent": agent.state_dict(), "frames": run.frames, "updates": run.updates, "record": rec},
-                               run.path / f"snapshot-{run.step}.pt")
                 next_eval = start + ((run.step - start) // every + 1) * every
                 if run.step >= end:
                     break
@@ -266,6 +275,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     if any(x % every for x in snapshots):
         raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
                          f"eval.every_{unit} ({every})")
+    if any(x > int(cfg["train"][f"total_{unit}"]) for x in snapshots) and tcfg is None:
+        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={cfg['train'][f'total_{unit}']}")
     frames_at_start, updates_at_start = run.frames, run.updates
     timing = {"update_time_s": 0.0}
     t_train = time.time()

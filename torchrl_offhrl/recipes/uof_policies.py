@@ -90,7 +90,8 @@ def ship_uof_policy(run_dir, frames: int, name: str | None = None, dest=None, co
         "algo": cfg["algo"], "frames": int(frames), "epochs": frames / EPOCH_FRAMES, "seed": cfg["seed"], "train_run": run.name,
         "eval": {k: rec.get(k) for k in ("success_per_goal", "success_per_goal_h50", "success_rate", "return_mean") if k in rec},
         "command": command or shlex.join(["offhrl", "train", *[f"{k}={v}" for k, v in (
-            ("algo", "uof"), ("env", cfg["env"]["name"]), ("dataset", cfg["dataset"]), ("train.online", "true"),
+            ("algo", "uof"), ("env", cfg["env"]["name"]), ("dataset", cfg["dataset"]), ("num_transitions", cfg.get("num_transitions")),
+            ("dataset_seed", cfg.get("dataset_seed", 0)), ("train.online", "true"),
             ("train.total_frames", cfg["train"]["total_frames"]), ("eval.every_frames", cfg["eval"]["every_frames"]),
             ("train.snapshot_frames", f"[{int(frames)}]"), ("seed", cfg["seed"]))]]),
         "versions": package_versions(), "python": sys.version.split()[0],

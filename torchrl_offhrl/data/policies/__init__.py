@@ -321,7 +321,7 @@ def _resolve(name_or_path: str | os.PathLike) -> Path:
     )
     if looks_like_path:
         return Path(text).expanduser().with_suffix(".pt")
-    if text in list_policies():
+    if text in list_policies(kind="all"):  # a UOF policy's name too: load_policy then says what to load it with
         return POLICY_DIR / f"{text}.pt"
     raise PolicyNotFoundError(missing_policy_message(text))
 
