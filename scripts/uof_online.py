@@ -2,7 +2,8 @@
 
     python scripts/uof_online.py run [--env blockstack2] [--epochs 20 50] [--seed 0]    # resumable; outputs/uof_online/
     python scripts/uof_online.py ship [--env blockstack2] [--epochs 20 50]              # torchrl_offhrl/data/policies/<env>-uof-epoch<N>
-    python scripts/uof_online.py report [--env blockstack2]                             # docs/results/uof_online.md + figure
+    python scripts/uof_online.py collect [--env blockstack2] [--epochs 20 50] [-n 100000]  # a dataset per shipped policy
+    python scripts/uof_online.py report [--env blockstack2]                             # docs/results/uof_online/ + figure
 
 ``run`` is ``offhrl train algo=uof env=<env> dataset=medium-expert train.online=true``
 with UOF's schedule: epochs of 50 cycles x 16 episodes x 25 steps (20k
@@ -55,11 +56,35 @@ def run(env: str, epochs: list[int], seed: int) -> None:
 def ship(env: str, epochs: list[int], seed: int) -> None:
     from torchrl_offhrl.recipes.uof_policies import ship_uof_policy
 
-    cmd = "python scripts/uof_online.py run " + shlex.join(["--env", env, "--epochs", *map(str, epochs), "--seed", str(seed)])
+    cfg = json.loads((run_dir(env, seed) / "config.json").read_text())  # the run's own epochs, whatever is shipped now
+    ran = sorted({*(int(f) // EPOCH for f in cfg["train"]["snapshot_frames"]), int(cfg["train"]["total_frames"]) // EPOCH})
+    cmd = "python scripts/uof_online.py run " + shlex.join(["--env", env, "--epochs", *map(str, ran), "--seed", str(seed)])
     for e in epochs:
         pt = ship_uof_policy(run_dir(env, seed), e * EPOCH, command=cmd)
         card = json.loads(pt.with_suffix(".json").read_text())
         print(f"{pt} ({pt.stat().st_size / 1e6:.2f} MB): success per goal {card['eval'].get('success_per_goal')}")
+
+
+def collect(env: str, epochs: list[int], transitions: int) -> None:
+    """Collect ``transitions`` with each shipped policy (greedy, as `offhrl collect --policy`); their per-goal success goes to
+    ``docs/results/uof_online/datasets.json`` (the datasets stay in the cache: `offhrl train dataset=<file>` trains on them)."""
+    from torchrl_offhrl.cli import main as offhrl
+
+    record = ROOT / "docs" / "results" / "uof_online" / "datasets.json"
+    done = json.loads(record.read_text()) if record.is_file() else {}
+    from torchrl_offhrl.data import load_dataset
+    from torchrl_offhrl.utils import cache_dir
+
+    for e in epochs:
+        name = f"{env}-uof-epoch{e}"
+        out = cache_dir() / "datasets" / f"{name}-{transitions}-seed0-envs8.hdf5"
+        if offhrl(["collect", env, "--policy", name, "-n", str(transitions), "--out", str(out)]) != 0:
+            raise SystemExit(f"collecting with {name} failed")
+        meta = load_dataset(out).metadata
+        done[name] = {"transitions": transitions, "goal_success": meta["goal_success"], "goal_episodes": meta["goal_episodes"],
+                      "return_mean": meta["returns"]["mean"], "command": f"offhrl collect {env} --policy {name} -n {transitions}"}
+    record.parent.mkdir(parents=True, exist_ok=True)
+    record.write_text(json.dumps(done, indent=1) + "\n")
 
 
 def report(env: str, seed: int) -> str:
@@ -88,6 +113,15 @@ def report(env: str, seed: int) -> str:
     for e in evals:
         lines.append(f"| {e['step'] / EPOCH:g} | {e['step']} | {' '.join(f'{x:.2f}' for x in e['success_per_goal'])} | "
                      f"{' '.join(f'{x:.2f}' for x in e['success_per_goal_h50'])} | {e.get('wall_s', 0) / 60:.0f} |")
+    record = out / "datasets.json"
+    data = {k: v for k, v in (json.loads(record.read_text()) if record.is_file() else {}).items() if k.startswith(f"{env}-")}
+    if data:
+        lines += ["", "Datasets collected with the shipped policies (`python scripts/uof_online.py collect`: greedy options and actions, "
+                  "no added noise; the share of episodes of each goal that reached it within 25 steps):", "",
+                  "| policy | transitions | success per goal | return | command |", "|---|---|---|---|---|"]
+        for k, v in sorted(data.items()):
+            rates = " / ".join("n/a" if x is None else f"{x:.2f}" for x in v["goal_success"].values())
+            lines.append(f"| {k} | {v['transitions']} | {rates} | {v['return_mean']:.1f} | `{v['command']}` |")
     if r["summary"] is None:
         lines += ["", f"The run had not finished when this page was made ({evals[-1]['step']} frames of {r['config']['train']['total_frames']})."]
     text = "\n".join(lines) + "\n"
@@ -97,7 +131,8 @@ def report(env: str, seed: int) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("cmd", choices=["run", "ship", "report"])
+    p.add_argument("cmd", choices=["run", "ship", "collect", "report"])
+    p.add_argument("-n", "--transitions", type=int, default=100_000, help="collect: transitions per policy")
     p.add_argument("--env", default="blockstack2", choices=["blockstack2", "blockstack3"])
     p.add_argument("--epochs", nargs="+", type=int, default=[20, 50], help="epochs to keep (and ship); the run lasts the largest")
     p.add_argument("--seed", type=int, default=0)
@@ -106,6 +141,8 @@ def main(argv=None) -> int:
         run(a.env, a.epochs, a.seed)
     elif a.cmd == "ship":
         ship(a.env, a.epochs, a.seed)
+    elif a.cmd == "collect":
+        collect(a.env, a.epochs, a.transitions)
     else:
         print(report(a.env, a.seed))
     return 0
