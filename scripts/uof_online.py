@@ -109,7 +109,7 @@ def report(env: str, seed: int) -> str:
              f"(seed {seed}; one epoch = 50 cycles x 16 episodes x 25 steps = {EPOCH} frames; 30 evaluation episodes per goal, "
              "deterministic, success within 25 and 50 steps).", "",
              f"![success per goal](success_{env}.png)", "",
-             "| epoch | frames | success per goal, horizon 25 | horizon 50 | wall time (min) |", "|---|---|---|---|---|"]
+             "| epoch | frames | success per goal, horizon 25 | horizon 50 | minutes since the process (re)started |", "|---|---|---|---|---|"]
     for e in evals:
         lines.append(f"| {e['step'] / EPOCH:g} | {e['step']} | {' '.join(f'{x:.2f}' for x in e['success_per_goal'])} | "
                      f"{' '.join(f'{x:.2f}' for x in e['success_per_goal_h50'])} | {e.get('wall_s', 0) / 60:.0f} |")
