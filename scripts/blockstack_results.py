@@ -82,10 +82,9 @@ def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int,
 
 def archive() -> list[Path]:
     """Archive every finished run under ``outputs/results/blockstack/`` to ``docs/results/blockstack/runs/<run>/``."""
-    from torchrl_offhrl.recipes.report import archive_run
+    from torchrl_offhrl.recipes.report import archive_runs
 
-    done = sorted(d for d in BASE.glob("*-seed*") if (d / "summary.json").is_file())
-    return [archive_run(d, ARCHIVE / d.name, extra=("option_usage.pt",)) for d in done]
+    return archive_runs(BASE, ARCHIVE, extra=("option_usage.pt",))
 
 
 def _legacy() -> dict:

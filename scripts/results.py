@@ -103,11 +103,9 @@ def archive_dir(scale: str) -> Path:
 
 def archive(scale: str) -> list[Path]:
     """Archive every finished run under ``outputs/results/<scale>/`` (:func:`~torchrl_offhrl.recipes.report.archive_run`)."""
-    from torchrl_offhrl.recipes.report import archive_run
+    from torchrl_offhrl.recipes.report import archive_runs
 
-    base = ROOT / "outputs" / "results" / scale
-    done = sorted(d for d in base.glob("*-seed*") if (d / "summary.json").is_file())
-    return [archive_run(d, archive_dir(scale) / d.name) for d in done]
+    return archive_runs(ROOT / "outputs" / "results" / scale, archive_dir(scale))
 
 
 def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:

@@ -64,30 +64,21 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
 
 def archive() -> list[Path]:
     """Archive every finished run under ``outputs/results/transfer/`` to ``docs/results/transfer/runs/<run>/``."""
-    from torchrl_offhrl.recipes.report import archive_run
+    from torchrl_offhrl.recipes.report import archive_runs
 
-    return [archive_run(d, ARCHIVE / d.name) for d in sorted(OUT.glob("*-seed*")) if (d / "summary.json").is_file()]
-
-
-def _label(cfg: dict) -> str:
-    """A run's group label as the table writes it: its ablations, then its transfer label (e.g. ``to-backward``)."""
-    from torchrl_offhrl.recipes.config import transfer_label
-
-    abl = ",".join(k for k, v in sorted((cfg.get("ablation") or {}).items()) if v)
-    return ",".join(x for x in (abl, transfer_label(cfg)) if x) or "-"
+    return archive_runs(OUT, ARCHIVE)
 
 
 def report() -> str:
     import json
 
-    from torchrl_offhrl.recipes.report import aggregate
+    from torchrl_offhrl.recipes.report import aggregate, group_key, load_run
 
     archive()
     runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
     legacy_path = DOCS / "legacy.json"
     legacy = json.loads(legacy_path.read_text()) if legacy_path.is_file() else {"rows": {}, "runs": {}}
-    groups = {"|".join([c["algo"].get("label") or c["algo"]["name"], c["env"]["env_id"], str(c["dataset"]), _label(c)])
-              for c in (json.loads((d / "config.json").read_text()) for d in runs)}  # as the table's first four columns
+    groups = {"|".join(group_key(load_run(d))) for d in runs}  # as the table's first four columns
     old_rows = {k: r for k, r in legacy["rows"].items() if k not in groups}  # a group rerun here replaces the earlier page's row
     if not runs and not old_rows:
         raise SystemExit(f"no finished runs under {OUT} or {ARCHIVE}: run `python scripts/transfer.py run` first")

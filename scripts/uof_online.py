@@ -32,7 +32,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-EPOCH = 50 * 16 * 25  # frames of one UOF epoch
+sys.path.insert(0, str(ROOT))
+from torchrl_offhrl.recipes.uof_policies import EPOCH_FRAMES as EPOCH  # noqa: E402  (frames of one UOF epoch)
 
 
 def run_dir(env: str, seed: int) -> Path:
@@ -73,12 +74,12 @@ def collect(env: str, epochs: list[int], transitions: int) -> None:
     record = ROOT / "docs" / "results" / "uof_online" / "datasets.json"
     done = json.loads(record.read_text()) if record.is_file() else {}
     from torchrl_offhrl.data import load_dataset
-    from torchrl_offhrl.utils import cache_dir
+    from torchrl_offhrl.recipes.uof_policies import uof_dataset_path
 
     for e in epochs:
         name = f"{env}-uof-epoch{e}"
-        out = cache_dir() / "datasets" / f"{name}-{transitions}-seed0-envs8.hdf5"
-        if offhrl(["collect", env, "--policy", name, "-n", str(transitions), "--out", str(out)]) != 0:
+        out = uof_dataset_path(name, transitions)  # where `offhrl collect --policy` writes it by default
+        if offhrl(["collect", env, "--policy", name, "-n", str(transitions)]) != 0:
             raise SystemExit(f"collecting with {name} failed")
         meta = load_dataset(out).metadata
         done[name] = {"transitions": transitions, "goal_success": meta["goal_success"], "goal_episodes": meta["goal_episodes"],

@@ -60,7 +60,7 @@ def cmd_collect(args) -> int:
     if args.policy:  # the paper's route: a UOF policy trained online collects the block-stacking data
         from .blockstack import BLOCKSTACK_IDS
         from .data.stacking import collect_stacking
-        from .recipes.uof_policies import load_uof_policy
+        from .recipes.uof_policies import load_uof_policy, uof_dataset_path
         from .registry import resolve_env
 
         env_id, _ = resolve_env(args.env)
@@ -75,10 +75,7 @@ def cmd_collect(args) -> int:
             raise ValueError(f"policy {args.policy!r} acts in {controller.card['env_id']}, not {env_id}")
         name = f"{args.env}-{controller.card['name'].removeprefix(args.env + '-')}"
         if not args.out:  # decided before the collection: a bad path fails first
-            from .utils import cache_dir
-
-            noise = f"-rp{args.random_prob:g}-ns{args.noise_std:g}" if (args.random_prob or args.noise_std) else ""
-            args.out = str(cache_dir() / "datasets" / f"{name}-{args.num_transitions}-seed{args.seed}-envs{args.num_envs}{noise}.hdf5")
+            args.out = str(uof_dataset_path(name, args.num_transitions, args.seed, args.num_envs, args.random_prob, args.noise_std))
         ds = collect_stacking(env_id, args.num_transitions, num_envs=args.num_envs, seed=args.seed, controller=controller,
                               metadata={"dataset": name, "level": controller.card["level"], "random_prob": args.random_prob, "noise_std": args.noise_std})
     else:

@@ -16,6 +16,7 @@ the option's sub-goal is met or the episode ends), or whole episodes
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import torch
@@ -97,6 +98,7 @@ def low_level_done(td: TensorDictBase) -> TensorDictBase:
     return td
 
 
+@functools.cache
 def _her_buffer_class():
     """TorchRL's ``HERReplayBuffer`` with an episode-cache key that survives a full storage.
 

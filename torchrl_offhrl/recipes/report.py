@@ -21,7 +21,7 @@ from ..scores import normalized_score
 from .config import transfer_config, transfer_label
 
 __all__ = [
-    "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "archive_run", "fmt_number", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
+    "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "archive_run", "archive_runs", "fmt_number", "group_key", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
     "plot_curve", "plot_goal_success", "plot_training_metrics",
     "plot_transfer", "read_scalar_logs", "run_summary", "run_unit", "transfer_stats",
 ]
@@ -229,7 +229,8 @@ def _read_json(path: Path):
         raise ValueError(f"{path} is not valid JSON ({err}): the file is damaged; rerun or resume the run to write it again") from None
 
 
-def _group_key(run: dict) -> tuple:
+def group_key(run: dict) -> tuple:
+    """``(algo label, env id, dataset, ablations and transfer label or "-")``: the row a loaded run belongs to in the tables."""
     cfg = run["config"]
     abl = ",".join(k for k, v in sorted((cfg.get("ablation") or {}).items()) if v)
     transfer = transfer_label(cfg)
@@ -294,6 +295,12 @@ def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:
     return dest
 
 
+def archive_runs(base, dest, extra: Sequence[str] = ()) -> list[Path]:
+    """:func:`archive_run` for every finished run (``summary.json`` written) named ``*-seed*`` under ``base``, to ``dest/<run>``."""
+    done = sorted(d for d in Path(base).glob("*-seed*") if (d / "summary.json").is_file())
+    return [archive_run(d, Path(dest) / d.name, extra=extra) for d in done]
+
+
 def _load_runs(run_dirs: Sequence, out_dir, who: str) -> tuple[list[dict], Path]:
     """The loaded runs (:func:`load_run`; a dict is taken as an already loaded run) and the output folder, created.
 
@@ -346,7 +353,7 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
     runs, out = _load_runs(run_dirs, out_dir, "aggregate")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
-        groups[_group_key(r)].append(r)
+        groups[group_key(r)].append(r)
     standard = {k: rs for k, rs in groups.items() if _panel(rs) != "transfer"}
     transfer = {k: rs for k, rs in groups.items() if _panel(rs) == "transfer"}
     tables = []
@@ -575,7 +582,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         raise ValueError("paper_table: every run given is a transfer run (transfer.task set); report those with `offhrl aggregate`")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
-        label, env_id, dataset, abl = _group_key(r)
+        label, env_id, dataset, abl = group_key(r)
         column = label if abl == "-" or label == "morel" else f"{label} [{abl}]"
         groups[(env_id, dataset, column)].append(r)
     stats = {key: group_stats(rs) for key, rs in groups.items()}

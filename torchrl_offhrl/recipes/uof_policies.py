@@ -39,10 +39,10 @@ from ..blockstack import BLOCKSTACK_IDS
 from ..blockstack import goals as G
 from ..data.collect import package_versions
 from ..data.policies import POLICY_DIR
-from ..utils import atomic_write
+from ..utils import atomic_write, cache_dir
 from .pipeline import make_real_env
 
-__all__ = ["UOFController", "is_uof_policy", "load_uof_policy", "ship_uof_policy"]
+__all__ = ["EPOCH_FRAMES", "UOFController", "is_uof_policy", "load_uof_policy", "ship_uof_policy", "uof_dataset_path"]
 
 _TARGET = "diol.target_value_network_params."
 _ONLINE = "diol.value_network_params."
@@ -103,11 +103,22 @@ def ship_uof_policy(run_dir, frames: int, name: str | None = None, dest=None, co
     return pt
 
 
+def _policy_file(name_or_path) -> Path:
+    """The ``.pt`` file of a shipped name or of a given path."""
+    text = os.fspath(name_or_path)
+    return Path(text).expanduser().with_suffix(".pt") if ("/" in text or text.endswith((".pt", ".json"))) else POLICY_DIR / f"{text}.pt"
+
+
+def uof_dataset_path(name: str, num_transitions: int, seed: int = 0, num_envs: int = 8, random_prob: float = 0.0, noise_std: float = 0.0) -> Path:
+    """Where ``offhrl collect <env> --policy`` writes a dataset without ``--out``: the datasets cache, the noise in the name
+    (greedy and noisy collections never share a file)."""
+    noise = f"-rp{random_prob:g}-ns{noise_std:g}" if (random_prob or noise_std) else ""
+    return cache_dir() / "datasets" / f"{name}-{num_transitions}-seed{seed}-envs{num_envs}{noise}.hdf5"
+
+
 def is_uof_policy(name_or_path) -> bool:
     """Whether a shipped name or a ``.pt`` path is a UOF policy (its card says ``"kind": "uof"``)."""
-    text = os.fspath(name_or_path)
-    pt = Path(text).expanduser().with_suffix(".pt") if ("/" in text or text.endswith((".pt", ".json"))) else POLICY_DIR / f"{text}.pt"
-    card = pt.with_suffix(".json")
+    card = _policy_file(name_or_path).with_suffix(".json")
     return card.is_file() and json.loads(card.read_text()).get("kind") == "uof"
 
 
@@ -151,10 +162,9 @@ class UOFController:
 
 def load_uof_policy(name_or_path, random_prob: float = 0.0, noise_std: float = 0.0, generator: torch.Generator | None = None) -> UOFController:
     """The :class:`UOFController` of a shipped UOF policy (a name in the policies folder, or a ``.pt`` path with its card)."""
-    text = os.fspath(name_or_path)
-    pt = Path(text).expanduser().with_suffix(".pt") if ("/" in text or text.endswith((".pt", ".json"))) else POLICY_DIR / f"{text}.pt"
+    pt = _policy_file(name_or_path)
     if not pt.is_file() or not pt.with_suffix(".json").is_file():
-        raise FileNotFoundError(f"UOF policy {text!r}: needs {pt} and {pt.with_suffix('.json')} (written by ship_uof_policy)")
+        raise FileNotFoundError(f"UOF policy {os.fspath(name_or_path)!r}: needs {pt} and {pt.with_suffix('.json')} (written by ship_uof_policy)")
     card = json.loads(pt.with_suffix(".json").read_text())
     if card.get("kind") != "uof":
         raise ValueError(f"{pt.with_suffix('.json')} is not a UOF policy card (kind={card.get('kind')!r})")
