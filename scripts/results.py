@@ -1,6 +1,7 @@
 """Multi-seed results of the offline recipes: resumable runs, then tables and figures in docs/results/.
 
     python scripts/results.py run [--scale demo|full] [--envs hopper halfcheetah] [--algos moc ppo iql td3bc bc] [--seeds 4 5 6]
+                                  [--datasets medium medium-expert]
     python scripts/results.py report [--scale demo|full]     # docs/results/<scale>/: results.md, curves.png, option usage
 
 Scales:
@@ -92,8 +93,8 @@ NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by l
 DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_entropy")
 
 
-def run_dir(scale: str, env: str, algo: str, seed: int) -> Path:
-    return ROOT / "outputs" / "results" / scale / f"{algo}-{env}-medium-seed{seed}"
+def run_dir(scale: str, env: str, algo: str, seed: int, dataset: str = "medium") -> Path:
+    return ROOT / "outputs" / "results" / scale / f"{algo}-{env}-{dataset}-seed{seed}"
 
 
 def archive_dir(scale: str) -> Path:
@@ -136,17 +137,17 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
     return runs, doc.get("moc_diagnostics_mean_over_seeds", {})
 
 
-def run(scale: str, envs: list[str], algos: list[str], seeds: list[int]) -> None:
+def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",)) -> None:
     from torchrl_offhrl.agents import agent_defaults
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.train import train
     from torchrl_offhrl.utils import to_plain
 
-    for env in envs:
+    for env, dataset in ((e, d) for d in datasets for e in envs):
         for algo in algos:
             for seed in seeds:
-                overrides = [f"algo={algo}", f"env={env}", "dataset=medium", f"seed={seed}", f"run_dir={run_dir(scale, env, algo, seed)}",
-                             *BUDGET[scale]]
+                overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
+                             f"run_dir={run_dir(scale, env, algo, seed, dataset)}", *BUDGET[scale]]
                 cfg = compose(CONFIG[scale], overrides)
                 if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
                     overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
@@ -155,7 +156,7 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int]) -> None
                 cfg = to_plain(compose(CONFIG[scale], overrides))
                 s = train(cfg)
                 archive(scale)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
-                print(f"{scale} {env} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
+                print(f"{scale} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
 def report(scale: str) -> str:
@@ -221,11 +222,13 @@ def main(argv=None) -> int:
     r.add_argument("--envs", nargs="+", default=["hopper", "halfcheetah"])
     r.add_argument("--algos", nargs="+", default=["moc", "ppo"])
     r.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
+    r.add_argument("--datasets", nargs="+", choices=["medium", "medium-expert"], default=["medium"],
+                   help="medium-expert: the medium and expert parts concatenated (2M transitions at the full scale, as D4RL)")
     g = sub.add_parser("report")
     g.add_argument("--scale", choices=sorted(CONFIG), default="demo")
     a = p.parse_args(argv)
     if a.cmd == "run":
-        run(a.scale, a.envs, a.algos, a.seeds)
+        run(a.scale, a.envs, a.algos, a.seeds, a.datasets)
     else:
         print(report(a.scale))
     return 0

@@ -307,6 +307,24 @@ def test_results_script_rebuilds_lost_runs_from_the_committed_record():
     assert "moc-hopper-medium-seed4" not in {r["name"] for r in mod.legacy_runs("full", skip={"moc-hopper-medium-seed4"})[0]}
 
 
+def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories(monkeypatch):
+    """scripts/results.py run --datasets medium-expert: the dataset reaches the config and names the run directory."""
+    import importlib.util
+
+    import torchrl_offhrl.recipes.train as train_mod
+
+    spec = importlib.util.spec_from_file_location("results_script", Path(__file__).resolve().parents[1] / "scripts" / "results.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    seen = []
+    monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"final": {"normalized_d4rl": 1.0}})
+    monkeypatch.setattr(mod, "archive", lambda scale: [])
+    mod.main(["run", "--scale", "full", "--envs", "hopper", "--algos", "bc", "--seeds", "4", "--datasets", "medium", "medium-expert"])
+    assert [c["dataset"] for c in seen] == ["medium", "medium-expert"]
+    assert [Path(c["run_dir"]).name for c in seen] == ["bc-hopper-medium-seed4", "bc-hopper-medium-expert-seed4"]
+    assert all(c["train"]["total_updates"] == 100000 for c in seen)
+
+
 def test_morel_is_one_named_config():
     """algo=morel: PPO in real actions on the P-MDP with MOReL's max-pairwise discrepancy and threshold rule (max / 3)."""
     cfg = to_plain(compose("offline_train", ["algo=morel", "env=hopper", "dataset=medium"]))
