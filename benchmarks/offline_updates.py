@@ -4,9 +4,11 @@
 
 Each agent with its config values (``configs/algo/*.yaml``: MLP(256, 256),
 batch 256, Hopper-v5 dimensions) takes ``--updates`` updates on one random
-batch (the update's cost does not depend on the values), twice in the same
-process: "before" with torch's per-tensor Adam (``fused_adam=false``) and
-"after" with the default fused Adam. The FLOPs of one update's matrix
+batch (the update's cost does not depend on the values), three times in the
+same process: "before" with torch's per-tensor Adam (``fused_adam=false``),
+"after" with the default fused Adam, and "compiled": fused Adam with
+``compile=true`` (``torch.compile`` of the loss, built during the untimed
+warm-up). The FLOPs of one update's matrix
 products are counted by ``torch.profiler`` (``with_flops``; forward and
 backward), so the table also
 shows how close each update runs to this machine's dense matmul rate: on a
@@ -58,15 +60,17 @@ def main():
         batch = TensorDict({"observation": torch.randn(b, 11), "action": torch.rand(b, 3) * 2 - 1, "next": {
             "observation": torch.randn(b, 11), "reward": torch.randn(b, 1), "done": torch.zeros(b, 1, dtype=torch.bool),
             "terminated": torch.zeros(b, 1, dtype=torch.bool)}}, [b], device=dev)
-        for variant in ("before", "after"):
+        for variant in ("before", "after", "compiled"):
             torch.manual_seed(0)
-            agent = make_agent(algo, env, {**cfg, "fused_adam": variant == "after"}, action_key="action", device=dev)
+            agent = make_agent(algo, env, {**cfg, "fused_adam": variant != "before", "compile": variant == "compiled"}, action_key="action",
+                               device=dev)
             for _ in range(5):  # warm-up
                 agent.update(batch)
-            with profile(with_flops=True) as prof:  # the matrix products' FLOPs (mm, addmm, bmm), forward and backward
-                agent.update(batch)
-                agent.update(batch)  # TD3+BC: one critic-only and one critic + actor update
-            flops = sum(e.flops for e in prof.key_averages() if e.flops) / 2
+            if variant != "compiled":  # the compiled update does the same products (its kernels are not all counted by the profiler)
+                with profile(with_flops=True) as prof:  # the matrix products' FLOPs (mm, addmm, bmm), forward and backward
+                    agent.update(batch)
+                    agent.update(batch)  # TD3+BC: one critic-only and one critic + actor update
+                flops = sum(e.flops for e in prof.key_averages() if e.flops) / 2
             sync()
             t = time.perf_counter()
             for _ in range(n):

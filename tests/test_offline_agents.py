@@ -161,6 +161,43 @@ def test_td3bc_steps_its_actor_every_second_update():
     assert any(not torch.equal(a, p) for a, p in zip(actor, agent.loss.actor_network_params.flatten_keys().values()))
 
 
+@pytest.mark.parametrize("algo", ["bc", "iql"])
+def test_compiled_loss_takes_the_same_update(algo):
+    """compile=true (torch.compile of the loss) is a speed switch: BC's and IQL's updates (no sampling inside) match eager ones."""
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    td = env.rollout(24, break_when_any_done=False).reshape(-1)
+    agents = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        agents.append(make_agent(algo, env, {"hidden_sizes": [8], "batch_size": 8, "compile": compiled}, action_key="action"))
+        for k in range(3):
+            agents[-1].update(td[8 * k: 8 * (k + 1)].clone())
+    eager, comp = agents
+    assert list(comp.__dict__["_compiled"]) == [None] and "_compiled" not in eager.__dict__
+    for (name, a), b in zip(eager.loss.state_dict().items(), comp.loss.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=name)
+    torch.manual_seed(0)
+    fresh = make_agent(algo, env, {"hidden_sizes": [8], "batch_size": 8}, action_key="action")
+    assert any(not torch.equal(a, b) for a, b in zip(fresh.loss.state_dict().values(), eager.loss.state_dict().values()))  # it did learn
+
+
+def test_compiled_td3bc_compiles_both_of_its_losses():
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    agent = make_agent("td3bc", env, {"hidden_sizes": [8], "batch_size": 8, "compile": True}, action_key="action")
+    td = env.rollout(16, break_when_any_done=False).reshape(-1)
+    agent.update(td[:8])
+    out = agent.update(td[8:])
+    assert set(agent.__dict__["_compiled"]) == {"qvalue_loss", "actor_loss"} and torch.isfinite(torch.tensor(out["train/loss_actor"]))
+    with pytest.raises(ValueError, match="torch.compile mode"):
+        make_agent("td3bc", env, {"hidden_sizes": [8], "compile": "fast"}, action_key="action")
+
+
 def test_cql_clones_the_behaviour_before_policy_eval_start():
     """CQL's actor follows loss_actor_bc for the first policy_eval_start updates, then loss_actor."""
     from torchrl_offhrl.agents import make_agent
@@ -407,6 +444,23 @@ def test_fingerprint_ignores_model_settings_only_for_agents_that_fit_no_model():
         assert (config_fingerprint(a) == config_fingerprint(b)) is same, algo
         c = to_plain(compose("offline_train", [f"algo={algo}", "seed=3"]))
         assert config_fingerprint(a) != config_fingerprint(c), algo  # what the agent does use still counts
+
+
+def test_fingerprint_ignores_the_compile_switch():
+    """algo.compile is a speed switch: a run resumes compiled or not, and checkpoints from before the key existed still match."""
+    import json
+
+    from torchrl_offhrl.recipes.config import config_fingerprint, fingerprints_match
+
+    for algo in ("iql", "sac", "moc"):
+        off = to_plain(compose("offline_train", [f"algo={algo}"]))
+        on = to_plain(compose("offline_train", [f"algo={algo}", "algo.compile=true"]))
+        assert config_fingerprint(off) == config_fingerprint(on), algo
+        older = {k: v for k, v in off.items() if k not in ("train", "eval")}
+        older["algo"] = {k: v for k, v in off["algo"].items() if k != "compile"}
+        assert fingerprints_match(json.dumps(older, sort_keys=True, default=str), config_fingerprint(on)), algo
+        changed = to_plain(compose("offline_train", [f"algo={algo}", "algo.compile=true", "algo.lr=0.1"]))
+        assert config_fingerprint(changed) != config_fingerprint(on), algo
 
 
 def test_checkpoints_fingerprinted_under_older_rules_still_resume():

@@ -19,7 +19,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 __all__ = [
-    "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "deterministic_actor", "gaussian_actor", "q_network", "sum_losses",
+    "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "compile_setting", "deterministic_actor", "gaussian_actor", "q_network", "sum_losses",
 ]
 
 
@@ -80,6 +80,21 @@ def action_box(env, key: str) -> tuple[int, torch.Tensor, torch.Tensor]:
     return dim, low, high
 
 
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+def compile_setting(value) -> bool | str:
+    """An algorithm config's ``compile`` value as :attr:`Agent.compile`: ``False``, or a ``torch.compile`` mode (``True``: ``"default"``)."""
+    if value is None or value is False:
+        return False
+    if value is True:
+        return "default"
+    if isinstance(value, str) and value in COMPILE_MODES:
+        return value
+    raise ValueError(f"compile must be true, false or a torch.compile mode ({', '.join(COMPILE_MODES)}), got {value!r}: "
+                     "e.g. algo.compile=true, or algo.compile=reduce-overhead for CUDA graphs on a GPU")
+
+
 class Agent:
     """Base class of the agents: a policy, a loss, its optimisers and how they learn from a batch.
 
@@ -125,6 +140,25 @@ class Agent:
     replay_buffer: Any = None
     #: files :meth:`save_evaluation` writes into the run directory (the loop re-evaluates when one is missing)
     evaluation_files: tuple[str, ...] = ()
+    #: run the loss through ``torch.compile`` (:meth:`loss_fn`): a speed switch, the same computation. ``False``
+    #: or a ``torch.compile`` mode (``True`` is ``"default"``; ``"reduce-overhead"`` adds CUDA graphs on a GPU)
+    compile: bool | str = False
+
+    def loss_fn(self, method: str | None = None):
+        """:attr:`loss` (or its bound ``method``, e.g. ``"qvalue_loss"``), through ``torch.compile`` when :attr:`compile` is set.
+
+        Each callable is compiled once, on its first call (tens of seconds on
+        CPU). The compiled callable wraps the loss without replacing it, so
+        checkpoints keep the same keys either way and ``compile`` can change
+        between a run and its resumption.
+        """
+        fn = self.loss if method is None else getattr(self.loss, method)
+        if not self.compile:
+            return fn
+        compiled = self.__dict__.setdefault("_compiled", {})
+        if method not in compiled:
+            compiled[method] = torch.compile(fn, mode=self.compile)
+        return compiled[method]
 
     def set_progress(self, fraction: float) -> None:
         """Called before each update with the fraction of the frame budget done (``[0, 1]``); default: nothing."""
@@ -179,15 +213,14 @@ class OnPolicyAgent(Agent):
     step size linearly to 0 over the frame budget (:meth:`set_progress`).
     """
 
-    def __init__(self, *, frames_per_batch: int, epochs: int, minibatch_size: int, max_grad_norm: float | None, compile: bool = False,
+    def __init__(self, *, frames_per_batch: int, epochs: int, minibatch_size: int, max_grad_norm: float | None, compile: bool | str = False,
                  anneal_lr: bool = False):
         self.frames_per_batch = int(frames_per_batch)
         self.epochs = int(epochs)
         self.minibatch_size = int(minibatch_size)
         self.max_grad_norm = max_grad_norm
-        self.compile = bool(compile)
+        self.compile = compile_setting(compile)
         self.anneal_lr = bool(anneal_lr)
-        self._compiled_loss = None
 
     def optimizers(self) -> list[torch.optim.Optimizer]:
         """Every optimiser the agent owns (its attributes that are optimisers, :attr:`optimizer` first)."""
@@ -209,18 +242,13 @@ class OnPolicyAgent(Agent):
                 group["lr"] = group["initial_lr"] * mult
 
     def minibatch_loss(self, minibatch: TensorDictBase):
-        """``loss(minibatch)``; with ``compile=True`` through ``torch.compile`` (built on first use, ~40 s on CPU).
+        """``loss(minibatch)``; with ``compile=True`` through ``torch.compile`` (:meth:`Agent.loss_fn`).
 
-        The compiled callable wraps :attr:`loss` without replacing it, so
-        checkpoints keep the same keys either way. Measured on CPU
-        (``benchmarks/recipe_throughput.py``): PPO's update about 2.5x faster
-        once compiled, so it pays off for runs longer than a few minutes.
+        Measured on CPU (``benchmarks/recipe_throughput.py``): PPO's update
+        about 2.5x faster once compiled, so it pays off for runs longer than a
+        few minutes.
         """
-        if not self.compile:
-            return self.loss(minibatch)
-        if self._compiled_loss is None:
-            self._compiled_loss = torch.compile(self.loss)
-        return self._compiled_loss(minibatch)
+        return self.loss_fn()(minibatch)
 
     def prepare(self, batch: TensorDictBase) -> None:
         """Annotate the ``[envs, time]`` batch before it is shuffled (default: the loss's value estimator writes the advantage)."""

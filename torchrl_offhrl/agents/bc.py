@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 from torchrl.objectives import BCLoss
 
-from .base import DatasetAgent, MetricMeans, adam, deterministic_actor, gaussian_actor
+from .base import DatasetAgent, MetricMeans, adam, compile_setting, deterministic_actor, gaussian_actor
 from .registry import register_agent
 
 __all__ = ["BCAgent"]
@@ -51,7 +51,9 @@ class BCAgent(DatasetAgent):
         stochastic: bool = False,
         batch_size: int = 256,
         fused_adam: bool = True,
+        compile: bool | str = False,
     ):
+        self.compile = compile_setting(compile)
         if stochastic:
             self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, goal_key=goal_key)
             self.loss = BCLoss(self.policy)
@@ -64,7 +66,7 @@ class BCAgent(DatasetAgent):
         self.set_sampling(batch_size, 1.0)
 
     def update(self, batch):
-        out = self.loss(batch)
+        out = self.loss_fn()(batch)
         self.optimizer.zero_grad()
         out["loss_bc"].backward()
         self.optimizer.step()

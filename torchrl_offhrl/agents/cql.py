@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 from torchrl.objectives import CQLLoss, SoftUpdate, group_optimizers
 
-from .base import DatasetAgent, MetricMeans, adam, gaussian_actor, q_network
+from .base import DatasetAgent, MetricMeans, adam, compile_setting, gaussian_actor, q_network
 from .registry import register_agent
 
 __all__ = ["CQLAgent"]
@@ -60,7 +60,9 @@ class CQLAgent(DatasetAgent):
         default_policy_scale: float = 1.0,
         scale_lb: float = 0.1,
         fused_adam: bool = True,
+        compile: bool | str = False,
     ):
+        self.compile = compile_setting(compile)
         self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         self.loss = CQLLoss(
@@ -85,7 +87,7 @@ class CQLAgent(DatasetAgent):
         self.steps = 0
 
     def update(self, batch):
-        out = self.loss(self.scaled(batch))
+        out = self.loss_fn()(self.scaled(batch))
         actor = out["loss_actor"] if self.steps >= self.policy_eval_start else out["loss_actor_bc"]
         total = actor + out["loss_qvalue"] + out["loss_cql"] + out["loss_alpha"]
         if out.get("loss_alpha_prime", None) is not None:

@@ -7,7 +7,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import IQLLoss, SoftUpdate, group_optimizers
 
 from ..nets import NormalizedMLP
-from .base import DatasetAgent, MetricMeans, adam, gaussian_actor, q_network, sum_losses
+from .base import DatasetAgent, MetricMeans, adam, compile_setting, gaussian_actor, q_network, sum_losses
 from .registry import register_agent
 
 __all__ = ["IQLAgent"]
@@ -53,7 +53,9 @@ class IQLAgent(DatasetAgent):
         default_policy_scale: float = 1.0,
         scale_lb: float = 0.1,
         fused_adam: bool = True,
+        compile: bool | str = False,
     ):
+        self.compile = compile_setting(compile)
         obs_dim = env.observation_spec["observation"].shape[-1]
         self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
@@ -74,7 +76,7 @@ class IQLAgent(DatasetAgent):
 
     def update(self, batch):
         metrics = MetricMeans()
-        out = self.loss(self.scaled(batch))
+        out = self.loss_fn()(self.scaled(batch))
         self.optimizer.zero_grad()
         sum_losses(out).backward()
         self.optimizer.step()

@@ -153,7 +153,7 @@ class MOCAgent(OnPolicyAgent):
         option_head_gain: float = 1.0,
         termination_head_gain: float = 1.0,
         fused_adam: bool = True,
-        compile: bool = False,
+        compile: bool | str = False,
         anneal_lr: bool = True,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)

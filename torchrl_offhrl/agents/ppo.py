@@ -46,7 +46,7 @@ class PPOAgent(OnPolicyAgent):
         max_grad_norm: float | None = 0.5,
         fused_adam: bool = True,
         functional: bool = False,
-        compile: bool = False,
+        compile: bool | str = False,
         anneal_lr: bool = False,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)

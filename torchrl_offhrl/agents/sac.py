@@ -11,7 +11,7 @@ from torchrl.objectives import group_optimizers
 
 from ..data.policies.training import make_sac_loss
 from ..nets import NormalizedMLP, tanh_gaussian_actor
-from .base import Agent, MetricMeans, action_box, adam, sum_losses
+from .base import Agent, MetricMeans, action_box, adam, compile_setting, sum_losses
 from .registry import register_agent
 
 __all__ = ["SACAgent", "sac_optimizer"]
@@ -55,7 +55,9 @@ class SACAgent(Agent):
         frames_per_batch: int = 64,
         alpha_init: float = 1.0,
         fused_adam: bool = True,
+        compile: bool | str = False,
     ):
+        self.compile = compile_setting(compile)
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim, low, high = action_box(env, action_key)
         hidden = list(hidden_sizes)
@@ -85,7 +87,7 @@ class SACAgent(Agent):
         metrics = MetricMeans()
         if self.frames >= self.init_random_frames:
             for _ in range(max(1, round(frames * self.utd_ratio))):
-                out = self.loss(sample())
+                out = self.loss_fn()(sample())
                 self.optimizer.zero_grad()
                 sum_losses(out).backward()
                 self.optimizer.step()

@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 from torchrl.objectives import SoftUpdate, TD3BCLoss
 
-from .base import DatasetAgent, adam, deterministic_actor, q_network
+from .base import DatasetAgent, adam, compile_setting, deterministic_actor, q_network
 from .registry import register_agent
 
 __all__ = ["TD3BCAgent"]
@@ -52,7 +52,9 @@ class TD3BCAgent(DatasetAgent):
         batch_size: int = 256,
         reward_scale: float = 1.0,
         fused_adam: bool = True,
+        compile: bool | str = False,
     ):
+        self.compile = compile_setting(compile)
         self.policy = deterministic_actor(env, action_key, hidden_sizes, obs_loc, obs_scale)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         self.loss = TD3BCLoss(self.policy, qvalue, action_spec=env.full_action_spec_unbatched[action_key], num_qvalue_nets=2, alpha=alpha,
@@ -70,14 +72,14 @@ class TD3BCAgent(DatasetAgent):
 
     def update(self, batch):
         batch = self.scaled(batch)
-        q_loss, q_meta = self.loss.qvalue_loss(batch)
+        q_loss, q_meta = self.loss_fn("qvalue_loss")(batch)
         self.optimizer.zero_grad()
         q_loss.backward()
         self.optimizer.step()
         out = {"train/loss_qvalue": float(q_loss.detach()), "updates": 1}
         self.steps += 1
         if self.steps % self.policy_update_delay == 0:
-            actor_loss, meta = self.loss.actor_loss(batch)
+            actor_loss, meta = self.loss_fn("actor_loss")(batch)
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
             self.actor_optimizer.step()

@@ -240,6 +240,9 @@ def config_fingerprint(cfg: Mapping) -> str:
     if isinstance(kept.get("ensemble"), Mapping) and kept["ensemble"].get("reward_hidden_sizes", "absent") is None:
         # the default reward widths (the transition ones): the same run as before the setting existed
         kept["ensemble"] = {k: v for k, v in kept["ensemble"].items() if k != "reward_hidden_sizes"}
+    if isinstance(kept.get("algo"), Mapping) and "compile" in kept["algo"]:
+        # a speed switch (torch.compile of the same loss): the same run compiled or not, and as before the key existed
+        kept["algo"] = {k: v for k, v in kept["algo"].items() if k != "compile"}
     if learns_from_dataset(cfg):  # a model-free agent fits no model: it is the same run whatever the (unused) model settings
         kept.pop("ensemble", None)
         kept.pop("cvae", None)
