@@ -8,7 +8,8 @@ batch (the update's cost does not depend on the values), three times in the
 same process: "before" with torch's per-tensor Adam (``fused_adam=false``),
 "after" with the default fused Adam, and "compiled": fused Adam with
 ``compile=true`` (``torch.compile`` of the loss, built during the untimed
-warm-up). The FLOPs of one update's matrix
+warm-up); on CUDA also "cuda-graphs": ``compile=reduce-overhead`` (the
+compiled loss replayed as CUDA graphs). The FLOPs of one update's matrix
 products are counted by ``torch.profiler`` (``with_flops``; forward and
 backward), so the table also
 shows how close each update runs to this machine's dense matmul rate: on a
@@ -53,6 +54,7 @@ def main():
     matmul = 10 * 2 * 2048**3 / (time.perf_counter() - t) / 1e9
     env = make_gym_env("Hopper-v5")
     rows = []
+    variants = ("before", "after", "compiled", "cuda-graphs") if dev.type == "cuda" else ("before", "after", "compiled")
     for algo in ("bc", "td3bc", "iql", "cql"):
         cfg = to_plain(compose("offline_train", [f"algo={algo}"]))["algo"]
         cfg.pop("reward_scale", None)
@@ -60,13 +62,14 @@ def main():
         batch = TensorDict({"observation": torch.randn(b, 11), "action": torch.rand(b, 3) * 2 - 1, "next": {
             "observation": torch.randn(b, 11), "reward": torch.randn(b, 1), "done": torch.zeros(b, 1, dtype=torch.bool),
             "terminated": torch.zeros(b, 1, dtype=torch.bool)}}, [b], device=dev)
-        for variant in ("before", "after", "compiled"):
+        for variant in variants:
             torch.manual_seed(0)
-            agent = make_agent(algo, env, {**cfg, "fused_adam": variant != "before", "compile": variant == "compiled"}, action_key="action",
+            compiled = {"compiled": True, "cuda-graphs": "reduce-overhead"}.get(variant, False)
+            agent = make_agent(algo, env, {**cfg, "fused_adam": variant != "before", "compile": compiled}, action_key="action",
                                device=dev)
             for _ in range(5):  # warm-up
                 agent.update(batch)
-            if variant != "compiled":  # the compiled update does the same products (its kernels are not all counted by the profiler)
+            if not compiled:  # the compiled update does the same products (its kernels are not all counted by the profiler)
                 with profile(with_flops=True) as prof:  # the matrix products' FLOPs (mm, addmm, bmm), forward and backward
                     agent.update(batch)
                     agent.update(batch)  # TD3+BC: one critic-only and one critic + actor update

@@ -191,7 +191,17 @@ class Agent:
         """Write :attr:`evaluation_files` for the final evaluation (plots, tensors)."""
 
     def to(self, device) -> Agent:
-        self.loss.to(device)
+        """Move the loss and every other module the agent holds (the acting policy above all) to ``device``.
+
+        Moving the loss alone is not enough: TorchRL's losses keep the
+        networks' parameters and buffers in their own ``TensorDictParams``;
+        ``loss.to`` moves the parameters in place (the policy shares them)
+        but gives the loss new buffer tensors, so the policy's buffers (the
+        dataset's observation statistics) would stay behind on the CPU.
+        """
+        for module in vars(self).values():
+            if isinstance(module, torch.nn.Module):
+                module.to(device)
         return self
 
     def state_dict(self) -> dict:

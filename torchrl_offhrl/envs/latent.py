@@ -153,7 +153,10 @@ class LatentActionTransform(Transform):
             latent = latent.clamp(-self.latent_bound, self.latent_bound)
         obs = tensordict.get(self.observation_key)
         goal = tensordict.get(self.goal_key) if self.goal_key is not None else None
-        action = self.decoder(obs, latent.to(obs.dtype), goal)
+        # The decoder runs where its weights live and the action comes back to the env's device: one decoder
+        # (on a GPU, say) serves both the model env there and the real MuJoCo env on the CPU.
+        dev = _module_device(self.decoder, obs.device)
+        action = self.decoder(obs.to(dev), latent.to(device=dev, dtype=obs.dtype), None if goal is None else goal.to(dev)).to(obs.device)
         slot = tensordict.get(self.action_key, None)
         if (
             isinstance(slot, torch.Tensor)
@@ -215,3 +218,12 @@ class LatentActionTransform(Transform):
             f"{type(self).__name__}(latent_key={self.latent_key!r}, action_key={self.action_key!r}, "
             f"latent_dim={self.latent_dim}, latent_bound={self.latent_bound})"
         )
+
+
+def _module_device(module: torch.nn.Module, default: torch.device) -> torch.device:
+    """The device of ``module``'s first parameter or buffer (``default`` when it has none)."""
+    for t in module.parameters():
+        return t.device
+    for t in module.buffers():
+        return t.device
+    return default

@@ -1,0 +1,27 @@
+#!/bin/bash
+# The CUDA checks and GPU benchmarks in one pass, for a machine with a GPU (~9 min on an H100):
+#     bash benchmarks/gpu_check.sh OUT_DIR [PYTHON]
+# Runs the CUDA tests (tests/test_cuda.py and the CUDA cases beside what they check),
+# then benchmarks/{offline_updates,ensemble_training,env_throughput,recipe_throughput}.py
+# with --device cuda. Each step has its own time limit and writes its log to OUT_DIR,
+# so a step that fails or runs out of time leaves the others' results.
+out=${1:?usage: gpu_check.sh OUT_DIR [PYTHON]}; py=${2:-python}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+step() {  # step NAME SECONDS COMMAND...
+    local name=$1 limit=$2; shift 2
+    echo "=== $name (limit ${limit}s): $*"
+    local t0=$SECONDS
+    timeout "$limit" "$@" > "$out/$name.log" 2>&1
+    local rc=$?
+    tail -n 30 "$out/$name.log"
+    echo "=== $name: exit $rc after $((SECONDS - t0)) s"
+}
+step env 30 "$py" -c "import torch, torchrl, tensordict, gymnasium, mujoco; print(torch.__version__, torchrl.__version__, tensordict.__version__, gymnasium.__version__, mujoco.__version__); print(torch.cuda.get_device_name(), torch.cuda.get_device_properties(0).total_memory // 2**30, 'GiB')"
+step tests 110 "$py" -m pytest -q -p no:cacheprovider -n 6 tests/test_cuda.py tests/test_envs.py::test_cuda \
+    tests/test_behaviour.py::test_train_and_resume_on_cuda tests/test_data.py::test_to_replay_buffer_on_cuda \
+    tests/test_data.py::test_dataset_to_device_keeps_metadata_and_values
+step offline_updates 200 "$py" benchmarks/offline_updates.py --device cuda --updates 200
+step ensemble_training 40 "$py" benchmarks/ensemble_training.py --device cuda
+step env_throughput 60 "$py" benchmarks/env_throughput.py --device cuda --batches 64 1024 4096 16384 --real-batches 64 --min-transitions 20000
+step recipe_throughput 130 "$py" benchmarks/recipe_throughput.py --device cuda

@@ -1,0 +1,99 @@
+"""CUDA: every flat agent trains end to end with ``device=cuda``, and the run resumes on the CPU (skipped without CUDA).
+
+The other CUDA tests sit next to what they check (test_data.py, test_envs.py,
+test_behaviour.py); this file runs the whole training pipeline: data, model
+fit, model env, collector or dataset batches, updates, evaluation, checkpoint.
+"""
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchrl_offhrl.recipes.config import compose
+from torchrl_offhrl.recipes.train import train
+from torchrl_offhrl.utils import to_plain
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+DATASET_ALGOS = ["bc", "cql", "iql", "td3bc"]
+MODEL_ALGOS = ["moc", "ppo", "sac", "morel"]
+TINY_MODEL = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=20",
+              "collector.num_envs=4", "algo.frames_per_batch=64", "eval.model_env=false"]
+EXTRA = {"sac": ["algo.init_random_frames=32", "algo.utd_ratio=0.05"], "ppo": ["algo.epochs=1"], "moc": ["algo.epochs=1"],
+         "morel": ["algo.epochs=1"]}
+
+
+@pytest.fixture(scope="module")
+def hopper_file(tmp_path_factory):
+    from torchrl_offhrl.data import collect_dataset, save_dataset
+
+    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
+    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
+    return path
+
+
+def _cfg(algo, data, out, device, budget):
+    if algo in DATASET_ALGOS:
+        over = [f"train.total_updates={budget}", "eval.every_updates=10", "algo.batch_size=16"]
+    else:
+        over = [*TINY_MODEL, f"train.total_frames={budget * 64}", "eval.every_frames=64", *EXTRA.get(algo, [])]
+    return to_plain(compose("offline_train", [f"algo={algo}", f"dataset={data}", f"out_root={out}", f"device={device}",
+                                              "eval.episodes=2", "eval.max_steps=20", "algo.hidden_sizes=[16,16]",
+                                              *over]))
+
+
+@pytest.mark.parametrize("algo", DATASET_ALGOS + MODEL_ALGOS)
+def test_agent_trains_on_cuda_and_resumes_on_the_cpu(algo, hopper_file, tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    first = train(_cfg(algo, hopper_file, tmp_path, "cuda", 10 if algo in DATASET_ALGOS else 1), progress=False)
+    run = Path(first["run_dir"])
+    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=True)
+    params = [v for v in state["agent"]["loss"].values() if v.is_floating_point()]
+    assert params and all(torch.isfinite(v).all() for v in params)
+    second = train(_cfg(algo, hopper_file, tmp_path, "cpu", 20 if algo in DATASET_ALGOS else 2), progress=False)
+    assert second["run_dir"] == first["run_dir"] and second["step"] == 2 * first["step"] > 0
+    evals = json.loads((run / "evals.json").read_text())
+    assert [e["step"] for e in evals][-2:] == [first["step"], second["step"]]
+    assert all(torch.isfinite(torch.tensor(e["return_mean"])) for e in evals)
+
+
+@pytest.mark.parametrize("mode", [True, "reduce-overhead"])
+def test_compiled_update_on_cuda_matches_eager(mode):
+    """``compile`` (and CUDA graphs through ``reduce-overhead``) take the same BC update as eager on a GPU."""
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    td = env.rollout(40, break_when_any_done=False).reshape(-1).to("cuda")
+    agents = []
+    for compiled in (False, mode):
+        torch.manual_seed(0)
+        agents.append(make_agent("bc", env, {"hidden_sizes": [8], "batch_size": 8, "compile": compiled}, action_key="action", device="cuda"))
+        for k in range(5):
+            agents[-1].update(td[8 * k: 8 * (k + 1)].clone())
+    for (name, a), b in zip(agents[0].loss.state_dict().items(), agents[1].loss.state_dict().values()):
+        assert a.device.type == "cuda"
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=name)
+
+
+def test_a_gpu_decoder_acts_in_a_cpu_env():
+    """The real MuJoCo env stays on the CPU while the decoder (shared with the model env) lives on the GPU."""
+    from tensordict.nn import TensorDictModule
+
+    from torchrl_offhrl.data import make_gym_env
+    from torchrl_offhrl.envs import LatentActionTransform
+    from torchrl_offhrl.models.cvae import CVAEDecoder
+
+    torch.manual_seed(0)
+    decoder = CVAEDecoder(11, 3, 2, hidden_sizes=(16,))
+    outs = []
+    for dev in ("cpu", "cuda"):
+        env = make_gym_env("Hopper-v5", num_envs=2)
+        env.append_transform(LatentActionTransform(decoder.to(dev)))
+        env.set_seed(0)
+        policy = TensorDictModule(lambda obs: torch.full((*obs.shape[:-1], 2), 0.5), in_keys=["observation"], out_keys=["latent_action"])
+        td = env.rollout(5, policy, break_when_any_done=False)
+        assert td["action"].device.type == "cpu"
+        outs.append(td)
+    torch.testing.assert_close(outs[0]["action"], outs[1]["action"], rtol=1e-5, atol=1e-5)
