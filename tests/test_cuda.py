@@ -97,3 +97,15 @@ def test_a_gpu_decoder_acts_in_a_cpu_env():
         assert td["action"].device.type == "cpu"
         outs.append(td)
     torch.testing.assert_close(outs[0]["action"], outs[1]["action"], rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("algo,decoder", [("moc", "discard"), ("sac", "keep")])
+def test_transfer_run_on_cuda(algo, decoder, hopper_file, tmp_path, monkeypatch):
+    """Both phases on the GPU: the offline phase on the model env, then the real env (on the CPU) through the collector."""
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    cfg = _cfg(algo, hopper_file, tmp_path, "cuda", 1)
+    cfg["transfer"].update({"task": "backward", "online_frames": 128, "num_envs": 2, "eval_every_frames": 64, "decoder": decoder})
+    s = train(cfg, progress=False)
+    evals = json.loads((Path(s["run_dir"]) / "evals.json").read_text())
+    assert [e["phase"] for e in evals][-3:] == ["online"] * 3 and evals[-1]["task"] == "backward"
+    assert s["frames"] == 64 + 128 and all(torch.isfinite(torch.tensor(e["return_mean"])) for e in evals)
