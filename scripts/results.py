@@ -79,7 +79,7 @@ NOTES = {"demo": ("Seeds 4-6 were run once, with the defaults as they stood afte
 NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
                  "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
-                 "one core; CQL ~8 h per seed: it needs a GPU, `benchmarks/offline_updates.py`). The model-env agents run on models whose "
+                 "one core; CQL ~8 h per seed on one core and 48 min on an H100, where its update is launch-bound at 35 updates/s: more than the 15 GPU minutes a session is lent, so its column is still empty; `benchmarks/README.md`). The model-env agents run on models whose "
                  "ensemble was fitted at lr 1e-3: the first MOC runs, on the paper's lr 1e-4 fitted for the same 20k steps (kept in "
                  "`outputs/results/full_fitlr1e-4/`; seed 4: 28.5 from 31.7 after 1M frames), exploited the model, whose members agreed "
                  "where they were wrong (held-out error 1.8x their disagreement), so the pessimism never fired; the development-seed "
