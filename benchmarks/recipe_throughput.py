@@ -1,6 +1,6 @@
 """Throughput of the three offline recipes on the composed env, side by side in one run.
 
-    python benchmarks/recipe_throughput.py [--device cuda] [--frames 16384] [--threads 1]
+    python benchmarks/recipe_throughput.py [--device cuda] [--frames 16384] [--threads 1] [--recipes sac ppo moc]
 
 For SAC, PPO and MOC with their config values (configs/algo/*.yaml) this
 measures, on the same TransformedEnv(PessimisticModelEnv, LatentActionTransform)
@@ -31,6 +31,7 @@ def main():
     p.add_argument("--sac-frames", type=int, default=2048, help="frames for SAC (one update per frame: slow)")
     p.add_argument("--num-envs", type=int, default=64)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--recipes", nargs="+", default=["sac", "ppo", "moc"], choices=["sac", "ppo", "moc"])
     a = p.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -51,9 +52,12 @@ def main():
     cvae = ConditionalVAE.for_dataset(data, hidden_sizes=(720, 720)).fit(data, max_steps=20, progress=False)
     ens, cvae = ens.to(dev), cvae.to(dev)
     stats = data.stats()
-    rows = []
+    before = {}
     threshold = None
-    variants = [(algo, when) for algo in ("sac", "ppo", "moc") for when in ("before", "after", "compiled") if not (algo == "sac" and when == "compiled")]
+    print(f"\ndevice: {dev}, {a.num_envs} model envs, {torch.get_num_threads()} torch threads", flush=True)
+    print("| recipe | variant | frames/batch | frames | collection frames/s | updates/s | end-to-end frames/s | updates per frame | end-to-end speed-up |")
+    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+    variants = [(algo, when) for algo in a.recipes for when in ("before", "after", "compiled") if not (algo == "sac" and when == "compiled")]
     for algo, when in variants:
         torch.manual_seed(0)
         cfg = OmegaConf.to_container(compose("offline_train", [f"algo={algo}"]), resolve=True)
@@ -92,13 +96,10 @@ def main():
             frames += batch.numel()
         total = time.perf_counter() - t0
         collector.shutdown()
-        rows.append((algo, when, fpb, frames, frames / t_collect, updates / t_update, frames / total, updates / frames))
-    print(f"\ndevice: {dev}, {a.num_envs} model envs, {torch.get_num_threads()} torch threads")
-    print("| recipe | variant | frames/batch | frames | collection frames/s | updates/s | end-to-end frames/s | updates per frame | end-to-end speed-up |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    before = {r[0]: r[6] for r in rows if r[1] == "before"}
-    for algo, when, fpb, frames, cf, us, ef, upf in rows:
-        print(f"| {algo} | {when} | {fpb} | {frames} | {cf:,.0f} | {us:,.1f} | {ef:,.0f} | {upf:.3f} | {ef / before[algo]:.2f}x |")
+        cf, us, ef, upf = frames / t_collect, updates / t_update, frames / total, updates / frames
+        before.setdefault(algo, ef)  # "before" is measured first
+        # each row as soon as it is measured: a run stopped by a time limit keeps the rows it finished
+        print(f"| {algo} | {when} | {fpb} | {frames} | {cf:,.0f} | {us:,.1f} | {ef:,.0f} | {upf:.3f} | {ef / before[algo]:.2f}x |", flush=True)
 
 
 if __name__ == "__main__":
