@@ -72,15 +72,6 @@ def toy_registered():
     AGENTS.pop("toy-pg")
 
 
-@pytest.fixture(scope="module")
-def hopper_file(tmp_path_factory):
-    from torchrl_offhrl.data import collect_dataset, save_dataset
-
-    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
-    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
-    return path
-
-
 def test_a_new_agent_trains_end_to_end_without_library_changes(toy_registered, hopper_file, tmp_path, monkeypatch):
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.train import train

@@ -14,23 +14,12 @@ from torchrl_offhrl.recipes.config import compose
 from torchrl_offhrl.recipes.train import train
 from torchrl_offhrl.utils import to_plain
 
+from test_offline_agents import DATASET_ALGOS, MODEL_EXTRA, TINY_MODEL
+
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
-DATASET_ALGOS = ["bc", "cql", "iql", "td3bc"]
 MODEL_ALGOS = ["moc", "ppo", "sac", "morel"]
-TINY_MODEL = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=20",
-              "collector.num_envs=4", "algo.frames_per_batch=64", "eval.model_env=false"]
-EXTRA = {"sac": ["algo.init_random_frames=32", "algo.utd_ratio=0.05"], "ppo": ["algo.epochs=1"], "moc": ["algo.epochs=1"],
-         "morel": ["algo.epochs=1"]}
-
-
-@pytest.fixture(scope="module")
-def hopper_file(tmp_path_factory):
-    from torchrl_offhrl.data import collect_dataset, save_dataset
-
-    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
-    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
-    return path
+EXTRA = {**MODEL_EXTRA, "morel": ["algo.epochs=1"]}
 
 
 def _cfg(algo, data, out, device, budget):

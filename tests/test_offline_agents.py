@@ -17,15 +17,10 @@ from torchrl_offhrl.utils import to_plain
 ROOT = Path(__file__).resolve().parents[1]
 DATASET_ALGOS = ["bc", "iql", "td3bc", "cql"]
 TINY = ["eval.episodes=2", "eval.max_steps=30", "algo.batch_size=16", "algo.hidden_sizes=[16,16]"]
-
-
-@pytest.fixture(scope="module")
-def hopper_file(tmp_path_factory):
-    from torchrl_offhrl.data import collect_dataset, save_dataset
-
-    path = tmp_path_factory.mktemp("data") / "hopper_random.hdf5"
-    save_dataset(collect_dataset("Hopper-v5", 1200, num_envs=4, seed=0, progress=False), path)
-    return path
+# tiny models and batches for the model-env agents (also tests/test_cuda.py)
+TINY_MODEL = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=20",
+              "collector.num_envs=4", "algo.frames_per_batch=64", "eval.model_env=false"]
+MODEL_EXTRA = {"sac": ["algo.init_random_frames=32", "algo.utd_ratio=0.05"], "ppo": ["algo.epochs=1"], "moc": ["algo.epochs=1"]}
 
 
 @pytest.fixture()
@@ -98,12 +93,9 @@ def test_every_agent_is_evaluated_on_the_same_episodes(hopper_file, cache, tmp_p
 
     monkeypatch.setattr(evaluation_mod, "evaluate_policy", spy)
     current = {}
-    tiny_model = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=20",
-                  "collector.num_envs=4", "train.total_frames=64", "eval.every_frames=64", "algo.frames_per_batch=64", "eval.model_env=false"]
-    extra = {"sac": ["algo.init_random_frames=32", "algo.utd_ratio=0.05"], "ppo": ["algo.epochs=1"], "moc": ["algo.epochs=1"]}
     for algo in flat:
         current["algo"] = algo
-        overrides = ["train.total_updates=2", "eval.every_updates=2"] if algo in DATASET_ALGOS else [*tiny_model, *extra.get(algo, [])]
+        overrides = ["train.total_updates=2", "eval.every_updates=2"] if algo in DATASET_ALGOS else [*TINY_MODEL, "train.total_frames=64", "eval.every_frames=64", *MODEL_EXTRA.get(algo, [])]
         train(to_plain(compose("offline_train", [f"algo={algo}", f"dataset={hopper_file}", f"out_root={tmp_path}", "eval.episodes=3",
                                                  "eval.max_steps=15", "algo.hidden_sizes=[16,16]", *overrides])), progress=False)
     assert set(starts) == set(flat) >= {"moc", "ppo", "sac", *DATASET_ALGOS}
