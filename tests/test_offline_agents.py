@@ -293,6 +293,7 @@ def test_archived_run_reads_like_its_run_directory(tmp_path):
     for name in ("config.json", "evals.json", "summary.json"):
         assert (kept / name).read_bytes() == (run / name).read_bytes()
     assert json.loads((kept / "diagnostics.json").read_text()) == {"train_tail_means": {"loss_actor": 3.0}}  # mean of the last 5
+    assert sorted(p.name for p in kept.iterdir()) == ["config.json", "diagnostics.json", "evals.json", "summary.json"]  # no temporary files left
     assert group_stats([load_run(kept)]) == group_stats([load_run(run)])
     (run / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="has not finished"):
