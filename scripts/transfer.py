@@ -36,13 +36,20 @@ KINDS = {
 OUT = ROOT / "outputs" / "results" / "transfer"
 DOCS = ROOT / "docs" / "results" / "transfer"
 ARCHIVE = DOCS / "runs"  # finished runs kept for good (outputs/ stays on the machine that ran them)
+# --tuning: runs on the tuning seeds (default 1), with their own run directories, archive and page, never mixed with seeds 4-6
+TUNING_OUT = ROOT / "outputs" / "results" / "transfer_tuning"
+TUNING_ARCHIVE = DOCS / "tuning"
+TUNING_PAGE = ROOT / "docs" / "results" / "transfer_tuning.md"
 
 
-def run_dir(env: str, algo: str, kind: str, seed: int) -> Path:
-    return OUT / f"{algo}-{env}-medium-{kind}-seed{seed}"
+def run_dir(env: str, algo: str, kind: str, seed: int, tag: str | None = None, out: Path = OUT) -> Path:
+    return out / f"{algo}-{env}-medium-{kind}{'-' + tag if tag else ''}-seed{seed}"
 
 
-def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], online_frames: int) -> None:
+def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], online_frames: int,
+        extra: list[str] = (), tag: str | None = None, tuning: bool = False) -> None:
+    """Every (env, kind, algo, seed) run in turn; ``extra`` overrides go to every run, ``tag`` names such a variant
+    (its run directories and its rows: ``algo.label=<algo>_<tag>``)."""
     from torchrl_offhrl.agents import agent_defaults
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.report import format_summary
@@ -53,20 +60,44 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
         for kind in kinds:
             for algo in algos:
                 for seed in seeds:
-                    overrides = [f"algo={algo}", f"env={env}", "dataset=medium", f"seed={seed}", f"run_dir={run_dir(env, algo, kind, seed)}",
-                                 *BUDGET["demo"], *KINDS[kind], f"transfer.online_frames={online_frames}"]
+                    out = TUNING_OUT if tuning else OUT
+                    overrides = [f"algo={algo}", f"env={env}", "dataset=medium", f"seed={seed}", f"run_dir={run_dir(env, algo, kind, seed, tag, out)}",
+                                 *BUDGET["demo"], *KINDS[kind], f"transfer.online_frames={online_frames}", *extra,
+                                 *([f"++algo.label={algo}_{tag}"] if tag else [])]
                     cfg = compose("demo", overrides)
                     if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
                         overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
                     print(format_summary(train(to_plain(compose("demo", overrides)))), flush=True)
-                    archive()
+                    archive(tuning)
 
 
-def archive() -> list[Path]:
-    """Archive every finished run under ``outputs/results/transfer/`` to ``docs/results/transfer/runs/<run>/``."""
+def archive(tuning: bool = False) -> list[Path]:
+    """Archive every finished run under ``outputs/results/transfer/`` to ``docs/results/transfer/runs/<run>/``
+    (``tuning``: ``outputs/results/transfer_tuning/`` to ``docs/results/transfer/tuning/``)."""
     from torchrl_offhrl.recipes.report import archive_runs
 
-    return archive_runs(OUT, ARCHIVE)
+    return archive_runs(TUNING_OUT, TUNING_ARCHIVE) if tuning else archive_runs(OUT, ARCHIVE)
+
+
+def tuning_report() -> str:
+    """``docs/results/transfer_tuning.md``: the table and curves of the runs on the tuning seeds (``run --tuning``)."""
+    from torchrl_offhrl.recipes.report import aggregate
+
+    archive(tuning=True)
+    runs = sorted(d for d in TUNING_ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
+    if not runs:
+        raise SystemExit(f"no finished runs under {TUNING_OUT} or {TUNING_ARCHIVE}: run `python scripts/transfer.py run --tuning` first")
+    table = aggregate(runs, TUNING_ARCHIVE)
+    text = "\n".join([
+        "# Transfer: runs on the tuning seeds", "",
+        "Made by `python scripts/transfer.py report --tuning` from the runs of `python scripts/transfer.py run --tuning ...` "
+        "(archived to `docs/results/transfer/tuning/`). These runs look for why an agent learns as it does on the new task; "
+        "they use the tuning seeds (not 4-6, the seeds of `docs/results/transfer.md`) and are never mixed into that page. "
+        "A row named `<algo>_<tag>` is a variant run with `--tag <tag> --extra <overrides>`; its overrides are in each run's "
+        "`config.json`.", "",
+        "Runs: " + ", ".join(f"`{d.name}`" for d in runs), "", table, "", "![curves](transfer/tuning/curves.png)", ""])
+    TUNING_PAGE.write_text(text)
+    return text
 
 
 def report() -> str:
@@ -126,14 +157,23 @@ def main(argv=None) -> int:
     r.add_argument("--envs", nargs="+", default=["hopper"])
     r.add_argument("--algos", nargs="+", default=["moc", "ppo", "sac"])
     r.add_argument("--kinds", nargs="+", choices=sorted(KINDS), default=["transfer", "scratch"])
-    r.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
+    r.add_argument("--seeds", nargs="+", type=int, default=None, help="default 4 5 6 (--tuning: 1)")
     r.add_argument("--online-frames", type=int, default=300_000)
-    sub.add_parser("report")
+    r.add_argument("--extra", nargs="+", default=[], metavar="KEY=VALUE", help="config overrides for every run (a variant: name it with --tag)")
+    r.add_argument("--tag", default=None, help="name of the variant: run directories <algo>-<env>-medium-<kind>-<tag>-seed<N>, rows <algo>_<tag>")
+    r.add_argument("--tuning", action="store_true", help="runs on tuning seeds (default 1), kept apart: outputs/results/transfer_tuning/")
+    rep = sub.add_parser("report")
+    rep.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/transfer_tuning.md")
     a = p.parse_args(argv)
     if a.cmd == "run":
-        run(a.envs, a.algos, a.kinds, a.seeds, a.online_frames)
+        seeds = a.seeds if a.seeds is not None else [1] if a.tuning else [4, 5, 6]
+        if a.tuning and set(seeds) & {4, 5, 6}:
+            raise SystemExit("--tuning runs use the tuning seeds; seeds 4-6 are the evaluation seeds of docs/results/transfer.md")
+        if a.extra and not a.tag:
+            raise SystemExit("--extra makes a variant: name it with --tag, so that its runs and rows are not taken for the defaults'")
+        run(a.envs, a.algos, a.kinds, seeds, a.online_frames, a.extra, a.tag, a.tuning)
     else:
-        print(report())
+        print(tuning_report() if a.tuning else report())
     return 0
 
 

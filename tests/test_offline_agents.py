@@ -355,6 +355,32 @@ def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories
     assert all(c["train"]["total_updates"] == 100000 for c in seen)
 
 
+def test_transfer_script_keeps_variants_and_tuning_runs_apart(monkeypatch):
+    """scripts/transfer.py run --tuning --tag T --extra ...: the overrides reach the config, the tag names the run
+    directory and the rows (algo.label), tuning runs go to their own folder; seeds 4-6 and untagged overrides are refused."""
+    import importlib.util
+
+    import torchrl_offhrl.recipes.train as train_mod
+
+    spec = importlib.util.spec_from_file_location("transfer_script", Path(__file__).resolve().parents[1] / "scripts" / "transfer.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    seen = []
+    monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"run_dir": cfg["run_dir"], "algo": "moc"})
+    monkeypatch.setattr("torchrl_offhrl.recipes.report.format_summary", lambda s: "")
+    monkeypatch.setattr(mod, "archive", lambda tuning=False: [])
+    mod.main(["run", "--tuning", "--envs", "halfcheetah", "--algos", "moc", "--kinds", "scratch", "--tag", "constlr", "--extra", "algo.anneal_lr=false"])
+    mod.main(["run", "--envs", "hopper", "--algos", "ppo", "--kinds", "transfer", "--seeds", "5"])
+    (tuned, plain) = seen
+    assert Path(tuned["run_dir"]) == mod.TUNING_OUT / "moc-halfcheetah-medium-scratch-constlr-seed1" and tuned["seed"] == 1
+    assert tuned["algo"]["anneal_lr"] is False and tuned["algo"]["label"] == "moc_constlr" and tuned["transfer"]["from_scratch"] is True
+    assert Path(plain["run_dir"]) == mod.OUT / "ppo-hopper-medium-transfer-seed5" and "label" not in plain["algo"]
+    with pytest.raises(SystemExit, match="evaluation seeds"):
+        mod.main(["run", "--tuning", "--seeds", "1", "4"])
+    with pytest.raises(SystemExit, match="--tag"):
+        mod.main(["run", "--extra", "algo.lr=1e-3"])
+
+
 def test_morel_is_one_named_config():
     """algo=morel: PPO in real actions on the P-MDP with MOReL's max-pairwise discrepancy and threshold rule (max / 3)."""
     cfg = to_plain(compose("offline_train", ["algo=morel", "env=hopper", "dataset=medium"]))
