@@ -123,6 +123,12 @@ def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, m
         steps = [float(line.split(",")[0]) for line in csv.read_text().splitlines() if line]
         assert steps == sorted(set(steps)), (csv, steps)
 
+    # the finished run called again (a results script rerun) trains nothing and keeps the timings it measured
+    again = train(cfg, progress=False)
+    assert again["frames"] == 256 and json.loads((run / "evals.json").read_text()) == evals
+    timings = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")
+    assert {k: again[k] for k in timings} == {k: summary[k] for k in timings} and summary["update_time_s"] > 0
+
 
 def test_trim_csv_logs(tmp_path):
     (tmp_path / "scalars" / "train").mkdir(parents=True)

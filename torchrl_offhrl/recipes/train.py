@@ -24,6 +24,7 @@ Nothing here names an algorithm.
 """
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Mapping
 
@@ -44,6 +45,8 @@ from .report import UNIT_LABELS, fmt_number, plot_curve, plot_goal_success, plot
 from .rundir import RunDirectory
 from .schema import validate_config
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
+
+TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
 
 __all__ = ["train"]
 
@@ -207,7 +210,9 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     # 4. resume, log, train, evaluate, checkpoint
     run.data_hash = data.content_hash()  # a run never resumes on other data found at the same path
     run.unit = unit
+    previous_summary = None
     if run.resume(agent, device) and (run.path / "summary.json").is_file():
+        previous_summary = json.loads((run.path / "summary.json").read_text())
         (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
     run.write_json("config.json", {**cfg, "resolved_pessimism": pess, "threshold": threshold, "resolved_reward_scale": pcfg["env"].get("reward_scale", 1.0),
                                    "model_dir": model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
@@ -346,6 +351,10 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         timing={"update_time_s": train_time, "data_s": t_data, "models_s": t_models, "total_s": time.time() - t_start},
         models=model_info["model_dir"], run_dir=run.path, evaluation_files=agent.evaluation_files, unit=unit,
     )
+    if run.frames == frames_at_start and run.updates == updates_at_start and previous_summary is not None:
+        # a finished run called again (a results script rerun): nothing trained in this call, so its throughput and
+        # timings stay those the run measured, instead of this call's few seconds of loading
+        summary.update({k: previous_summary[k] for k in TIMING_KEYS if k in previous_summary})
     if stacking and data.metadata.get("goal_success"):  # the behaviour data's own per-goal success (its collection's horizon)
         summary["behaviour_success_per_goal"] = [data.metadata["goal_success"].get(str(k)) for k in range(n_goals)]
     if tcfg is not None:
