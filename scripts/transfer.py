@@ -94,7 +94,9 @@ def tuning_report() -> str:
         "(archived to `docs/results/transfer/tuning/`). These runs look for why an agent learns as it does on the new task; "
         "they use the tuning seeds (not 4-6, the seeds of `docs/results/transfer.md`) and are never mixed into that page. "
         "A row named `<algo>_<tag>` is a variant run with `--tag <tag> --extra <overrides>`; its overrides are in each run's "
-        "`config.json`.", "",
+        "`config.json`. The seed-1 runs of `moc`, `moc_constlr`, `moc_lr3e-4-constlr` and `ppo` ran from an ad-hoc script with the "
+        "same overrides before `--tuning` existed and were moved here (their `config.json` keeps the folder they ran in, and the "
+        "variants got their `algo.label` on the move).", "",
         "Runs: " + ", ".join(f"`{d.name}`" for d in runs), "", table, "", "![curves](transfer/tuning/curves.png)", ""])
     TUNING_PAGE.write_text(text)
     return text
