@@ -56,11 +56,11 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
     from torchrl_offhrl.recipes.train import train
     from torchrl_offhrl.utils import to_plain
 
+    out = TUNING_OUT if tuning else OUT
     for env in envs:
         for kind in kinds:
             for algo in algos:
                 for seed in seeds:
-                    out = TUNING_OUT if tuning else OUT
                     overrides = [f"algo={algo}", f"env={env}", "dataset=medium", f"seed={seed}", f"run_dir={run_dir(env, algo, kind, seed, tag, out)}",
                                  *BUDGET["demo"], *KINDS[kind], f"transfer.online_frames={online_frames}", *extra,
                                  *([f"++algo.label={algo}_{tag}"] if tag else [])]

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
@@ -19,6 +18,7 @@ from pathlib import Path
 import torch
 
 from ..scores import normalized_score
+from ..utils import atomic_write
 from .config import transfer_config, transfer_label
 
 __all__ = [
@@ -287,14 +287,12 @@ def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:
     dest.mkdir(parents=True, exist_ok=True)
     for name in ("config.json", "evals.json", "summary.json", *extra):
         if (src / name).is_file():
-            tmp = dest / f".{name}.{os.getpid()}.tmp"  # per process: two run loops may archive the same finished run at once
-            tmp.write_bytes((src / name).read_bytes())
-            tmp.replace(dest / name)
+            with atomic_write(dest / name) as tmp:  # a temporary file of its own: two run loops may archive the same run at once
+                Path(tmp).write_bytes((src / name).read_bytes())
     series = read_scalar_logs(src / "logs")
     tails = {k.split("/", 1)[1]: sum(v[-5:]) / len(v[-5:]) for k, (_, v) in sorted(series.items()) if k.startswith("train/") and v}
-    tmp = dest / f".diagnostics.json.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps({"train_tail_means": tails}, indent=1) + "\n")
-    tmp.replace(dest / "diagnostics.json")
+    with atomic_write(dest / "diagnostics.json") as tmp:
+        Path(tmp).write_text(json.dumps({"train_tail_means": tails}, indent=1) + "\n")
     return dest
 
 
