@@ -148,3 +148,21 @@ def test_explained_variance_hand_computed():
     out = loss(td)
     # executed Q: 1, 1, 3, 3; G - Q: 1, -1, 1, 0 -> var 0.6875; Var(G) = 2.1875
     assert out["explained_variance"].item() == pytest.approx(1 - 0.6875 / 2.1875)
+
+
+def test_action_std_is_the_executed_options_scale():
+    """std 2 for option 0 and 3 for option 1; options 0, 0, 1, 1 ran: action_std = (2 + 2 + 3 + 3) / 4."""
+    loss, td = _constant_q_loss_and_batch([0.0, 0.0, 0.0, 0.0])
+    with torch.no_grad():
+        loss.actor_network.heads.log_std.copy_(torch.tensor([[math.log(2.0)], [math.log(3.0)]]))
+    out = loss(td)
+    assert out["action_std"].item() == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize("gain", [0.01, 1.0])
+def test_intra_head_gain_sets_the_initial_means_scale(gain):
+    """The intra-option means' last layer is orthogonal with the given gain: its weights' norm is gain * sqrt(rows)."""
+    torch.manual_seed(0)
+    heads = OptionHeads(5, 3, num_options=2, hidden=(16,), intra_head_gain=gain)
+    w = heads.intra_head[-1].weight  # [n * A, hidden]: orthogonal rows of norm `gain`
+    torch.testing.assert_close(w @ w.T, gain**2 * torch.eye(6), atol=1e-5 * max(gain**2, 1e-2), rtol=0)

@@ -482,6 +482,21 @@ def test_fingerprint_ignores_the_compile_switch():
         assert config_fingerprint(changed) != config_fingerprint(on), algo
 
 
+def test_fingerprint_of_a_setting_added_later_at_its_old_value():
+    """algo.intra_head_gain came after MOC runs existed: at 0.01 (what those runs did) it is the same run, at 1.0 another."""
+    import json
+
+    from torchrl_offhrl.recipes.config import config_fingerprint, fingerprints_match
+
+    now = to_plain(compose("offline_train", ["algo=moc"]))
+    assert now["algo"]["intra_head_gain"] == 0.01
+    older = {k: v for k, v in now.items() if k not in ("train", "eval")}
+    older["algo"] = {k: v for k, v in now["algo"].items() if k != "intra_head_gain"}
+    assert fingerprints_match(json.dumps(older, sort_keys=True, default=str), config_fingerprint(now))
+    wider = to_plain(compose("offline_train", ["algo=moc", "algo.intra_head_gain=1.0"]))
+    assert config_fingerprint(wider) != config_fingerprint(now)
+
+
 def test_checkpoints_fingerprinted_under_older_rules_still_resume():
     """A td3bc checkpoint whose fingerprint still held the (then different) model settings matches today's run; other changes do not."""
     import json

@@ -110,6 +110,9 @@ class MOCAgent(OnPolicyAgent):
     * ``obs_clip``: None or 5.0 (official: normalised observations clipped).
     * ``option_head_gain`` / ``termination_head_gain``: 0.01 (near-uniform
       start) or 1.0 (official ``normc(1.0)``: O(1) logits).
+    * ``intra_head_gain``: 0.01 (baselines' ``normc(0.01)`` scale: every
+      option starts near the box's centre) or 1.0 (O(1) means, like TorchRL's PPO
+      actor).
 
     ``fused_adam`` is a speed switch (the same update rule, see
     :func:`~torchrl_offhrl.agents.adam`).
@@ -152,6 +155,7 @@ class MOCAgent(OnPolicyAgent):
         obs_clip: float | None = 5.0,
         option_head_gain: float = 1.0,
         termination_head_gain: float = 1.0,
+        intra_head_gain: float = 0.01,
         fused_adam: bool = True,
         compile: bool | str = False,
         anneal_lr: bool = True,
@@ -166,7 +170,7 @@ class MOCAgent(OnPolicyAgent):
         heads = OptionHeads(
             obs_dim, act_dim, n, hidden=hidden, shared_trunk=shared_trunk, activation=activation,
             obs_loc=obs_loc, obs_scale=obs_scale, init_log_std=init_log_std, obs_clip=obs_clip,
-            option_head_gain=option_head_gain, termination_head_gain=termination_head_gain,
+            option_head_gain=option_head_gain, termination_head_gain=termination_head_gain, intra_head_gain=intra_head_gain,
         )
         self.policy = OptionCriticActor(heads, low=low, high=high, action_key=action_key)
         critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale, obs_clip=obs_clip)

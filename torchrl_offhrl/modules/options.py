@@ -56,6 +56,12 @@ class OptionHeads(nn.Module):
             starts near-uniform pi_O and beta ~ 0.5 everywhere; 1.0 starts
             with O(1) logits that depend on the state, as the official code's
             ``normc(1.0)`` initialisation.
+        intra_head_gain: orthogonal-init gain of the last layer of the
+            intra-option means. 0.01 (default, the scale of
+            baselines' ``normc(0.01)`` policy head) starts every option near
+            the box's centre; 1.0
+            starts with O(1) state-dependent means, about the scale of a
+            default-initialised layer (TorchRL's PPO actor).
 
     Examples:
         >>> heads = OptionHeads(5, 2, num_options=3, hidden=(16,))
@@ -78,6 +84,7 @@ class OptionHeads(nn.Module):
         obs_clip: float | None = None,
         option_head_gain: float = 0.01,
         termination_head_gain: float = 0.01,
+        intra_head_gain: float = 0.01,
     ):
         super().__init__()
         if num_options < 1:
@@ -99,7 +106,7 @@ class OptionHeads(nn.Module):
             self.termination_head = mlp(obs_dim, n, hidden, activation)
         self.log_std = nn.Parameter(torch.full((n, a), float(init_log_std)))
         # small last layers by default: near-uniform pi_O, near-zero means, beta ~ 0.5
-        for head, gain in ((self.option_head, option_head_gain), (self.intra_head, 0.01), (self.termination_head, termination_head_gain)):
+        for head, gain in ((self.option_head, option_head_gain), (self.intra_head, intra_head_gain), (self.termination_head, termination_head_gain)):
             last = head if isinstance(head, nn.Linear) else head[-1]
             nn.init.orthogonal_(last.weight, gain=gain)
             nn.init.zeros_(last.bias)

@@ -184,6 +184,8 @@ class OptionCriticLoss(LossModule):
     and metrics: ``termination_rate`` (mean ``beta`` at non-start steps, from
     the data), ``option_duration`` (steps per option start),
     ``option_usage`` (``[n]``), ``clip_fraction``, ``approx_kl``,
+    ``action_std`` (the mean pre-tanh standard deviation of the options the
+    data ran: how much the intra-option policies still explore),
     ``option_entropy``, ``z``, ``explained_variance`` (of the value targets
     by ``Q(s_t, o_t)``, as PPO logs for ``V``).
 
@@ -478,7 +480,7 @@ class OptionCriticLoss(LossModule):
     def out_keys(self):
         return [
             "loss_objective", "loss_critic", "loss_termination", "loss_option", "loss_option_entropy", "loss_entropy",
-            "termination_rate", "option_duration", "option_usage", "clip_fraction", "approx_kl", "option_entropy", "z",
+            "termination_rate", "option_duration", "option_usage", "clip_fraction", "approx_kl", "action_std", "option_entropy", "z",
             "option_usage_entropy", "termination_advantage", "termination_advantage_positive", "explained_variance",
         ]
 
@@ -601,7 +603,7 @@ class OptionCriticLoss(LossModule):
     def intra_option_loss(self, td: TensorDictBase, weights: torch.Tensor) -> tuple[dict, dict]:
         """PPO-clipped surrogate of every option and the intra-option entropy bonus.
 
-        Returns ``({"loss_objective", "loss_entropy"}, {"clip_fraction", "approx_kl"})``.
+        Returns ``({"loss_objective", "loss_entropy"}, {"clip_fraction", "approx_kl", "action_std"})``.
         """
         k = self.tensor_keys
         action = td.get(k.action)
@@ -623,7 +625,9 @@ class OptionCriticLoss(LossModule):
             clip_fraction = (weights * clipped).sum() / weights.sum().clamp_min(1e-8)
             old_exec = td.get(k.option_log_probs).gather(-1, o)
             approx_kl = (old_exec.squeeze(-1) - new_logp.gather(-1, o).squeeze(-1)).mean()
-        return {"loss_objective": loss_objective, "loss_entropy": loss_entropy}, {"clip_fraction": clip_fraction, "approx_kl": approx_kl}
+            action_std = scale.detach().gather(-2, o.unsqueeze(-1).expand(-1, 1, scale.shape[-1])).mean()
+        metrics = {"clip_fraction": clip_fraction, "approx_kl": approx_kl, "action_std": action_std}
+        return {"loss_objective": loss_objective, "loss_entropy": loss_entropy}, metrics
 
     def critic_loss(self, td: TensorDictBase, weights: torch.Tensor) -> tuple[dict, dict]:
         """``critic_coef * sum_o w_t(o) (Q(s_t, o) - G_t)^2``, averaged: ``({"loss_critic"}, {})``."""

@@ -231,6 +231,11 @@ def algo_label(algo_cfg: Mapping) -> str:
     return str(algo_cfg.get("label") or algo_cfg["name"])
 
 
+#: settings added after runs already existed, with the value that reproduces those runs: a config holding
+#: exactly that value fingerprints as one without the key, so older checkpoints still resume
+LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01}}
+
+
 def config_fingerprint(cfg: Mapping) -> str:
     """The config minus :data:`RESUMABLE_KEYS`, as canonical JSON: a checkpoint resumes only under the same fingerprint."""
     kept = {k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS}
@@ -240,6 +245,9 @@ def config_fingerprint(cfg: Mapping) -> str:
     if isinstance(kept.get("ensemble"), Mapping) and kept["ensemble"].get("reward_hidden_sizes", "absent") is None:
         # the default reward widths (the transition ones): the same run as before the setting existed
         kept["ensemble"] = {k: v for k, v in kept["ensemble"].items() if k != "reward_hidden_sizes"}
+    for section, defaults in LATER_DEFAULTS.items():
+        if isinstance(kept.get(section), Mapping):
+            kept[section] = {k: v for k, v in kept[section].items() if not (k in defaults and v == defaults[k])}
     if isinstance(kept.get("algo"), Mapping) and "compile" in kept["algo"]:
         # a speed switch (torch.compile of the same loss): the same run compiled or not, and as before the key existed
         kept["algo"] = {k: v for k, v in kept["algo"].items() if k != "compile"}
