@@ -51,7 +51,7 @@ def test_cuda_on_a_machine_without_it():
 
 
 @pytest.mark.parametrize("config", ["offline_train", "demo", "pipeline"])
-@pytest.mark.parametrize("algo", ["moc", "moc_official", "moc_joint", "ppo", "sac"])
+@pytest.mark.parametrize("algo", ["moc", "moc_official", "moc_joint", "moc_online", "ppo", "sac"])
 def test_the_shipped_configs_are_valid(config, algo):
     for env in ("hopper", "halfcheetah"):
         validate_config(to_plain(compose(config, [f"algo={algo}", f"env={env}"])))
