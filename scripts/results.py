@@ -3,6 +3,7 @@
     python scripts/results.py run [--scale demo|full] [--envs hopper halfcheetah] [--algos moc ppo iql td3bc bc] [--seeds 4 5 6]
                                   [--datasets medium medium-expert]
     python scripts/results.py report [--scale demo|full]     # docs/results/<scale>/: results.md, curves.png, option usage
+    python scripts/results.py run --tuning --algos moc moc_online --seeds 1 2 3   # tuning seeds, kept apart (see below)
 
 Scales:
 
@@ -33,6 +34,9 @@ directory under ``outputs/results/<scale>/``: rerunning resumes from its
 checkpoint, so the runs can go to the background and survive interruptions::
 
     nohup python scripts/results.py run --scale full > results.log 2>&1 &
+
+``--tuning`` runs (seeds 1-3 by default; the evaluation seeds 4-6 are refused) go to ``outputs/results/<scale>_tuning/``,
+their archive and report to ``docs/results/<scale>_tuning/``: settings are compared there, never on the page of seeds 4-6.
 
 ``outputs/`` stays on the machine that ran it, so each finished run is also
 archived at once to ``docs/results/<scale>/runs/<run>/`` (its config,
@@ -94,7 +98,18 @@ DIAG = ("termination_rate", "option_duration", "option_entropy", "option_usage_e
 
 
 def run_dir(scale: str, env: str, algo: str, seed: int, dataset: str = "medium") -> Path:
+    """``scale`` names the folder: a scale (``demo``), or a scale's tuning folder (``demo_tuning``, :func:`folder`)."""
     return ROOT / "outputs" / "results" / scale / f"{algo}-{env}-{dataset}-seed{seed}"
+
+
+EVAL_SEEDS = {4, 5, 6}
+TUNING_NOTE = ("Runs on the tuning seeds (`python scripts/results.py run --tuning ...`), where settings are compared; they are never "
+               "mixed into the page of the evaluation seeds 4-6.")
+
+
+def folder(scale: str, tuning: bool = False) -> str:
+    """The folder name of a scale's runs under ``outputs/results/`` and ``docs/results/``: ``<scale>`` or ``<scale>_tuning``."""
+    return f"{scale}_tuning" if tuning else scale
 
 
 def archive_dir(scale: str) -> Path:
@@ -137,7 +152,7 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
     return runs, doc.get("moc_diagnostics_mean_over_seeds", {})
 
 
-def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",)) -> None:
+def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",), tuning: bool = False) -> None:
     from torchrl_offhrl.agents import agent_defaults
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.train import train
@@ -147,7 +162,7 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
         for algo in algos:
             for seed in seeds:
                 overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
-                             f"run_dir={run_dir(scale, env, algo, seed, dataset)}", *BUDGET[scale]]
+                             f"run_dir={run_dir(folder(scale, tuning), env, algo, seed, dataset)}", *BUDGET[scale]]
                 cfg = compose(CONFIG[scale], overrides)
                 if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
                     overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
@@ -155,31 +170,32 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
                     overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
                 cfg = to_plain(compose(CONFIG[scale], overrides))
                 s = train(cfg)
-                archive(scale)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
+                archive(folder(scale, tuning))  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
                 print(f"{scale} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
-def report(scale: str) -> str:
+def report(scale: str, tuning: bool = False) -> str:
     from torchrl_offhrl.recipes.report import aggregate, load_run, paper_table
 
+    name, scale = scale, folder(scale, tuning)  # `name`: the scale (its description); `scale`: the folder from here on
     archive(scale)
     kept = sorted(d for d in archive_dir(scale).glob("*-seed*") if (d / "summary.json").is_file())
     legacy, legacy_diag = legacy_runs(scale, {d.name for d in kept})
     runs = [{**load_run(d), "name": d.name} for d in kept] + legacy
     if not runs:
         raise SystemExit(f"no finished runs under {ROOT / 'outputs' / 'results' / scale} or {archive_dir(scale)}: "
-                         f"run `python scripts/results.py run --scale {scale}` first")
+                         f"run `python scripts/results.py run --scale {name}{' --tuning' if tuning else ''}` first")
     runs.sort(key=lambda r: r["name"])
     out = ROOT / "docs" / "results" / scale
     table = aggregate(runs, out)
     paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale")  # table.md: the paper's Table I layout
-    lines = [f"# Offline results, `{scale}` scale", "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
-             f"Made by `python scripts/results.py report --scale {scale}` from the finished runs: those under `outputs/results/{scale}/` "
+    lines = [f"# Offline results, `{name}` scale" + (", tuning seeds" if tuning else ""), "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
+             f"Made by `python scripts/results.py report --scale {name}{' --tuning' if tuning else ''}` from the finished runs: those under `outputs/results/{scale}/` "
              f"are first archived to `docs/results/{scale}/runs/<run>/` (config, evaluations, summary, training-scalar tails), and the "
              "report reads the archive, so that runs finished on other machines and sessions count.",
              "Scores are D4RL-normalised; final and best are separate columns (best: the best evaluation after training began; "
              "it is never reported as the result).", "",
-             *([NOTES[scale], ""] if scale in NOTES else []),
+             *([TUNING_NOTE, ""] if tuning else [NOTES[scale], ""] if scale in NOTES else []),
              *([f"{len(legacy)} runs (marked *rebuilt* below) are known only from an earlier version of this page: their run directories "
                 "were lost between sessions, so they count in the tables from their start, best and final scores and draw no curves "
                 "(their curves, made from the run directories: `legacy_curves*.png`); see `runs/legacy.json`.", ""] if legacy else []),
@@ -221,16 +237,21 @@ def main(argv=None) -> int:
     r.add_argument("--scale", choices=sorted(CONFIG), default="demo")
     r.add_argument("--envs", nargs="+", default=["hopper", "halfcheetah"])
     r.add_argument("--algos", nargs="+", default=["moc", "ppo"])
-    r.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
+    r.add_argument("--seeds", nargs="+", type=int, default=None, help="default 4 5 6 (--tuning: 1 2 3)")
     r.add_argument("--datasets", nargs="+", choices=["medium", "medium-expert"], default=["medium"],
                    help="medium-expert: the medium and expert parts concatenated (2M transitions at the full scale, as D4RL)")
+    r.add_argument("--tuning", action="store_true", help="runs on tuning seeds (default 1 2 3), kept apart: outputs/results/<scale>_tuning/")
     g = sub.add_parser("report")
     g.add_argument("--scale", choices=sorted(CONFIG), default="demo")
+    g.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/<scale>_tuning/README.md")
     a = p.parse_args(argv)
     if a.cmd == "run":
-        run(a.scale, a.envs, a.algos, a.seeds, a.datasets)
+        seeds = a.seeds if a.seeds is not None else [1, 2, 3] if a.tuning else [4, 5, 6]
+        if a.tuning and set(seeds) & EVAL_SEEDS:
+            raise SystemExit("--tuning runs use the tuning seeds; seeds 4-6 are the evaluation seeds of docs/results/<scale>/")
+        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning)
     else:
-        print(report(a.scale))
+        print(report(a.scale, a.tuning))
     return 0
 
 

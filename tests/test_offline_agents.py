@@ -355,6 +355,28 @@ def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories
     assert all(c["train"]["total_updates"] == 100000 for c in seen)
 
 
+def test_results_script_keeps_tuning_runs_apart(monkeypatch):
+    """scripts/results.py run --tuning: seeds 1-3 by default, run directories and archive under <scale>_tuning; seeds 4-6 refused."""
+    import importlib.util
+
+    import torchrl_offhrl.recipes.train as train_mod
+
+    spec = importlib.util.spec_from_file_location("results_script", Path(__file__).resolve().parents[1] / "scripts" / "results.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    seen, archived = [], []
+    monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"final": {"normalized_d4rl": 1.0}})
+    monkeypatch.setattr(mod, "archive", lambda scale: archived.append(scale) or [])
+    mod.main(["run", "--tuning", "--envs", "hopper", "--algos", "moc_online"])
+    assert [c["seed"] for c in seen] == [1, 2, 3] and set(archived) == {"demo_tuning"}
+    assert [Path(c["run_dir"]).parent.name for c in seen] == ["demo_tuning"] * 3
+    assert seen[0]["algo"]["label"] == "moc_online"
+    mod.main(["run", "--envs", "hopper", "--algos", "moc", "--seeds", "4"])
+    assert Path(seen[-1]["run_dir"]).parent.name == "demo" and archived[-1] == "demo"
+    with pytest.raises(SystemExit, match="evaluation seeds"):
+        mod.main(["run", "--tuning", "--seeds", "3", "4"])
+
+
 def test_transfer_script_keeps_variants_and_tuning_runs_apart(monkeypatch):
     """scripts/transfer.py run --tuning --tag T --extra ...: the overrides reach the config, the tag names the run
     directory and the rows (algo.label), tuning runs go to their own folder; seeds 4-6 and untagged overrides are refused."""
