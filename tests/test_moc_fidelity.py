@@ -161,7 +161,7 @@ def test_action_std_is_the_executed_options_scale():
 
 @pytest.mark.parametrize("gain", [0.01, 1.0])
 def test_intra_head_gain_sets_the_initial_means_scale(gain):
-    """The intra-option means' last layer is orthogonal with the given gain: its weights' norm is gain * sqrt(rows)."""
+    """The intra-option means' last layer is orthogonal with the given gain: W W^T = gain^2 I (orthogonal rows of norm gain)."""
     torch.manual_seed(0)
     heads = OptionHeads(5, 3, num_options=2, hidden=(16,), intra_head_gain=gain)
     w = heads.intra_head[-1].weight  # [n * A, hidden]: orthogonal rows of norm `gain`
