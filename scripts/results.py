@@ -158,11 +158,12 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
     from torchrl_offhrl.recipes.train import train
     from torchrl_offhrl.utils import to_plain
 
+    where = folder(scale, tuning)
     for env, dataset in ((e, d) for d in datasets for e in envs):
         for algo in algos:
             for seed in seeds:
                 overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
-                             f"run_dir={run_dir(folder(scale, tuning), env, algo, seed, dataset)}", *BUDGET[scale]]
+                             f"run_dir={run_dir(where, env, algo, seed, dataset)}", *BUDGET[scale]]
                 cfg = compose(CONFIG[scale], overrides)
                 if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
                     overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
@@ -170,8 +171,8 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
                     overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
                 cfg = to_plain(compose(CONFIG[scale], overrides))
                 s = train(cfg)
-                archive(folder(scale, tuning))  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
-                print(f"{scale} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
+                archive(where)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
+                print(f"{where} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
 def report(scale: str, tuning: bool = False) -> str:

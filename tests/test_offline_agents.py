@@ -517,6 +517,12 @@ def test_fingerprint_of_a_setting_added_later_at_its_old_value():
     assert fingerprints_match(json.dumps(older, sort_keys=True, default=str), config_fingerprint(now))
     wider = to_plain(compose("offline_train", ["algo=moc", "algo.intra_head_gain=1.0"]))
     assert config_fingerprint(wider) != config_fingerprint(now)
+    # the same rule for ensemble.reward_hidden_sizes: null (the transition widths) is a run from before the key, a width is not
+    assert now["ensemble"]["reward_hidden_sizes"] is None
+    no_key = {**now, "ensemble": {k: v for k, v in now["ensemble"].items() if k != "reward_hidden_sizes"}}
+    assert config_fingerprint(no_key) == config_fingerprint(now)
+    sized = to_plain(compose("offline_train", ["algo=moc", "ensemble.reward_hidden_sizes=[64]"]))
+    assert config_fingerprint(sized) != config_fingerprint(now)
 
 
 def test_checkpoints_fingerprinted_under_older_rules_still_resume():

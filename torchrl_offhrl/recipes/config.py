@@ -233,7 +233,8 @@ def algo_label(algo_cfg: Mapping) -> str:
 
 #: settings added after runs already existed, with the value that reproduces those runs: a config holding
 #: exactly that value fingerprints as one without the key, so older checkpoints still resume
-LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01}}
+#: (``reward_hidden_sizes: null``: the reward model takes the transition model's widths)
+LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01}, "ensemble": {"reward_hidden_sizes": None}}
 
 
 def config_fingerprint(cfg: Mapping) -> str:
@@ -242,9 +243,6 @@ def config_fingerprint(cfg: Mapping) -> str:
     if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}
-    if isinstance(kept.get("ensemble"), Mapping) and kept["ensemble"].get("reward_hidden_sizes", "absent") is None:
-        # the default reward widths (the transition ones): the same run as before the setting existed
-        kept["ensemble"] = {k: v for k, v in kept["ensemble"].items() if k != "reward_hidden_sizes"}
     for section, defaults in LATER_DEFAULTS.items():
         if isinstance(kept.get(section), Mapping):
             kept[section] = {k: v for k, v in kept[section].items() if not (k in defaults and v == defaults[k])}
