@@ -9,7 +9,12 @@ same process: "before" with torch's per-tensor Adam (``fused_adam=false``),
 "after" with the default fused Adam, and "compiled": fused Adam with
 ``compile=true`` (``torch.compile`` of the loss, built during the untimed
 warm-up); on CUDA also "cuda-graphs": ``compile=reduce-overhead`` (the
-compiled loss replayed as CUDA graphs). The FLOPs of one update's matrix
+compiled loss replayed as CUDA graphs), "captured": ``cudagraphs=true``
+(the whole update, loss, backward, Adam and target steps, captured as one
+CUDA graph per form of the update and replayed), "captured+compiled" (both
+switches) and "captured, sampled": "captured" with each batch sampled from a
+TorchRL replay buffer on the device holding ``--buffer`` transitions, as the
+training loop does. The FLOPs of one update's matrix
 products are counted by ``torch.profiler`` (``with_flops``; forward and
 backward), so the table also
 shows how close each update runs to this machine's dense matmul rate: on a
@@ -30,6 +35,9 @@ def main():
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--updates", type=int, default=200, help="timed updates per agent and variant (CQL: a fifth)")
+    p.add_argument("--algos", nargs="+", default=["bc", "td3bc", "iql", "cql"])
+    p.add_argument("--variants", nargs="+", default=None, help="a subset of the variants (default: all on this device)")
+    p.add_argument("--buffer", type=int, default=100_000, help="transitions in the replay buffer of the 'sampled' variant")
     a = p.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -53,23 +61,35 @@ def main():
     sync()
     matmul = 10 * 2 * 2048**3 / (time.perf_counter() - t) / 1e9
     env = make_gym_env("Hopper-v5")
-    rows = []
-    variants = ("before", "after", "compiled", "cuda-graphs") if dev.type == "cuda" else ("before", "after", "compiled")
-    for algo in ("bc", "td3bc", "iql", "cql"):
+    print(f"\ndevice: {dev}, {torch.get_num_threads()} torch threads, dense matmul 2048^2: {matmul:.1f} GFLOP/s")
+    print("| agent | variant | GFLOP per update | updates/s | GFLOP/s | vs matmul | 100k updates take | speed-up |")
+    print("|---|---|---|---|---|---|---|---|", flush=True)
+    variants = (("before", "after", "compiled", "cuda-graphs", "captured", "captured+compiled", "captured, sampled") if dev.type == "cuda"
+                else ("before", "after", "compiled"))
+    variants = [v for v in variants if a.variants is None or v in a.variants]
+    for algo in a.algos:
         cfg = to_plain(compose("offline_train", [f"algo={algo}"]))["algo"]
         cfg.pop("reward_scale", None)
         n, b = (a.updates // 5 if algo == "cql" else a.updates), int(cfg["batch_size"])
         batch = TensorDict({"observation": torch.randn(b, 11), "action": torch.rand(b, 3) * 2 - 1, "next": {
             "observation": torch.randn(b, 11), "reward": torch.randn(b, 1), "done": torch.zeros(b, 1, dtype=torch.bool),
             "terminated": torch.zeros(b, 1, dtype=torch.bool)}}, [b], device=dev)
+        rb = None
         for variant in variants:
             torch.manual_seed(0)
-            compiled = {"compiled": True, "cuda-graphs": "reduce-overhead"}.get(variant, False)
-            agent = make_agent(algo, env, {**cfg, "fused_adam": variant != "before", "compile": compiled}, action_key="action",
-                               device=dev)
-            for _ in range(5):  # warm-up
-                agent.update(batch)
-            if not compiled:  # the compiled update does the same products (its kernels are not all counted by the profiler)
+            compiled = {"compiled": True, "cuda-graphs": "reduce-overhead", "captured+compiled": True}.get(variant, False)
+            captured = variant.startswith("captured")
+            agent = make_agent(algo, env, {**cfg, "fused_adam": variant != "before", "compile": compiled, "cudagraphs": captured},
+                               action_key="action", device=dev)
+            if variant == "captured, sampled" and rb is None:
+                from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+                rb = ReplayBuffer(storage=LazyTensorStorage(a.buffer, device=dev), batch_size=b)
+                rb.extend(batch.expand(a.buffer // b, b).reshape(-1).clone())
+            draw = rb.sample if variant == "captured, sampled" else (lambda: batch)
+            for _ in range(50 if captured else 5):  # warm-up (captured: each form's eager runs, its capture, its first replays)
+                agent.update(draw())
+            if not compiled and not captured:  # the same products as in the other variants (the profiler does not see them all)
                 with profile(with_flops=True) as prof:  # the matrix products' FLOPs (mm, addmm, bmm), forward and backward
                     agent.update(batch)
                     agent.update(batch)  # TD3+BC: one critic-only and one critic + actor update
@@ -77,17 +97,13 @@ def main():
             sync()
             t = time.perf_counter()
             for _ in range(n):
-                agent.update(batch)
+                agent.update(draw())
             sync()
             rate = n / (time.perf_counter() - t)
-            rows.append((algo, variant, flops / 1e9, rate, rate * flops / 1e9))
-    print(f"\ndevice: {dev}, {torch.get_num_threads()} torch threads, dense matmul 2048^2: {matmul:.1f} GFLOP/s")
-    print("| agent | variant | GFLOP per update | updates/s | GFLOP/s | vs matmul | 100k updates take | speed-up |")
-    print("|---|---|---|---|---|---|---|---|")
-    before = {r[0]: r[3] for r in rows if r[1] == "before"}
-    for algo, variant, gf, rate, gfs in rows:
-        print(f"| {algo} | {variant} | {gf:.3f} | {rate:,.1f} | {gfs:.1f} | {gfs / matmul:.0%} | {100_000 / rate / 60:,.0f} min | "
-              f"{rate / before[algo]:.2f}x |")
+            first = rate if variant == variants[0] else first
+            gfs = rate * flops / 1e9  # each row as it is measured: a run stopped at a time limit keeps the rows before
+            print(f"| {algo} | {variant} | {flops / 1e9:.3f} | {rate:,.1f} | {gfs:.1f} | {gfs / matmul:.0%} | {100_000 / rate / 60:,.1f} min | "
+                  f"{rate / first:.2f}x |", flush=True)
 
 
 if __name__ == "__main__":

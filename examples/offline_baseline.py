@@ -77,7 +77,7 @@ def main(cfg: DictConfig) -> None:
         bar.update(1)
         if logger is not None and run.updates % 1000 == 0:
             for k, v in metrics.items():
-                logger.log_scalar(k, v, step=run.updates)
+                logger.log_scalar(k, float(v), step=run.updates)
         if run.updates % every == 0 or run.updates >= total:
             run.records.append(evaluate())
             bar.set_postfix(ret=f"{run.records[-1]['return_mean']:.0f}")

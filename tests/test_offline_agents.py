@@ -545,3 +545,38 @@ def test_checkpoints_fingerprinted_under_older_rules_still_resume():
     moc_now = to_plain(compose("offline_train", ["algo=moc"]))
     moc_then = to_plain(compose("offline_train", ["algo=moc", "ensemble.fit.lr=0.0001"]))
     assert not fingerprints_match(legacy(moc_then), config_fingerprint(moc_now))  # a model-env agent did use those models
+
+
+@pytest.mark.parametrize("algo", ["cql", "td3bc"])
+def test_cudagraphs_switch_is_the_same_update_off_a_gpu(algo):
+    """cudagraphs=true changes nothing on a CPU (no graph is made); a state saved with capturable optimisers loads capturable-free; not in the fingerprint."""
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+    from torchrl_offhrl.recipes.config import compose, config_fingerprint
+    from torchrl_offhrl.utils import to_plain
+
+    env = make_gym_env("Pendulum-v1")
+    td = env.rollout(32, break_when_any_done=False).reshape(-1)
+    agents = []
+    for graphs in (False, True):
+        torch.manual_seed(0)
+        agent = make_agent(algo, env, {"hidden_sizes": [8], "batch_size": 8, "cudagraphs": graphs, "policy_eval_start": 2} if algo == "cql"
+                           else {"hidden_sizes": [8], "batch_size": 8, "cudagraphs": graphs}, action_key="action")
+        metrics = [agent.update(td[8 * k: 8 * (k + 1)].clone()) for k in range(4)]
+        agents.append((agent, metrics))
+    (eager, m0), (graphs, m1) = agents
+    assert graphs.cudagraphs and all(callable(f) and type(f).__name__ == "function" for f in graphs.__dict__["_step_fns"].values())
+    for (name, a), b in zip(eager.loss.state_dict().items(), graphs.loss.state_dict().values()):
+        assert torch.equal(a, b), name
+    assert [sorted(m) for m in m0] == [sorted(m) for m in m1] and all(torch.is_tensor(v) for m in m1 for k, v in m.items() if k != "updates")
+    state = graphs.state_dict()
+    assert state["steps"] == 4
+    for group in state["optimizer"]["param_groups"]:
+        group["capturable"] = True  # as a run captured on a GPU saves them
+    graphs.load_state_dict(state)
+    assert graphs.steps == 4 and not any(g["capturable"] for o in graphs.optimizers() for g in o.param_groups)
+    assert "_step_fns" not in graphs.__dict__
+    graphs.update(td[:8].clone())
+    base = to_plain(compose("offline_train", [f"algo={algo}", "dataset=hopper-medium"]))
+    fast = to_plain(compose("offline_train", [f"algo={algo}", "dataset=hopper-medium", "algo.cudagraphs=true"]))
+    assert base["algo"]["cudagraphs"] is False and config_fingerprint(base) == config_fingerprint(fast)

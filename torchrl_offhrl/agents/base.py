@@ -10,7 +10,7 @@ into the record; at the last one it calls :meth:`Agent.save_evaluation`.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -19,13 +19,18 @@ from tensordict import TensorDictBase
 from torch import nn
 
 __all__ = [
-    "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "compile_setting", "deterministic_actor", "gaussian_actor", "q_network", "sum_losses",
+    "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "compile_setting", "deterministic_actor", "gaussian_actor", "make_capturable", "q_network", "scalar_metrics", "sum_losses",
 ]
 
 
 def sum_losses(out: Mapping) -> torch.Tensor:
     """The sum of a loss module's ``loss_*`` entries."""
     return sum(v for k, v in out.items() if k.startswith("loss_"))
+
+
+def scalar_metrics(out) -> TensorDictBase:
+    """The one-element entries of a loss's output TensorDict, detached and 0-dim (what :meth:`DatasetAgent.step` returns)."""
+    return out.select(*(k for k, v in out.items() if isinstance(v, torch.Tensor) and v.numel() == 1)).detach().apply(lambda v: v.reshape(()))
 
 
 class MetricMeans:
@@ -160,6 +165,11 @@ class Agent:
             compiled[method] = torch.compile(fn, mode=self.compile)
         return compiled[method]
 
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        """Every optimiser the agent owns (its attributes that are optimisers, :attr:`optimizer` first)."""
+        found = [self.optimizer] + [v for k, v in vars(self).items() if isinstance(v, torch.optim.Optimizer) and k != "optimizer"]
+        return list(dict.fromkeys(found))
+
     def set_progress(self, fraction: float) -> None:
         """Called before each update with the fraction of the frame budget done (``[0, 1]``); default: nothing."""
 
@@ -231,11 +241,6 @@ class OnPolicyAgent(Agent):
         self.max_grad_norm = max_grad_norm
         self.compile = compile_setting(compile)
         self.anneal_lr = bool(anneal_lr)
-
-    def optimizers(self) -> list[torch.optim.Optimizer]:
-        """Every optimiser the agent owns (its attributes that are optimisers, :attr:`optimizer` first)."""
-        found = [self.optimizer] + [v for k, v in vars(self).items() if isinstance(v, torch.optim.Optimizer) and k != "optimizer"]
-        return list(dict.fromkeys(found))
 
     def set_progress(self, fraction: float) -> None:
         """With ``anneal_lr``, every optimiser's step size is its initial one times ``1 - fraction`` (linear to 0).
@@ -363,6 +368,57 @@ class DatasetAgent(Agent):
     batch_size: int = 256
     reward_scale: float = 1.0
     target_updater: Any = None
+    #: updates taken (checkpointed): schedules such as CQL's behaviour-cloning phase or TD3+BC's delayed actor read it
+    steps: int = 0
+    #: capture each form of the whole update (losses, backward, optimiser and target steps) as a CUDA graph and replay it
+    #: on every later update (TensorDict's ``CudaGraphModule``, as TorchRL's sota scripts): on a GPU the update's
+    #: hundreds of small kernels then launch at once instead of one by one from Python. A speed switch, the same
+    #: computation; on a CPU it changes nothing
+    cudagraphs: bool = False
+
+    def step_variant(self) -> Hashable:
+        """Which form the next update takes (default: always the same); one CUDA graph is captured per form.
+
+        Python branches of an update (CQL's behaviour-cloning phase, TD3+BC's
+        delayed actor step) cannot live inside one captured graph, so each
+        branch is its own :meth:`step` form, chosen here from :attr:`steps`.
+        """
+        return None
+
+    def step(self, batch: TensorDictBase, variant: Hashable) -> TensorDictBase:
+        """One whole update on ``batch`` (rewards already scaled) in form ``variant``: losses, backward, optimiser and target steps.
+
+        Returns the update's scalar metrics, detached, as a TensorDict (keys
+        without the ``train/`` prefix). It must not branch on tensor values
+        nor read them on the host, so that it can be captured as a CUDA graph.
+        """
+        raise NotImplementedError
+
+    def update(self, batch: TensorDictBase) -> dict:
+        """:meth:`step` on ``batch``, through its CUDA graph when :attr:`cudagraphs` is on and the agent is on a GPU.
+
+        The metrics come back as 0-dim tensors on the agent's device (reading
+        them would wait for the GPU at every update): the loop sums them and
+        reads them when it logs. ``"updates"`` is 1.
+        """
+        out = self._step_fn(self.step_variant())(self.scaled(batch))
+        self.steps += 1
+        return {**{f"train/{k}": v for k, v in out.items()}, "updates": 1}
+
+    def _step_fn(self, variant: Hashable):
+        fns = self.__dict__.setdefault("_step_fns", {})
+        if variant not in fns:
+            def fn(batch, variant=variant):
+                return self.step(batch, variant)
+            if self.cudagraphs and next(self.loss.parameters()).is_cuda:
+                from tensordict.nn import CudaGraphModule
+
+                for opt in self.optimizers():
+                    make_capturable(opt)
+                # the warm-up runs (eager, on a side stream) create the optimisers' states and, when compiled, build the code
+                fn = CudaGraphModule(fn, in_keys=[], out_keys=[], warmup=20 if self.compile else 3)
+            fns[variant] = fn
+        return fns[variant]
 
     def set_sampling(self, batch_size: int, reward_scale: float) -> None:
         """Set :attr:`batch_size` and :attr:`reward_scale` (a positive number: names such as ``"return_range"`` are resolved by the loop)."""
@@ -385,9 +441,25 @@ class DatasetAgent(Agent):
         out = super().state_dict()
         if self.target_updater is not None:
             out["target_updater"] = self.target_updater.state_dict()
+        out["steps"] = self.steps
         return out
 
     def load_state_dict(self, state: Mapping) -> None:
         super().load_state_dict(state)
         if self.target_updater is not None and "target_updater" in state:
             self.target_updater.load_state_dict(state["target_updater"])
+        self.steps = int(state.get("steps", 0))
+        for opt in self.optimizers():  # a run captured on a GPU may resume anywhere: its graphs are made again, capturable then
+            for group in opt.param_groups:
+                group["capturable"] = False
+        self.__dict__.pop("_step_fns", None)
+
+
+def make_capturable(opt: torch.optim.Optimizer) -> None:
+    """Let ``opt`` (an Adam) be captured in a CUDA graph: ``capturable`` groups, step counts on the parameters' device."""
+    for group in opt.param_groups:
+        group["capturable"] = True
+        for p in group["params"]:
+            state = opt.state.get(p, {})
+            if torch.is_tensor(state.get("step")) and state["step"].device != p.device:
+                state["step"] = state["step"].to(p.device, torch.float32)

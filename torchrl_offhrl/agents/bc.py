@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 from torchrl.objectives import BCLoss
 
-from .base import DatasetAgent, MetricMeans, adam, compile_setting, deterministic_actor, gaussian_actor
+from .base import DatasetAgent, adam, compile_setting, deterministic_actor, gaussian_actor, scalar_metrics
 from .registry import register_agent
 
 __all__ = ["BCAgent"]
@@ -52,8 +52,10 @@ class BCAgent(DatasetAgent):
         batch_size: int = 256,
         fused_adam: bool = True,
         compile: bool | str = False,
+        cudagraphs: bool = False,
     ):
         self.compile = compile_setting(compile)
+        self.cudagraphs = bool(cudagraphs)
         if stochastic:
             self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, goal_key=goal_key)
             self.loss = BCLoss(self.policy)
@@ -65,11 +67,9 @@ class BCAgent(DatasetAgent):
         self.action_key = action_key
         self.set_sampling(batch_size, 1.0)
 
-    def update(self, batch):
+    def step(self, batch, variant=None):
         out = self.loss_fn()(batch)
         self.optimizer.zero_grad()
         out["loss_bc"].backward()
         self.optimizer.step()
-        metrics = MetricMeans()
-        metrics.add(out)
-        return {**metrics.means(), "updates": 1}
+        return scalar_metrics(out)

@@ -3,9 +3,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import torch
+
 from torchrl.objectives import CQLLoss, SoftUpdate, group_optimizers
 
-from .base import DatasetAgent, MetricMeans, adam, compile_setting, gaussian_actor, q_network
+from .base import DatasetAgent, adam, compile_setting, gaussian_actor, q_network, scalar_metrics
 from .registry import register_agent
 
 __all__ = ["CQLAgent"]
@@ -61,8 +63,10 @@ class CQLAgent(DatasetAgent):
         scale_lb: float = 0.1,
         fused_adam: bool = True,
         compile: bool | str = False,
+        cudagraphs: bool = False,
     ):
         self.compile = compile_setting(compile)
+        self.cudagraphs = bool(cudagraphs)
         self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         self.loss = CQLLoss(
@@ -84,11 +88,14 @@ class CQLAgent(DatasetAgent):
         self.policy_eval_start = int(policy_eval_start)
         self.action_key = action_key
         self.set_sampling(batch_size, reward_scale)
-        self.steps = 0
 
-    def update(self, batch):
-        out = self.loss_fn()(self.scaled(batch))
-        actor = out["loss_actor"] if self.steps >= self.policy_eval_start else out["loss_actor_bc"]
+    def step_variant(self) -> bool:
+        """``True`` during the behaviour-cloning phase (the first ``policy_eval_start`` updates)."""
+        return self.steps < self.policy_eval_start
+
+    def step(self, batch, bc_phase: bool):
+        out = self.loss_fn()(batch)
+        actor = out["loss_actor_bc"] if bc_phase else out["loss_actor"]
         total = actor + out["loss_qvalue"] + out["loss_cql"] + out["loss_alpha"]
         if out.get("loss_alpha_prime", None) is not None:
             total = total + out["loss_alpha_prime"]
@@ -96,14 +103,6 @@ class CQLAgent(DatasetAgent):
         total.backward()
         self.optimizer.step()
         self.target_updater.step()
-        self.steps += 1
-        metrics = MetricMeans()
-        metrics.add(out)
-        return {**metrics.means(), "train/bc_phase": float(self.steps <= self.policy_eval_start), "updates": 1}
-
-    def state_dict(self) -> dict:
-        return {**super().state_dict(), "steps": self.steps}
-
-    def load_state_dict(self, state) -> None:
-        super().load_state_dict(state)
-        self.steps = int(state.get("steps", 0))
+        metrics = scalar_metrics(out)
+        metrics["bc_phase"] = torch.full((), float(bc_phase), device=total.device)
+        return metrics

@@ -7,7 +7,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import IQLLoss, SoftUpdate, group_optimizers
 
 from ..nets import NormalizedMLP
-from .base import DatasetAgent, MetricMeans, adam, compile_setting, gaussian_actor, q_network, sum_losses
+from .base import DatasetAgent, adam, compile_setting, gaussian_actor, q_network, scalar_metrics, sum_losses
 from .registry import register_agent
 
 __all__ = ["IQLAgent"]
@@ -54,8 +54,10 @@ class IQLAgent(DatasetAgent):
         scale_lb: float = 0.1,
         fused_adam: bool = True,
         compile: bool | str = False,
+        cudagraphs: bool = False,
     ):
         self.compile = compile_setting(compile)
+        self.cudagraphs = bool(cudagraphs)
         obs_dim = env.observation_spec["observation"].shape[-1]
         self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
@@ -74,12 +76,10 @@ class IQLAgent(DatasetAgent):
         self.action_key = action_key
         self.set_sampling(batch_size, reward_scale)
 
-    def update(self, batch):
-        metrics = MetricMeans()
-        out = self.loss_fn()(self.scaled(batch))
+    def step(self, batch, variant=None):
+        out = self.loss_fn()(batch)
         self.optimizer.zero_grad()
         sum_losses(out).backward()
         self.optimizer.step()
         self.target_updater.step()
-        metrics.add(out)
-        return {**metrics.means(), "updates": 1}
+        return scalar_metrics(out)

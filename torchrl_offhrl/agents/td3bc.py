@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate, TD3BCLoss
 
 from .base import DatasetAgent, adam, compile_setting, deterministic_actor, q_network
@@ -53,8 +54,10 @@ class TD3BCAgent(DatasetAgent):
         reward_scale: float = 1.0,
         fused_adam: bool = True,
         compile: bool | str = False,
+        cudagraphs: bool = False,
     ):
         self.compile = compile_setting(compile)
+        self.cudagraphs = bool(cudagraphs)
         self.policy = deterministic_actor(env, action_key, hidden_sizes, obs_loc, obs_scale)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         self.loss = TD3BCLoss(self.policy, qvalue, action_spec=env.full_action_spec_unbatched[action_key], num_qvalue_nets=2, alpha=alpha,
@@ -68,29 +71,29 @@ class TD3BCAgent(DatasetAgent):
         self.policy_update_delay = int(policy_update_delay)
         self.action_key = action_key
         self.set_sampling(batch_size, reward_scale)
-        self.steps = 0
 
-    def update(self, batch):
-        batch = self.scaled(batch)
-        q_loss, q_meta = self.loss_fn("qvalue_loss")(batch)
+    def step_variant(self) -> bool:
+        """``True`` when this update also steps the actor and the targets (every ``policy_update_delay``-th)."""
+        return (self.steps + 1) % self.policy_update_delay == 0
+
+    def step(self, batch, with_actor: bool):
+        q_loss, _ = self.loss_fn("qvalue_loss")(batch)
         self.optimizer.zero_grad()
         q_loss.backward()
         self.optimizer.step()
-        out = {"train/loss_qvalue": float(q_loss.detach()), "updates": 1}
-        self.steps += 1
-        if self.steps % self.policy_update_delay == 0:
+        out = TensorDict(loss_qvalue=q_loss.detach())
+        if with_actor:
             actor_loss, meta = self.loss_fn("actor_loss")(batch)
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
             self.actor_optimizer.step()
             self.target_updater.step()
-            out.update({"train/loss_actor": float(actor_loss.detach()), "train/bc_loss": float(meta["bc_loss"]), "train/lmbd": float(meta["lmbd"])})
+            out.update(dict(loss_actor=actor_loss.detach(), bc_loss=meta["bc_loss"].detach(), lmbd=meta["lmbd"].detach()))
         return out
 
     def state_dict(self) -> dict:
-        return {**super().state_dict(), "actor_optimizer": self.actor_optimizer.state_dict(), "steps": self.steps}
+        return {**super().state_dict(), "actor_optimizer": self.actor_optimizer.state_dict()}
 
     def load_state_dict(self, state) -> None:
-        super().load_state_dict(state)
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
-        self.steps = int(state.get("steps", 0))
+        super().load_state_dict(state)  # after it: it resets every optimiser's capturable flag

@@ -246,9 +246,10 @@ def config_fingerprint(cfg: Mapping) -> str:
     for section, defaults in LATER_DEFAULTS.items():
         if isinstance(kept.get(section), Mapping):
             kept[section] = {k: v for k, v in kept[section].items() if not (k in defaults and v == defaults[k])}
-    if isinstance(kept.get("algo"), Mapping) and "compile" in kept["algo"]:
-        # a speed switch (torch.compile of the same loss): the same run compiled or not, and as before the key existed
-        kept["algo"] = {k: v for k, v in kept["algo"].items() if k != "compile"}
+    if isinstance(kept.get("algo"), Mapping):
+        # speed switches (torch.compile of the same loss, the same update captured as CUDA graphs): the same run with them
+        # or without, and as before the keys existed
+        kept["algo"] = {k: v for k, v in kept["algo"].items() if k not in ("compile", "cudagraphs")}
     if learns_from_dataset(cfg):  # a model-free agent fits no model: it is the same run whatever the (unused) model settings
         kept.pop("ensemble", None)
         kept.pop("cvae", None)

@@ -246,8 +246,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                 pending[k] = (total_k + v, n_k + 1)
             pending_n += 1
             if logger is not None and (not from_dataset or pending_n >= LOG_EVERY_UPDATES or run.step >= end):
-                for k, (v, n) in pending.items():  # dataset agents: the mean over LOG_EVERY_UPDATES updates
-                    logger.log_scalar(k, v / n, step=run.step)
+                for k, (v, n) in pending.items():  # dataset agents: the mean over LOG_EVERY_UPDATES updates (their 0-dim tensors, read now)
+                    logger.log_scalar(k, float(v) / n, step=run.step)
             if not from_dataset or pending_n >= LOG_EVERY_UPDATES:
                 pending, pending_n = {}, 0
             bar.update(run.step - before)
