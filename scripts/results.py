@@ -152,9 +152,12 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
     return runs, doc.get("moc_diagnostics_mean_over_seeds", {})
 
 
-def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",), tuning: bool = False) -> None:
+def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",), tuning: bool = False,
+        speed: list[str] = ()) -> None:
+    """Every (dataset, env, algo, seed) run in turn. ``speed``: overrides that must not change the run (e.g. ``device=cuda``,
+    ``algo.cudagraphs=true``): each run's resume fingerprint is checked to be the same with them and without."""
     from torchrl_offhrl.agents import agent_defaults
-    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.config import compose, config_fingerprint
     from torchrl_offhrl.recipes.train import train
     from torchrl_offhrl.utils import to_plain
 
@@ -170,6 +173,13 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
                 elif "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
                     overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
                 cfg = to_plain(compose(CONFIG[scale], overrides))
+                if speed:
+                    fast = to_plain(compose(CONFIG[scale], [*overrides, *speed]))
+                    if config_fingerprint(fast) != config_fingerprint(cfg):
+                        raise SystemExit(f"--speed {' '.join(speed)}: these overrides change the run itself (its resume fingerprint), "
+                                         "not only how fast it goes; only settings such as device=cuda, algo.compile, algo.cudagraphs, "
+                                         "torch_threads belong there")
+                    cfg = fast
                 s = train(cfg)
                 archive(where)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
                 print(f"{where} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
@@ -242,6 +252,8 @@ def main(argv=None) -> int:
     r.add_argument("--datasets", nargs="+", choices=["medium", "medium-expert"], default=["medium"],
                    help="medium-expert: the medium and expert parts concatenated (2M transitions at the full scale, as D4RL)")
     r.add_argument("--tuning", action="store_true", help="runs on tuning seeds (default 1 2 3), kept apart: outputs/results/<scale>_tuning/")
+    r.add_argument("--speed", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="overrides that change how fast, not what, a run trains (refused otherwise): e.g. device=cuda algo.cudagraphs=true")
     g = sub.add_parser("report")
     g.add_argument("--scale", choices=sorted(CONFIG), default="demo")
     g.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/<scale>_tuning/README.md")
@@ -250,7 +262,7 @@ def main(argv=None) -> int:
         seeds = a.seeds if a.seeds is not None else [1, 2, 3] if a.tuning else [4, 5, 6]
         if a.tuning and set(seeds) & EVAL_SEEDS:
             raise SystemExit("--tuning runs use the tuning seeds; seeds 4-6 are the evaluation seeds of docs/results/<scale>/")
-        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning)
+        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning, a.speed)
     else:
         print(report(a.scale, a.tuning))
     return 0

@@ -353,6 +353,11 @@ def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories
     assert [c["dataset"] for c in seen] == ["medium", "medium-expert"]
     assert [Path(c["run_dir"]).name for c in seen] == ["bc-hopper-medium-seed4", "bc-hopper-medium-expert-seed4"]
     assert all(c["train"]["total_updates"] == 100000 for c in seen)
+    # --speed: settings that change how fast a run goes reach it; one that would change the run itself is refused
+    mod.main(["run", "--scale", "full", "--envs", "hopper", "--algos", "cql", "--seeds", "4", "--speed", "device=cuda", "algo.cudagraphs=true"])
+    assert seen[-1]["device"] == "cuda" and seen[-1]["algo"]["cudagraphs"] is True and Path(seen[-1]["run_dir"]).name == "cql-hopper-medium-seed4"
+    with pytest.raises(SystemExit, match="change the run itself"):
+        mod.main(["run", "--scale", "full", "--envs", "hopper", "--algos", "cql", "--seeds", "4", "--speed", "algo.num_random=2"])
 
 
 def test_results_script_keeps_tuning_runs_apart(monkeypatch):
