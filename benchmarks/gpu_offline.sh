@@ -1,10 +1,8 @@
 #!/bin/bash
 # The offline agents' updates on a GPU, eager against captured as CUDA graphs (cudagraphs=true), in one short pass (~6 min on an H100):
 #     bash benchmarks/gpu_offline.sh OUT_DIR [PYTHON]
-# Runs the CUDA tests of the dataset agents (the captured update matches the eager one, each form of an update is
-# captured, a captured run resumes on the CPU), a probe of whether this machine generates the same dataset bytes as
-# the CPU machines (the hash of the first 16k transitions of hopper-medium; a run resumes only on the same data),
-# then benchmarks/offline_updates.py --device cuda. Each step has its own time limit and writes its log to OUT_DIR.
+# Runs tests/test_cuda.py (among them, for the dataset agents: the captured update matches the eager one, each form of an update is
+# captured, a captured run resumes on the CPU), then benchmarks/offline_updates.py --device cuda. Each step has its own time limit and writes its log to OUT_DIR.
 out=${1:?usage: gpu_offline.sh OUT_DIR [PYTHON]}; py=${2:-python}
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
@@ -18,8 +16,6 @@ step() {  # step NAME SECONDS COMMAND...
     echo "=== $name: exit $rc after $((SECONDS - t0)) s"
 }
 step env 30 "$py" -c "import torch, torchrl, tensordict; print(torch.__version__, torchrl.__version__, tensordict.__version__, torch.cuda.get_device_name())"
-step tests 150 "$py" -m pytest -q -p no:cacheprovider -n 6 tests/test_cuda.py \
-    -k "captured or (agent_trains_on_cuda and (bc or iql or cql))"
-step probe 60 "$py" -c "from torchrl_offhrl.data.generate import generate_dataset as g; d = g('hopper', 'medium', num_transitions=16000, seed=0, progress=False, ref_episodes=0); print('probe hopper-medium 16k hash', d.content_hash(), '(CPU machines: 16d8b2634a6c2e6d)')"
-step offline_updates 240 "$py" benchmarks/offline_updates.py --device cuda --updates 500 --algos cql iql td3bc bc \
+step tests 150 "$py" -m pytest -q -p no:cacheprovider -n 8 tests/test_cuda.py
+step offline_updates 330 "$py" benchmarks/offline_updates.py --device cuda --updates 500 --algos cql iql td3bc bc \
     --variants after captured "captured, sampled" captured+compiled

@@ -86,13 +86,14 @@ def main():
 
                 rb = ReplayBuffer(storage=LazyTensorStorage(a.buffer, device=dev), batch_size=b)
                 rb.extend(batch.expand(a.buffer // b, b).reshape(-1).clone())
-            draw = rb.sample if variant == "captured, sampled" else (lambda: batch)
+            # a fresh copy per update, as the loop's sampled batches: TorchRL's losses write their own entries into their input
+            draw = rb.sample if variant == "captured, sampled" else batch.clone
             for _ in range(50 if captured else 5):  # warm-up (captured: each form's eager runs, its capture, its first replays)
                 agent.update(draw())
             if not compiled and not captured:  # the same products as in the other variants (the profiler does not see them all)
                 with profile(with_flops=True) as prof:  # the matrix products' FLOPs (mm, addmm, bmm), forward and backward
-                    agent.update(batch)
-                    agent.update(batch)  # TD3+BC: one critic-only and one critic + actor update
+                    agent.update(draw())
+                    agent.update(draw())  # TD3+BC: one critic-only and one critic + actor update
                 flops = sum(e.flops for e in prof.key_averages() if e.flops) / 2
             sync()
             t = time.perf_counter()

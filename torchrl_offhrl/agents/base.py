@@ -207,11 +207,19 @@ class Agent:
         networks' parameters and buffers in their own ``TensorDictParams``;
         ``loss.to`` moves the parameters in place (the policy shares them)
         but gives the loss new buffer tensors, so the policy's buffers (the
-        dataset's observation statistics) would stay behind on the CPU.
+        dataset's observation statistics) would stay behind on the CPU. The
+        tensors among the distributions' keyword arguments (the tanh-Gaussian's
+        action box) are no buffers either: they move too (else every
+        distribution built on the GPU copies them from the host, which a CUDA
+        graph cannot capture).
         """
         for module in vars(self).values():
             if isinstance(module, torch.nn.Module):
                 module.to(device)
+                for m in module.modules():
+                    kwargs = getattr(m, "distribution_kwargs", None)
+                    if isinstance(kwargs, dict):
+                        kwargs.update({k: v.to(device) for k, v in kwargs.items() if isinstance(v, torch.Tensor)})
         return self
 
     def state_dict(self) -> dict:
