@@ -1,0 +1,61 @@
+"""Action packs: a generated dataset rebuilt bit for bit from its actions; anything else refused."""
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchrl_offhrl.data import DatasetError, generate_dataset, make_toy_dataset
+from torchrl_offhrl.data.action_pack import load_action_pack, save_action_pack
+
+
+@pytest.fixture(scope="module")
+def small_hopper():
+    # uniform random actions, 4 streams of 150 steps: many falls inside each stream, so many unseeded resets to replay
+    return generate_dataset("hopper", "random", num_transitions=600, seed=3, num_envs=4, progress=False, ref_episodes=0)
+
+
+def test_the_rebuilt_dataset_is_the_generated_one(small_hopper, tmp_path):
+    pack = save_action_pack(small_hopper, tmp_path / "p.pt")
+    rebuilt = load_action_pack(pack, workers=2, progress=False)
+    assert rebuilt.content_hash() == small_hopper.content_hash()
+    for key in small_hopper.data.keys(True, True):
+        assert torch.equal(rebuilt.data[key], small_hopper.data[key]), key
+    done = small_hopper.data["next", "done"].squeeze(-1)
+    assert done.sum() > 12  # more episode ends than the 4 cut streams: resets inside a stream were replayed too
+    assert torch.equal(rebuilt.action_low, small_hopper.action_low) and rebuilt.metadata["rebuilt_from_actions"] is True
+    assert pack.stat().st_size < 0.5 * small_hopper.data.bytes()  # the actions alone
+
+
+def test_a_pack_whose_replay_differs_is_refused(small_hopper, tmp_path):
+    state = torch.load(save_action_pack(small_hopper, tmp_path / "p.pt"), weights_only=True)
+    state["actions"][10, 0] = -state["actions"][10, 0]  # one action changed: the replayed data (and its hash) differ
+    torch.save(state, tmp_path / "bad.pt")
+    with pytest.raises(DatasetError, match="replaying the actions gave other data"):
+        load_action_pack(tmp_path / "bad.pt", workers=1, progress=False)
+
+
+def test_what_cannot_be_packed_or_unpacked(tmp_path):
+    with pytest.raises(DatasetError, match="one collection"):
+        save_action_pack(make_toy_dataset(num_episodes=2, episode_length=5), tmp_path / "toy.pt")
+    torch.save({"actions": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(DatasetError, match="not an action pack"):
+        load_action_pack(tmp_path / "other.pt")
+    (tmp_path / "junk.pt").write_text("not a torch file")
+    with pytest.raises(DatasetError, match="not readable as an action pack"):
+        load_action_pack(tmp_path / "junk.pt")
+
+
+def test_unpack_puts_the_dataset_where_named_dataset_finds_it(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    from torchrl_offhrl.data import named_dataset
+
+    spec = importlib.util.spec_from_file_location("action_pack_script", Path(__file__).resolve().parents[1] / "scripts" / "action_pack.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    original = named_dataset("hopper-medium-400", progress=False)  # generated, then cached
+    path = Path(original.metadata["source"])
+    assert mod.main(["pack", "hopper-medium-400", str(tmp_path / "hm.pt")]) == 0
+    path.unlink()
+    assert mod.main(["unpack", str(tmp_path / "hm.pt"), "--workers", "2"]) == 0
+    assert path.is_file() and named_dataset("hopper-medium-400", progress=False).content_hash() == original.content_hash()
