@@ -6,11 +6,15 @@
 #    the same data, bit for bit, as on the machines that generated it);
 # 2. runs `scripts/results.py run --scale full --envs ENV --algos ALGO --seeds SEED` for each seed at once, with
 #    --speed $SPEED (default: device=cuda algo.cudagraphs=true), each stopped after SECONDS;
-# 3. every 20 s, and at the end, packs the run directories (checkpoints, evaluations, logs) into OUT_DIR/runs.tgz.
-# A run cut short by the time limit resumes from its last checkpoint wherever runs.tgz is unpacked under
+# 3. every 20 s, and at the end, packs each run directory (checkpoint, evaluations, logs) into OUT_DIR/<run>.tgz.
+# A run cut short by the time limit resumes from its last checkpoint wherever its .tgz is unpacked under
 # outputs/results/full/ (`scripts/results.py run` again, on a CPU or a GPU); a finished one is archived and
 # reported by `scripts/results.py report --scale full`. Run directories carried into outputs/results/full/
 # resume here.
+# Measured (2026-11-27, H100, CQL on hopper-medium, seeds 4-6, SPEED="device=cuda algo.cudagraphs=true algo.compile=true"):
+# unpacking took 46 s; the three runs shared the GPU at ~770 updates/s together (each 10k-update block took 38-40 s,
+# about what one process gets alone: the GPU, not Python, bounds them), and their first 10k updates took 1:45 with
+# the compile and the first evaluation; 370 s took each to ~70k of 100k updates. Budget ~8.5 min for three 100k runs.
 out=${1:?usage: gpu_runs.sh OUT_DIR PYTHON SECONDS ENV ALGO SEED...}; py=${2:?}; limit=${3:?}; env=${4:?}; algo=${5:?}; shift 5
 seeds=("$@")
 mkdir -p "$out" outputs/results/full
@@ -24,10 +28,12 @@ for s in "${seeds[@]}"; do
     timeout "$limit" "$py" scripts/results.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" \
         --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-seed$s.log" 2>&1 &
 done
-pack() {  # the run directories as they stand (written to a temporary name, then renamed: never half a file)
-    local have=()
-    for d in "${dirs[@]}"; do [ -d "outputs/results/full/$d" ] && have+=("$d"); done
-    [ ${#have[@]} -gt 0 ] && tar czf "$out/runs.tgz.part" -C outputs/results/full "${have[@]}" && mv "$out/runs.tgz.part" "$out/runs.tgz"
+pack() {  # each run directory as it stands, in its own OUT_DIR/<run>.tgz (16 MiB a file come back; three runs in one were 17 MB),
+          # written to a temporary name and renamed: never half a file. tar's "file changed as we read it" (exit 1) is expected
+    for d in "${dirs[@]}"; do
+        [ -d "outputs/results/full/$d" ] || continue
+        tar czf "$out/$d.tgz.part" --warning=no-file-changed -C outputs/results/full "$d"; [ $? -le 1 ] && mv "$out/$d.tgz.part" "$out/$d.tgz"
+    done
 }
 while [ -n "$(jobs -rp)" ]; do sleep 20; pack; done
 wait
