@@ -443,3 +443,22 @@ def test_cache_key_follows_the_policy_weights(policies_here, monkeypatch, tmp_pa
     after = dataset_path("hopper-medium", 200, seed=1, num_envs=2)
     assert before != after and before.name.split("-p")[0] == after.name.split("-p")[0]
     assert dataset_path("hopper-random", 200, seed=1).name == "hopper-random-200-seed1.hdf5"
+
+
+def test_a_seeded_stochastic_evaluation_repeats_and_leaves_the_rng_alone():
+    """evaluate_policy(deterministic=False, seed=s): the same sampled returns each time; the caller's torch RNG stream is untouched."""
+    import torch
+
+    from torchrl_offhrl.data import load_policy, make_gym_env
+    from torchrl_offhrl.rollouts import evaluate_policy
+
+    actor, _ = load_policy("hopper-medium")
+    env = make_gym_env("Hopper-v5", num_envs=3)
+    torch.manual_seed(0)
+    state = torch.get_rng_state()
+    a = evaluate_policy(env, actor, 3, max_steps=60, deterministic=False, seed=5)
+    assert torch.equal(torch.get_rng_state(), state)
+    b = evaluate_policy(env, actor, 3, max_steps=60, deterministic=False, seed=5)
+    c = evaluate_policy(env, actor, 3, max_steps=60, deterministic=False, seed=6)
+    d = evaluate_policy(env, actor, 3, max_steps=60, deterministic=True, seed=5)
+    assert torch.equal(a, b) and not torch.equal(a, c) and not torch.equal(a, d)

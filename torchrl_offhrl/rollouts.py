@@ -30,7 +30,10 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     :func:`~torchrl_offhrl.data.make_gym_env` with ``num_envs=episodes``),
     possibly auto-resetting: only rewards up to each env's first ``done``
     count. Returns a float tensor ``[episodes]`` (and the ``[episodes, T]``
-    rollout when ``return_rollout``).
+    rollout when ``return_rollout``). With ``deterministic=False`` and a
+    ``seed``, the policy's samples are drawn from torch's RNG seeded with it
+    (forked: the caller's RNG stream is left as it was), so a stochastic
+    evaluation is as repeatable as a deterministic one.
     """
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -41,7 +44,12 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     mask = full_reset_mask(env)
     td0 = env.reset(mask) if mask is not None else env.reset()
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    with set_exploration_type(mode):
+    seeded = not deterministic and seed is not None
+    params = policy.parameters() if seeded and hasattr(policy, "parameters") else ()  # policy None: the env's random actions
+    devices = [d for d in {p.device for p in params} if d.type == "cuda"]
+    with torch.random.fork_rng(devices=devices, enabled=seeded), set_exploration_type(mode):
+        if seeded:
+            torch.manual_seed(seed)
         td = env.rollout(max_steps, policy, tensordict=td0, auto_reset=False, break_when_any_done=False, auto_cast_to_device=True)
     reward = td.get(("next", "reward")).reshape(episodes, -1)
     done = td.get(("next", "done")).reshape(episodes, -1)
