@@ -2,6 +2,7 @@
 
     python scripts/transfer.py run [--envs hopper] [--algos moc ppo sac] [--kinds transfer scratch] [--seeds 4 5 6]
     python scripts/transfer.py report      # docs/results/transfer.md, transfer.csv, curves.png
+    python scripts/transfer.py sampled     # docs/results/transfer_sampled.md: final policies, deterministic vs sampled
 
 Kinds of run (every one an ordinary run directory under ``outputs/results/transfer/``, resumable by rerunning):
 
@@ -152,6 +153,59 @@ def report() -> str:
     return text
 
 
+SAMPLED_PAGE = ROOT / "docs" / "results" / "transfer_sampled.md"
+
+
+def sampled(envs: list[str], episodes: int = 10, seed: int = 12345) -> str:
+    """Each finished run's final policy (its checkpoint in ``outputs/results/transfer/``) evaluated on its last task twice,
+    deterministic and sampled, on the same ``episodes`` start states: docs/results/transfer_sampled.md and .json.
+
+    The learning curves evaluate every agent deterministically (MOC: the likeliest option, ended where its termination
+    probability passes 0.5, and its mean action); this says what that hides, for each algorithm alike.
+    """
+    import json
+
+    import numpy as np
+
+    from torchrl_offhrl.recipes.evaluation import evaluate_run
+
+    cache = SAMPLED_PAGE.with_suffix(".json")
+    done = json.loads(cache.read_text()) if cache.is_file() else {}
+    for d in sorted(OUT.glob("*-seed[456]")):
+        env = d.name.split("-")[1]
+        if env not in envs or not (d / "summary.json").is_file() or not (d / "checkpoint.pt").is_file():
+            continue
+        stamp = (d / "summary.json").stat().st_mtime
+        if done.get(d.name, {}).get("stamp") == stamp:
+            continue  # evaluated already, and the run has not moved since
+        det, sto = (evaluate_run(d, episodes=episodes, seed=seed, deterministic=x) for x in (True, False))
+        done[d.name] = {"stamp": stamp, "task": det.get("task"), "deterministic": det["return_mean"], "sampled": sto["return_mean"],
+                        "sampled_std_over_episodes": sto["return_std"]}
+        cache.write_text(json.dumps(done, indent=1))
+        print(f"{d.name}: deterministic {det['return_mean']:.1f}, sampled {sto['return_mean']:.1f}", flush=True)
+    groups = {}
+    for name, r in done.items():
+        groups.setdefault(name.rsplit("-seed", 1)[0], []).append((name.rsplit("-seed", 1)[1], r))
+
+    def ms(xs):
+        return f"{np.mean(xs):,.0f} ± {np.std(xs, ddof=1) if len(xs) > 1 else 0.0:,.0f}"
+
+    lines = ["# Transfer: final policies evaluated deterministically and sampled", "",
+             "Made by `python scripts/transfer.py sampled` from the runs' final checkpoints (`outputs/results/transfer/`): each is "
+             f"evaluated on its last task (backward) on the same {episodes} start states (seed {seed}), once deterministically as the "
+             "learning curves do (PPO and SAC: the mean action; MOC: the likeliest option, ended where its termination probability "
+             "passes 0.5, and that option's mean action) and once sampling actions (and MOC's options and terminations) as in "
+             "training, with torch's RNG seeded the same way. Returns on the backward task; mean ± std over seeds (ddof 1).", "",
+             "| run | seeds | deterministic | sampled | sampled - deterministic | per seed (deterministic / sampled) |", "|---|---|---|---|---|---|"]
+    for g, rs in sorted(groups.items()):
+        det, sto = [r["deterministic"] for _, r in rs], [r["sampled"] for _, r in rs]
+        per = ", ".join(f"{s}: {r['deterministic']:,.0f} / {r['sampled']:,.0f}" for s, r in sorted(rs))
+        lines.append(f"| {g} | {len(rs)} | {ms(det)} | {ms(sto)} | {np.mean(sto) - np.mean(det):+,.0f} | {per} |")
+    text = "\n".join(lines) + "\n"
+    SAMPLED_PAGE.write_text(text)
+    return text
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -166,6 +220,9 @@ def main(argv=None) -> int:
     r.add_argument("--tuning", action="store_true", help="runs on tuning seeds (default 1), kept apart: outputs/results/transfer_tuning/")
     rep = sub.add_parser("report")
     rep.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/transfer_tuning.md")
+    smp = sub.add_parser("sampled", help="final policies evaluated deterministically and sampled: docs/results/transfer_sampled.md")
+    smp.add_argument("--envs", nargs="+", default=["hopper", "halfcheetah"])
+    smp.add_argument("--episodes", type=int, default=10)
     a = p.parse_args(argv)
     if a.cmd == "run":
         seeds = a.seeds if a.seeds is not None else [1] if a.tuning else [4, 5, 6]
@@ -174,6 +231,8 @@ def main(argv=None) -> int:
         if a.extra and not a.tag:
             raise SystemExit("--extra makes a variant: name it with --tag, so that its runs and rows are not taken for the defaults'")
         run(a.envs, a.algos, a.kinds, seeds, a.online_frames, a.extra, a.tag, a.tuning)
+    elif a.cmd == "sampled":
+        print(sampled(a.envs, a.episodes))
     else:
         print(tuning_report() if a.tuning else report())
     return 0

@@ -585,3 +585,35 @@ def test_cudagraphs_switch_is_the_same_update_off_a_gpu(algo):
     base = to_plain(compose("offline_train", [f"algo={algo}", "dataset=hopper-medium"]))
     fast = to_plain(compose("offline_train", [f"algo={algo}", "dataset=hopper-medium", "algo.cudagraphs=true"]))
     assert base["algo"]["cudagraphs"] is False and config_fingerprint(base) == config_fingerprint(fast)
+
+
+def test_transfer_script_compares_deterministic_and_sampled_final_policies(monkeypatch, tmp_path):
+    """scripts/transfer.py sampled: each finished run evaluated both ways on the same seed, mean ± std per group, cached until the run moves."""
+    import importlib.util
+
+    import torchrl_offhrl.recipes.evaluation as ev_mod
+
+    spec = importlib.util.spec_from_file_location("transfer_script", Path(__file__).resolve().parents[1] / "scripts" / "transfer.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr(mod, "OUT", tmp_path / "runs")
+    monkeypatch.setattr(mod, "SAMPLED_PAGE", tmp_path / "sampled.md")
+    for seed in (4, 5):
+        d = tmp_path / "runs" / f"ppo-hopper-medium-transfer-seed{seed}"
+        d.mkdir(parents=True)
+        (d / "summary.json").write_text("{}")
+        (d / "checkpoint.pt").write_text("")
+    (tmp_path / "runs" / "ppo-hopper-medium-scratch-seed4").mkdir()  # unfinished: skipped
+    calls = []
+
+    def fake(run_dir, episodes, seed, deterministic):
+        calls.append((Path(run_dir).name, seed, deterministic))
+        s = int(Path(run_dir).name[-1])
+        return {"task": "backward", "return_mean": 1000.0 + 100 * s if deterministic else 900.0 + 10 * s, "return_std": 1.0}
+
+    monkeypatch.setattr(ev_mod, "evaluate_run", fake)
+    text = mod.sampled(["hopper"], episodes=3)
+    assert len(calls) == 4 and {c[1] for c in calls} == {12345}
+    assert "| ppo-hopper-medium-transfer | 2 | 1,450 ± 71 | 945 ± 7 | -505 | 4: 1,400 / 940, 5: 1,500 / 950 |" in text
+    mod.sampled(["hopper"], episodes=3)
+    assert len(calls) == 4  # cached: the runs have not moved
