@@ -1,11 +1,13 @@
 #!/bin/bash
 # The CUDA checks and GPU benchmarks in one pass, for a machine with a GPU (~8 min on an H100; it ran in 3 min plus the recipe step, which needed more than 150 s):
-#     bash benchmarks/gpu_check.sh OUT_DIR [PYTHON]
+#     bash benchmarks/gpu_check.sh OUT_DIR [PYTHON]           # everything
+#     bash benchmarks/gpu_check.sh OUT_DIR [PYTHON] offline   # tests/test_cuda.py, then the dataset agents' updates eager
+#                                                             # against captured as CUDA graphs (cudagraphs=true), ~5 min
 # Runs the CUDA tests (tests/test_cuda.py and the CUDA cases beside what they check),
 # then benchmarks/{offline_updates,ensemble_training,env_throughput,recipe_throughput}.py
 # with --device cuda. Each step has its own time limit and writes its log to OUT_DIR,
 # so a step that fails or runs out of time leaves the others' results.
-out=${1:?usage: gpu_check.sh OUT_DIR [PYTHON]}; py=${2:-python}
+out=${1:?usage: gpu_check.sh OUT_DIR [PYTHON] [offline]}; py=${2:-python}; what=${3:-all}
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 step() {  # step NAME SECONDS COMMAND...
@@ -18,6 +20,12 @@ step() {  # step NAME SECONDS COMMAND...
     echo "=== $name: exit $rc after $((SECONDS - t0)) s"
 }
 step env 30 "$py" -c "import torch, torchrl, tensordict, gymnasium, mujoco; print(torch.__version__, torchrl.__version__, tensordict.__version__, gymnasium.__version__, mujoco.__version__); print(torch.cuda.get_device_name(), torch.cuda.get_device_properties(0).total_memory // 2**30, 'GiB')"
+if [ "$what" = offline ]; then
+    step tests 150 "$py" -m pytest -q -p no:cacheprovider -n 8 tests/test_cuda.py
+    step offline_updates 330 "$py" benchmarks/offline_updates.py --device cuda --updates 500 --algos cql iql td3bc bc \
+        --variants after captured "captured, sampled" captured+compiled
+    exit 0
+fi
 step tests 110 "$py" -m pytest -q -p no:cacheprovider -n 6 tests/test_cuda.py tests/test_envs.py::test_cuda \
     tests/test_behaviour.py::test_train_and_resume_on_cuda tests/test_data.py::test_to_replay_buffer_on_cuda \
     tests/test_data.py::test_dataset_to_device_keeps_metadata_and_values

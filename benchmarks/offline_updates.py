@@ -74,7 +74,7 @@ def main():
         batch = TensorDict({"observation": torch.randn(b, 11), "action": torch.rand(b, 3) * 2 - 1, "next": {
             "observation": torch.randn(b, 11), "reward": torch.randn(b, 1), "done": torch.zeros(b, 1, dtype=torch.bool),
             "terminated": torch.zeros(b, 1, dtype=torch.bool)}}, [b], device=dev)
-        rb = None
+        rb, first = None, None
         for variant in variants:
             torch.manual_seed(0)
             compiled = {"compiled": True, "cuda-graphs": "reduce-overhead", "captured+compiled": True}.get(variant, False)

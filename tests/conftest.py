@@ -55,3 +55,14 @@ def cache(tmp_path_factory):
         os.environ.pop("TORCHRL_OFFHRL_CACHE")
     else:
         os.environ["TORCHRL_OFFHRL_CACHE"] = old
+
+
+def load_script(name: str):
+    """``scripts/<name>.py`` as a fresh module (the scripts are no package): ``load_script("results").main([...])``."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(f"{name}_script", Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -1,5 +1,4 @@
 """Action packs: a generated dataset rebuilt bit for bit from its actions; anything else refused."""
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -7,6 +6,7 @@ import torch
 
 from torchrl_offhrl.data import DatasetError, generate_dataset, make_toy_dataset
 from torchrl_offhrl.data.action_pack import load_action_pack, save_action_pack
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
@@ -50,9 +50,7 @@ def test_unpack_puts_the_dataset_where_named_dataset_finds_it(tmp_path, monkeypa
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
     from torchrl_offhrl.data import named_dataset
 
-    spec = importlib.util.spec_from_file_location("action_pack_script", Path(__file__).resolve().parents[1] / "scripts" / "action_pack.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("action_pack")
     original = named_dataset("hopper-medium-400", progress=False)  # generated, then cached
     path = Path(original.metadata["source"])
     assert mod.main(["pack", "hopper-medium-400", str(tmp_path / "hm.pt")]) == 0

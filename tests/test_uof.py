@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModule
 
 from torchrl_offhrl.blockstack import goals as G
 from torchrl_offhrl.objectives import TwinDDPGLoss
+from conftest import load_script
 
 
 # ------------------------------------------------------------------------------------------ the low-level loss
@@ -363,11 +364,7 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
 
 def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_earlier_page(tmp_path, monkeypatch):
     """scripts/blockstack_results.py: a finished run is archived and reported; a group with no archived run is the earlier page's text."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("bs_results", Path(__file__).resolve().parents[1] / "scripts" / "blockstack_results.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("blockstack_results")
     monkeypatch.setattr(mod, "BASE", tmp_path / "outputs")
     monkeypatch.setattr(mod, "OUT", tmp_path / "docs")
     monkeypatch.setattr(mod, "ARCHIVE", tmp_path / "docs" / "blockstack" / "runs")
