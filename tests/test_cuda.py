@@ -14,7 +14,7 @@ from torchrl_offhrl.recipes.config import compose
 from torchrl_offhrl.recipes.train import train
 from torchrl_offhrl.utils import to_plain
 
-from test_offline_agents import DATASET_ALGOS, MODEL_EXTRA, TINY_MODEL
+from test_offline_agents import DATASET_ALGOS, MODEL_EXTRA, TINY_MODEL, pendulum_agents
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
@@ -101,18 +101,7 @@ def test_transfer_run_on_cuda(algo, decoder, hopper_file, tmp_path, monkeypatch)
 
 
 def _captured_and_eager(algo, extra, updates, batch=8):
-    from torchrl_offhrl.agents import make_agent
-    from torchrl_offhrl.data import make_gym_env
-
-    env = make_gym_env("Pendulum-v1")
-    td = env.rollout(updates * batch, break_when_any_done=False).reshape(-1).to("cuda")
-    agents = []
-    for graphs in (False, True):
-        torch.manual_seed(0)
-        agent = make_agent(algo, env, {"hidden_sizes": [8], "batch_size": batch, "cudagraphs": graphs, **extra}, action_key="action", device="cuda")
-        metrics = [agent.update(td[batch * k: batch * (k + 1)].clone()) for k in range(updates)]
-        agents.append((agent, metrics))
-    return agents
+    return pendulum_agents(algo, "cudagraphs", (False, True), extra, updates=updates, batch=batch, device="cuda")
 
 
 @pytest.mark.parametrize("algo", ["bc", "iql"])

@@ -154,21 +154,31 @@ def test_td3bc_steps_its_actor_every_second_update():
     assert any(not torch.equal(a, p) for a, p in zip(actor, agent.loss.actor_network_params.flatten_keys().values()))
 
 
+def pendulum_agents(algo, switch, values, extra=None, updates=3, batch=8, device="cpu"):
+    """One ``algo`` agent on Pendulum per value of config key ``switch``, each from seed 0, each given the same ``updates``
+    batches of ``batch`` transitions; returns ``[(agent, [update metrics])]`` (speed switches must give the same agents)."""
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    td = env.rollout(updates * batch, break_when_any_done=False).reshape(-1).to(device)
+    out = []
+    for value in values:
+        torch.manual_seed(0)
+        agent = make_agent(algo, env, {"hidden_sizes": [8], "batch_size": batch, switch: value, **(extra or {})}, action_key="action",
+                           device=device)
+        out.append((agent, [agent.update(td[batch * k: batch * (k + 1)].clone()) for k in range(updates)]))
+    return out
+
+
 @pytest.mark.parametrize("algo", ["bc", "iql"])
 def test_compiled_loss_takes_the_same_update(algo):
     """compile=true (torch.compile of the loss) is a speed switch: BC's and IQL's updates (no sampling inside) match eager ones."""
     from torchrl_offhrl.agents import make_agent
     from torchrl_offhrl.data import make_gym_env
 
+    (eager, _), (comp, _) = pendulum_agents(algo, "compile", (False, True))
     env = make_gym_env("Pendulum-v1")
-    td = env.rollout(24, break_when_any_done=False).reshape(-1)
-    agents = []
-    for compiled in (False, True):
-        torch.manual_seed(0)
-        agents.append(make_agent(algo, env, {"hidden_sizes": [8], "batch_size": 8, "compile": compiled}, action_key="action"))
-        for k in range(3):
-            agents[-1].update(td[8 * k: 8 * (k + 1)].clone())
-    eager, comp = agents
     assert list(comp.__dict__["_compiled"]) == [None] and "_compiled" not in eager.__dict__
     for (name, a), b in zip(eager.loss.state_dict().items(), comp.loss.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=name)
@@ -540,20 +550,11 @@ def test_checkpoints_fingerprinted_under_older_rules_still_resume():
 @pytest.mark.parametrize("algo", ["cql", "td3bc"])
 def test_cudagraphs_switch_is_the_same_update_off_a_gpu(algo):
     """cudagraphs=true changes nothing on a CPU (no graph is made); a state saved with capturable optimisers loads capturable-free; not in the fingerprint."""
-    from torchrl_offhrl.agents import make_agent
     from torchrl_offhrl.data import make_gym_env
     from torchrl_offhrl.recipes.config import compose, config_fingerprint
-    from torchrl_offhrl.utils import to_plain
 
-    env = make_gym_env("Pendulum-v1")
-    td = env.rollout(32, break_when_any_done=False).reshape(-1)
-    agents = []
-    for graphs in (False, True):
-        torch.manual_seed(0)
-        agent = make_agent(algo, env, {"hidden_sizes": [8], "batch_size": 8, "cudagraphs": graphs, "policy_eval_start": 2} if algo == "cql"
-                           else {"hidden_sizes": [8], "batch_size": 8, "cudagraphs": graphs}, action_key="action")
-        metrics = [agent.update(td[8 * k: 8 * (k + 1)].clone()) for k in range(4)]
-        agents.append((agent, metrics))
+    agents = pendulum_agents(algo, "cudagraphs", (False, True), {"policy_eval_start": 2} if algo == "cql" else {}, updates=4)
+    td = make_gym_env("Pendulum-v1").rollout(8, break_when_any_done=False).reshape(-1)
     (eager, m0), (graphs, m1) = agents
     assert graphs.cudagraphs and all(callable(f) and type(f).__name__ == "function" for f in graphs.__dict__["_step_fns"].values())
     for (name, a), b in zip(eager.loss.state_dict().items(), graphs.loss.state_dict().values()):
@@ -566,7 +567,7 @@ def test_cudagraphs_switch_is_the_same_update_off_a_gpu(algo):
     graphs.load_state_dict(state)
     assert graphs.steps == 4 and not any(g["capturable"] for o in graphs.optimizers() for g in o.param_groups)
     assert "_step_fns" not in graphs.__dict__
-    graphs.update(td[:8].clone())
+    graphs.update(td)
     base = to_plain(compose("offline_train", [f"algo={algo}", "dataset=hopper-medium"]))
     fast = to_plain(compose("offline_train", [f"algo={algo}", "dataset=hopper-medium", "algo.cudagraphs=true"]))
     assert base["algo"]["cudagraphs"] is False and config_fingerprint(base) == config_fingerprint(fast)
