@@ -27,6 +27,16 @@ def test_the_rebuilt_dataset_is_the_generated_one(small_hopper, tmp_path):
     assert pack.stat().st_size < 0.5 * small_hopper.data.bytes()  # the actions alone
 
 
+def test_streams_that_end_their_episodes_together_are_replayed_as_collected(tmp_path):
+    """HalfCheetah's episodes all last 1000 steps, so every stream ends one at the same step, where the collector reset the
+    whole vector env once more: the replay finds those steps and resets there twice, and gets the same bytes."""
+    ds = generate_dataset("halfcheetah", "random", num_transitions=2200, seed=1, num_envs=2, progress=False, ref_episodes=0)
+    trunc = ds.data["next", "truncated"].squeeze(-1).reshape(2, -1)
+    assert trunc[:, 999].all()  # both streams' first episodes end at the same step
+    rebuilt = load_action_pack(save_action_pack(ds, tmp_path / "hc.pt"), workers=2, progress=False)
+    assert rebuilt.content_hash() == ds.content_hash()
+
+
 def test_a_pack_whose_replay_differs_is_refused(small_hopper, tmp_path):
     state = torch.load(save_action_pack(small_hopper, tmp_path / "p.pt"), weights_only=True)
     state["actions"][10, 0] = -state["actions"][10, 0]  # one action changed: the replayed data (and its hash) differ

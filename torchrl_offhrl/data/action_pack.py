@@ -15,7 +15,12 @@ The replay follows the collection: stream ``i`` of ``num_envs`` is the env
 seeded ``seed + i`` at its first reset and reset again, unseeded, before
 its first step (the collector's reset at construction), then reset unseeded
 after every episode end; actions are passed as float32, as the collector
-does (the control cost is computed from them).
+does (the control cost is computed from them). Where every stream ended an
+episode at the same step (HalfCheetah's fixed 1000-step episodes, always),
+the collector reset the whole vector env once more after Gymnasium's own
+reset of each: the replay finds those steps from its own episode ends and
+replays again with the extra resets until they agree (two passes for
+HalfCheetah, one where episodes end apart).
 """
 from __future__ import annotations
 
@@ -31,6 +36,7 @@ from .dataset import DatasetError, OfflineDataset
 __all__ = ["load_action_pack", "save_action_pack"]
 
 FORMAT = "torchrl_offhrl.action_pack/1"
+MAX_PASSES = 4  # replays until the steps where all streams end together stop changing (the content hash checks the result)
 
 
 def save_action_pack(dataset: OfflineDataset, path: str | os.PathLike) -> Path:
@@ -80,9 +86,16 @@ def load_action_pack(path: str | os.PathLike, workers: int | None = None, progre
     workers = max(1, min(streams, workers or os.cpu_count() or 1))
     # fork where there is one: the workers need only Gymnasium, and a spawned worker would re-run a caller's unguarded script
     method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+    together = np.zeros(0, dtype=np.int64)  # steps at which every stream ended an episode: one more reset of each after them
     with mp.get_context(method).Pool(workers) as pool:
-        parts = list(tqdm(pool.imap(_replay_stream, jobs), total=streams, desc=f"replay {meta['env_id']}", unit="stream", disable=not progress))
-    obs, nobs, rew, term, trunc = (np.stack([p[k] for p in parts]) for k in range(5))
+        for _ in range(MAX_PASSES):
+            parts = list(tqdm(pool.imap(_replay_stream, [(*j, together) for j in jobs]), total=streams, desc=f"replay {meta['env_id']}",
+                              unit="stream", disable=not progress))
+            obs, nobs, rew, term, trunc = (np.stack([p[k] for p in parts]) for k in range(5))
+            found = np.nonzero((term | trunc)[:, :-1].all(0))[0]
+            if np.array_equal(found, together):
+                break
+            together = found
     trunc[:, -1] |= ~term[:, -1]  # as collect_dataset: each stream's last, cut-short episode ends truncated
     data = TensorDict({"observation": torch.from_numpy(obs), "action": pack["actions"].reshape(streams, steps, -1),
                        "next": {"observation": torch.from_numpy(nobs), "reward": torch.from_numpy(rew)[..., None],
@@ -100,7 +113,8 @@ def load_action_pack(path: str | os.PathLike, workers: int | None = None, progre
 def _replay_stream(job):
     import gymnasium as gym
 
-    env_id, seed, actions = job
+    env_id, seed, actions, together = job
+    together = set(together.tolist())
     env = gym.make(env_id)
     env.reset(seed=seed)
     o, _ = env.reset()
@@ -115,6 +129,8 @@ def _replay_stream(job):
         o2, r, te, tr, _ = env.step(actions[t])
         nobs[t], rew[t], term[t], trunc[t] = o2, r, te, tr
         o = env.reset()[0] if (te or tr) else o2
+        if t in together:
+            o = env.reset()[0]
     env.close()
     return obs, nobs, rew, term, trunc
 
