@@ -15,6 +15,9 @@
 # unpacking took 46 s; the three runs shared the GPU at ~770 updates/s together (each 10k-update block took 38-40 s,
 # about what one process gets alone: the GPU, not Python, bounds them), and their first 10k updates took 1:45 with
 # the compile and the first evaluation; 370 s took each to ~70k of 100k updates. Budget ~8.5 min for three 100k runs.
+# What travels (carry .whl and .packs, 64 MiB with the repository's ~17 MB): hopper-medium.pt is 12 MB,
+# halfcheetah-medium.pt 24 MB, too much beside all of .whl (27 MB): for HalfCheetah leave the rendering wheels
+# (pyopengl, glfw; no run here renders) and the other pack out of the carried folders.
 out=${1:?usage: gpu_runs.sh OUT_DIR PYTHON SECONDS ENV ALGO SEED...}; py=${2:?}; limit=${3:?}; env=${4:?}; algo=${5:?}; shift 5
 seeds=("$@")
 mkdir -p "$out" outputs/results/full
