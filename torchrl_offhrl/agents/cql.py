@@ -4,7 +4,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-
 from torchrl.objectives import CQLLoss, SoftUpdate, group_optimizers
 
 from .base import DatasetAgent, adam, compile_setting, gaussian_actor, q_network, scalar_metrics
