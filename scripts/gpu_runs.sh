@@ -6,6 +6,8 @@
 #    the same data, bit for bit, as on the machines that generated it);
 # 2. runs `scripts/results.py run --scale full --envs ENV --algos ALGO --seeds SEED` for each seed at once, with
 #    --speed $SPEED (default: device=cuda algo.cudagraphs=true), each stopped after SECONDS;
+# With MPS=1 in the environment it first starts CUDA's MPS daemon (untried here: the processes below shared the GPU by
+# time slices, ~770 updates/s together; MPS may let their small kernels overlap).
 # 3. every 20 s, and at the end, packs each run directory (checkpoint, evaluations, logs) into OUT_DIR/<run>.tgz.
 # A run cut short by the time limit resumes from its last checkpoint wherever its .tgz is unpacked under
 # outputs/results/full/ (`scripts/results.py run` again, on a CPU or a GPU); a finished one is archived and
@@ -25,6 +27,11 @@ export PYTHONUNBUFFERED=1 TORCHRL_OFFHRL_CACHE=${TORCHRL_OFFHRL_CACHE:-/tmp/offh
 t0=$SECONDS
 "$py" scripts/action_pack.py unpack ".packs/$env-medium.pt" --workers 8 > "$out/unpack.log" 2>&1 || { tail -n 20 "$out/unpack.log"; exit 1; }
 tail -n 2 "$out/unpack.log"; echo "unpacked after $((SECONDS - t0)) s"
+if [ "${MPS:-0}" = 1 ]; then  # opt-in, not yet tried on a lent machine: CUDA MPS lets the processes' kernels run at once
+    export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps_pipe CUDA_MPS_LOG_DIRECTORY=/tmp/mps_log
+    mkdir -p /tmp/mps_pipe /tmp/mps_log
+    nvidia-cuda-mps-control -d && echo "MPS daemon started" || echo "MPS daemon did not start: the runs share the GPU by time slices"
+fi
 dirs=()
 for s in "${seeds[@]}"; do
     dirs+=("$algo-$env-medium-seed$s")
@@ -41,5 +48,6 @@ pack() {  # each run directory as it stands, in its own OUT_DIR/<run>.tgz (16 Mi
 while [ -n "$(jobs -rp)" ]; do sleep 20; pack; done
 wait
 pack
+[ "${MPS:-0}" = 1 ] && echo quit | nvidia-cuda-mps-control 2>/dev/null
 for s in "${seeds[@]}"; do echo "--- seed $s"; tr '\r' '\n' < "$out/run-seed$s.log" | grep -E "real .* return|final|Error|error" | tail -n 14; done
 echo "done after $((SECONDS - t0)) s"; ls -la "$out"
