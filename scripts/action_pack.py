@@ -33,7 +33,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from torchrl_offhrl.data import load_dataset, named_dataset, save_dataset
-    from torchrl_offhrl.data.action_pack import load_action_pack, save_action_pack
+    from torchrl_offhrl.data.action_pack import load_action_pack, read_action_pack, save_action_pack
     from torchrl_offhrl.data.generate import dataset_path
     from torchrl_offhrl.utils import atomic_write
 
@@ -45,12 +45,13 @@ def main(argv=None) -> int:
         print(f"{args.out}: {len(ds):,} transitions of {ds.metadata.get('dataset', ds.metadata['env_id'])}, content hash {ds.content_hash()} "
               f"({args.out.stat().st_size / 2**20:.1f} MiB)")
         return 0
-    ds = load_action_pack(args.pack, workers=args.workers)
-    meta = ds.metadata
-    target = dataset_path(meta["dataset"], len(ds), int(meta["seed"]), int(meta["num_envs"]))
-    if target.is_file() and load_dataset(target).content_hash() == ds.content_hash():
-        print(f"{target}: already there, the same data ({ds.content_hash()})")
+    pack = read_action_pack(args.pack)
+    meta, packed = pack["metadata"], pack["content_hash"]
+    target = dataset_path(meta["dataset"], len(pack["actions"]), int(meta["seed"]), int(meta["num_envs"]))
+    if target.is_file() and load_dataset(target).content_hash() == packed:  # checked before the replay, which costs far more
+        print(f"{target}: already there, the same data ({packed})")
         return 0
+    ds = load_action_pack(args.pack, workers=args.workers)
     with atomic_write(target) as tmp:  # whole or absent: a killed unpack never leaves a file that would be loaded
         save_dataset(ds, tmp, compression=None)  # ~15% larger than gzip's, and written in seconds instead of a minute
     print(f"{target}: rebuilt from {args.pack}, content hash {ds.content_hash()} (as packed)")

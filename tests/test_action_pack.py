@@ -67,3 +67,6 @@ def test_unpack_puts_the_dataset_where_named_dataset_finds_it(tmp_path, monkeypa
     path.unlink()
     assert mod.main(["unpack", str(tmp_path / "hm.pt"), "--workers", "2"]) == 0
     assert path.is_file() and named_dataset("hopper-medium-400", progress=False).content_hash() == original.content_hash()
+    # unpacked again onto the same data: found before any replay
+    monkeypatch.setattr("torchrl_offhrl.data.action_pack.load_action_pack", lambda *a, **k: pytest.fail("replayed data already in the cache"))
+    assert mod.main(["unpack", str(tmp_path / "hm.pt")]) == 0

@@ -33,7 +33,7 @@ from tensordict import TensorDict
 
 from .dataset import DatasetError, OfflineDataset
 
-__all__ = ["load_action_pack", "save_action_pack"]
+__all__ = ["load_action_pack", "read_action_pack", "save_action_pack"]
 
 FORMAT = "torchrl_offhrl.action_pack/1"
 MAX_PASSES = 4  # replays until the steps where all streams end together stop changing (the content hash checks the result)
@@ -59,6 +59,23 @@ def save_action_pack(dataset: OfflineDataset, path: str | os.PathLike) -> Path:
     return path
 
 
+def read_action_pack(path: str | os.PathLike) -> dict:
+    """The contents of an action pack (``actions``, ``metadata``, ``content_hash``, ``action_bounds``), without replaying it.
+
+    Raises:
+        DatasetError: not readable, or not an action pack.
+    """
+    path = Path(path)
+    try:
+        pack = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # a truncated or foreign file
+        raise DatasetError(f"{path}: not readable as an action pack ({err}); write one with save_action_pack") from None
+    if not isinstance(pack, dict) or pack.get("format") != FORMAT:
+        raise DatasetError(f"{path}: not an action pack (format {pack.get('format') if isinstance(pack, dict) else type(pack).__name__!r}, "
+                           f"expected {FORMAT!r})")
+    return pack
+
+
 def load_action_pack(path: str | os.PathLike, workers: int | None = None, progress: bool = True) -> OfflineDataset:
     """Rebuild the dataset of an action pack by replaying its actions (one process per env stream, at most ``workers``).
 
@@ -71,13 +88,7 @@ def load_action_pack(path: str | os.PathLike, workers: int | None = None, progre
     from tqdm.auto import tqdm
 
     path = Path(path)
-    try:
-        pack = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # a truncated or foreign file
-        raise DatasetError(f"{path}: not readable as an action pack ({err}); write one with save_action_pack") from None
-    if not isinstance(pack, dict) or pack.get("format") != FORMAT:
-        raise DatasetError(f"{path}: not an action pack (format {pack.get('format') if isinstance(pack, dict) else type(pack).__name__!r}, "
-                           f"expected {FORMAT!r})")
+    pack = read_action_pack(path)
     meta = dict(pack["metadata"])
     actions = pack["actions"].numpy()
     streams = int(meta["num_envs"])
