@@ -234,16 +234,14 @@ def _reference_returns(env_id: str, short: str, expert, episodes: int, seed: int
         return out
     env = make_gym_env(env_id, num_envs=episodes)
     try:
-        with torch.random.fork_rng():  # the caller's random stream stays untouched
-            torch.manual_seed(ref_seed)
-            rets = evaluate_policy(env, None, episodes, deterministic=False, seed=ref_seed)
-            out["ref_min_return"] = float(rets.mean())
-            if expert is not None:
-                actor, card = expert
-                torch.manual_seed(ref_seed)
-                rets = evaluate_policy(env, actor, episodes, deterministic=False, seed=ref_seed)
-                out["ref_max_return"] = float(rets.mean())
-                out["ref_policy"] = card.get("name")
+        # seeded stochastic evaluations: their samples come from torch's RNG seeded with ref_seed, the caller's stream untouched
+        rets = evaluate_policy(env, None, episodes, deterministic=False, seed=ref_seed)
+        out["ref_min_return"] = float(rets.mean())
+        if expert is not None:
+            actor, card = expert
+            rets = evaluate_policy(env, actor, episodes, deterministic=False, seed=ref_seed)
+            out["ref_max_return"] = float(rets.mean())
+            out["ref_policy"] = card.get("name")
     finally:
         env.close()
     if expert is None:

@@ -123,8 +123,7 @@ def card_returns(actor, env, seed: int, max_steps: int = 1000, deterministic: bo
     Calling it with the card's ``eval`` settings (``episodes`` envs,
     ``seed``, ``max_steps``) reproduces the card's figures for its weights.
     """
-    with torch.random.fork_rng(), one_thread():
-        torch.manual_seed(seed)
+    with one_thread():  # evaluate_policy seeds a stochastic evaluation's samples with `seed` itself (forked)
         return evaluate_policy(env, actor, env.batch_size[0], max_steps=max_steps, deterministic=deterministic, seed=seed)
 
 
