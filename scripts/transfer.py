@@ -176,15 +176,17 @@ def sampled(envs: list[str], episodes: int = 10, seed: int = 12345) -> str:
         if env not in envs or not (d / "summary.json").is_file() or not (d / "checkpoint.pt").is_file():
             continue
         stamp = (d / "summary.json").stat().st_mtime
-        if done.get(d.name, {}).get("stamp") == stamp:
-            continue  # evaluated already, and the run has not moved since
+        if {k: done.get(d.name, {}).get(k) for k in ("stamp", "episodes", "seed")} == {"stamp": stamp, "episodes": episodes, "seed": seed}:
+            continue  # evaluated already, the same way, and the run has not moved since
         det, sto = (evaluate_run(d, episodes=episodes, seed=seed, deterministic=x) for x in (True, False))
-        done[d.name] = {"stamp": stamp, "task": det.get("task"), "deterministic": det["return_mean"], "sampled": sto["return_mean"],
+        done[d.name] = {"stamp": stamp, "episodes": episodes, "seed": seed, "task": det.get("task"), "deterministic": det["return_mean"], "sampled": sto["return_mean"],
                         "sampled_std_over_episodes": sto["return_std"]}
         cache.write_text(json.dumps(done, indent=1))
         print(f"{d.name}: deterministic {det['return_mean']:.1f}, sampled {sto['return_mean']:.1f}", flush=True)
     groups = {}
     for name, r in done.items():
+        if (r.get("episodes"), r.get("seed")) != (episodes, seed):
+            continue  # measured another way (the page states one)
         groups.setdefault(name.rsplit("-seed", 1)[0], []).append((name.rsplit("-seed", 1)[1], r))
 
     def ms(xs):

@@ -599,3 +599,5 @@ def test_transfer_script_compares_deterministic_and_sampled_final_policies(monke
     assert "| ppo-hopper-medium-transfer | 2 | 1,450 ± 71 | 945 ± 7 | -505 | 4: 1,400 / 940, 5: 1,500 / 950 |" in text
     mod.sampled(["hopper"], episodes=3)
     assert len(calls) == 4  # cached: the runs have not moved
+    mod.sampled(["hopper"], episodes=5)
+    assert len(calls) == 8  # another episode count is another measurement
