@@ -1,13 +1,14 @@
 #!/bin/bash
 # Full-scale offline runs on a lent GPU machine, from an action pack, one process per seed side by side:
-#     bash scripts/gpu_runs.sh OUT_DIR PYTHON SECONDS ENV ALGO SEED...
-# e.g. bash scripts/gpu_runs.sh $OUT python3 330 hopper cql 4 5 6
-# 1. rebuilds .packs/ENV-medium.pt into the dataset cache (scripts/action_pack.py unpack: refused unless it is
-#    the same data, bit for bit, as on the machines that generated it);
-# 2. runs `scripts/results.py run --scale full --envs ENV --algos ALGO --seeds SEED` for each seed at once, with
-#    --speed $SPEED (default: device=cuda algo.cudagraphs=true), each stopped after SECONDS;
-# With MPS=1 in the environment it first starts CUDA's MPS daemon (untried here: the processes below shared the GPU by
-# time slices, ~770 updates/s together; MPS may let their small kernels overlap).
+#     bash scripts/gpu_runs.sh OUT_DIR PYTHON SECONDS ENV[,ENV...] ALGO SEED...
+# e.g. bash scripts/gpu_runs.sh $OUT python3 430 hopper,halfcheetah cql 4 5 6
+# 1. rebuilds each .packs/ENV-medium.pt into the dataset cache (scripts/action_pack.py unpack: refused unless it is
+#    the same data, bit for bit, as on the machines that generated it), the envs side by side;
+# 2. as soon as an env's data is there, runs `scripts/results.py run --scale full --envs ENV --algos ALGO --seeds SEED`
+#    for each seed at once, with --speed $SPEED (default: device=cuda algo.cudagraphs=true); every run is stopped
+#    SECONDS after the script started.
+# With MPS=1 in the environment it first starts CUDA's MPS daemon and checks that a process can use the GPU through
+# it (if not, it quits it and the runs share the GPU by time slices: ~770 updates/s together, measured below).
 # 3. every 20 s, and at the end, packs each run directory (checkpoint, evaluations, logs) into OUT_DIR/<run>.tgz.
 # A run cut short by the time limit resumes from its last checkpoint wherever its .tgz is unpacked under
 # outputs/results/full/ (`scripts/results.py run` again, on a CPU or a GPU); a finished one is archived and
@@ -17,26 +18,37 @@
 # unpacking took 46 s; the three runs shared the GPU at ~770 updates/s together (each 10k-update block took 38-40 s,
 # about what one process gets alone: the GPU, not Python, bounds them), and their first 10k updates took 1:45 with
 # the compile and the first evaluation; 370 s took each to ~70k of 100k updates. Budget ~8.5 min for three 100k runs.
-# What travels (carry .whl and .packs, 64 MiB with the repository's ~17 MB): hopper-medium.pt is 12 MB,
-# halfcheetah-medium.pt 24 MB, too much beside all of .whl (27 MB): for HalfCheetah leave the rendering wheels
-# (pyopengl, glfw; no run here renders) and the other pack out of the carried folders.
-out=${1:?usage: gpu_runs.sh OUT_DIR PYTHON SECONDS ENV ALGO SEED...}; py=${2:?}; limit=${3:?}; env=${4:?}; algo=${5:?}; shift 5
+# What travels (carry .whl and .packs, 64 MiB with the repository's ~12.5 MB): hopper-medium.pt is 9.7 MiB and
+# halfcheetah-medium.pt 17.6 MiB (compressed packs); both fit beside .whl (23 MB) once the rendering wheels
+# (pyopengl, glfw; no run here renders) are left out of it: 60.7 MiB in all.
+out=${1:?usage: gpu_runs.sh OUT_DIR PYTHON SECONDS ENV[,ENV...] ALGO SEED...}; py=${2:?}; limit=${3:?}; envs=${4:?}; algo=${5:?}; shift 5
 seeds=("$@")
 mkdir -p "$out" outputs/results/full
 export PYTHONUNBUFFERED=1 TORCHRL_OFFHRL_CACHE=${TORCHRL_OFFHRL_CACHE:-/tmp/offhrl_cache}
 t0=$SECONDS
-"$py" scripts/action_pack.py unpack ".packs/$env-medium.pt" --workers 8 > "$out/unpack.log" 2>&1 || { tail -n 20 "$out/unpack.log"; exit 1; }
-tail -n 2 "$out/unpack.log"; echo "unpacked after $((SECONDS - t0)) s"
-if [ "${MPS:-0}" = 1 ]; then  # opt-in, not yet tried on a lent machine: CUDA MPS lets the processes' kernels run at once
+if [ "${MPS:-0}" = 1 ]; then  # opt-in: CUDA MPS lets the processes' kernels run at once instead of in turns
     export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps_pipe CUDA_MPS_LOG_DIRECTORY=/tmp/mps_log
     mkdir -p /tmp/mps_pipe /tmp/mps_log
-    nvidia-cuda-mps-control -d && echo "MPS daemon started" || echo "MPS daemon did not start: the runs share the GPU by time slices"
+    if nvidia-cuda-mps-control -d && "$py" -c "import torch; assert torch.ones(2, device='cuda').sum().item() == 2"; then
+        echo "MPS daemon started"
+    else
+        echo "MPS unusable here: the runs share the GPU by time slices"; echo quit | nvidia-cuda-mps-control 2>/dev/null
+        unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY; MPS=0
+    fi
 fi
 dirs=()
-for s in "${seeds[@]}"; do
-    dirs+=("$algo-$env-medium-seed$s")
-    timeout "$limit" "$py" scripts/results.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" \
-        --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-seed$s.log" 2>&1 &
+for env in ${envs//,/ }; do
+    for s in "${seeds[@]}"; do dirs+=("$algo-$env-medium-seed$s"); done
+    (   # each env's seeds start as soon as its own dataset is rebuilt; every run stops at the common deadline
+        "$py" scripts/action_pack.py unpack ".packs/$env-medium.pt" --workers 8 > "$out/unpack-$env.log" 2>&1 \
+            || { tail -n 20 "$out/unpack-$env.log"; exit 1; }
+        echo "$env unpacked after $((SECONDS - t0)) s"
+        for s in "${seeds[@]}"; do
+            timeout $((limit - (SECONDS - t0))) "$py" scripts/results.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" \
+                --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-$env-seed$s.log" 2>&1 &
+        done
+        wait
+    ) &
 done
 pack() {  # each run directory as it stands, in its own OUT_DIR/<run>.tgz (16 MiB a file come back; three runs in one were 17 MB),
           # written to a temporary name and renamed: never half a file. tar's "file changed as we read it" (exit 1) is expected
@@ -49,5 +61,7 @@ while [ -n "$(jobs -rp)" ]; do sleep 20; pack; done
 wait
 pack
 [ "${MPS:-0}" = 1 ] && echo quit | nvidia-cuda-mps-control 2>/dev/null
-for s in "${seeds[@]}"; do echo "--- seed $s"; tr '\r' '\n' < "$out/run-seed$s.log" | grep -E "real .* return|final|Error|error" | tail -n 14; done
+for env in ${envs//,/ }; do for s in "${seeds[@]}"; do
+    echo "--- $env seed $s"; tr '\r' '\n' < "$out/run-$env-seed$s.log" | grep -E "real .* return|final|Error|error" | tail -n 14
+done; done
 echo "done after $((SECONDS - t0)) s"; ls -la "$out"

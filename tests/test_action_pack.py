@@ -38,8 +38,12 @@ def test_streams_that_end_their_episodes_together_are_replayed_as_collected(tmp_
 
 
 def test_a_pack_whose_replay_differs_is_refused(small_hopper, tmp_path):
-    state = torch.load(save_action_pack(small_hopper, tmp_path / "p.pt"), weights_only=True)
-    state["actions"][10, 0] = -state["actions"][10, 0]  # one action changed: the replayed data (and its hash) differ
+    from torchrl_offhrl.data.action_pack import _compress, read_action_pack
+
+    state = read_action_pack(save_action_pack(small_hopper, tmp_path / "p.pt"))
+    actions = state["actions"].clone()
+    actions[10, 0] = -actions[10, 0]  # one action changed: the replayed data (and its hash) differ
+    state["actions"] = _compress(actions)
     torch.save(state, tmp_path / "bad.pt")
     with pytest.raises(DatasetError, match="replaying the actions gave other data"):
         load_action_pack(tmp_path / "bad.pt", workers=1, progress=False)
@@ -70,3 +74,23 @@ def test_unpack_puts_the_dataset_where_named_dataset_finds_it(tmp_path, monkeypa
     # unpacked again onto the same data: found before any replay
     monkeypatch.setattr("torchrl_offhrl.data.action_pack.load_action_pack", lambda *a, **k: pytest.fail("replayed data already in the cache"))
     assert mod.main(["unpack", str(tmp_path / "hm.pt")]) == 0
+
+
+def test_packed_actions_are_compressed_without_loss_and_old_packs_still_read(small_hopper, tmp_path):
+    from torchrl_offhrl.data.action_pack import _compress, _decompress, read_action_pack
+
+    pack = save_action_pack(small_hopper, tmp_path / "p.pt")
+    stored = torch.load(pack, weights_only=True)["actions"]
+    raw = small_hopper.data["action"].float()
+    assert stored["zlib"].numel() < raw.numel() * 4  # fewer bytes than the float32 actions
+    read = read_action_pack(pack)["actions"]
+    assert read.dtype == torch.float32 and torch.equal(read, raw)
+    # every bit pattern survives, not only the policy's: signed zeros, subnormals, infinities and NaNs
+    odd = torch.tensor([[0.0, -0.0, 1e-45], [float("inf"), -float("inf"), float("nan")]])
+    back = _decompress(_compress(odd))
+    assert torch.equal(back.view(torch.int32), odd.view(torch.int32))
+    # a pack written before compression (format /1: raw float32) reads the same
+    old = tmp_path / "old.pt"
+    torch.save({**torch.load(pack, weights_only=True), "format": "torchrl_offhrl.action_pack/1", "actions": raw.clone()}, old)
+    assert torch.equal(read_action_pack(old)["actions"], raw)
+    assert load_action_pack(old, workers=2, progress=False).content_hash() == small_hopper.content_hash()

@@ -3,8 +3,10 @@
 A dataset made by :func:`~torchrl_offhrl.data.collect_dataset` is fixed by
 its env, seed, number of side-by-side envs and the actions its policy drew:
 the observations, rewards and episode ends follow from MuJoCo. An *action
-pack* keeps only those actions (Hopper's 1M transitions: 12 MB instead of
-95 MB of HDF5), so the dataset can travel to a machine that cannot afford to
+pack* keeps only those actions (Hopper's 1M transitions: 10 MB instead of
+95 MB of HDF5; the float32 actions are stored byte-shuffled and
+zlib-compressed, 16-24% smaller than raw, which decides whether two packs
+and the wheels fit one call's 64 MiB to a lent GPU machine), so the dataset can travel to a machine that cannot afford to
 generate it (a lent GPU machine has minutes, not the quarter of an hour that
 sampling the policy takes; a different torch there would not even draw the
 same actions). Rebuilding checks the content hash, so a run trained on the
@@ -35,7 +37,8 @@ from .dataset import DatasetError, OfflineDataset
 
 __all__ = ["load_action_pack", "read_action_pack", "save_action_pack"]
 
-FORMAT = "torchrl_offhrl.action_pack/1"
+FORMAT = "torchrl_offhrl.action_pack/2"  # /2: actions byte-shuffled and zlib-compressed; /1 (raw float32) is still read
+FORMATS = ("torchrl_offhrl.action_pack/1", FORMAT)
 MAX_PASSES = 4  # replays until the steps where all streams end together stop changing (the content hash checks the result)
 
 
@@ -54,7 +57,7 @@ def save_action_pack(dataset: OfflineDataset, path: str | os.PathLike) -> Path:
                            f"not a concatenation such as medium-expert) can be rebuilt from its actions"
                            + (f"; its metadata lacks {missing}" if missing else "; pack its medium and expert parts instead"))
     path = Path(path)
-    torch.save({"format": FORMAT, "actions": dataset.data["action"].float().contiguous(), "metadata": _plain(meta),
+    torch.save({"format": FORMAT, "actions": _compress(dataset.data["action"].float()), "metadata": _plain(meta),
                 "content_hash": dataset.content_hash(), "action_bounds": (dataset.action_low, dataset.action_high)}, path)
     return path
 
@@ -70,10 +73,28 @@ def read_action_pack(path: str | os.PathLike) -> dict:
         pack = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # a truncated or foreign file
         raise DatasetError(f"{path}: not readable as an action pack ({err}); write one with save_action_pack") from None
-    if not isinstance(pack, dict) or pack.get("format") != FORMAT:
+    if not isinstance(pack, dict) or pack.get("format") not in FORMATS:
         raise DatasetError(f"{path}: not an action pack (format {pack.get('format') if isinstance(pack, dict) else type(pack).__name__!r}, "
-                           f"expected {FORMAT!r})")
+                           f"expected one of {FORMATS})")
+    if pack["format"] != FORMATS[0]:
+        pack = {**pack, "actions": _decompress(pack["actions"])}
     return pack
+
+
+def _compress(actions: torch.Tensor) -> dict:
+    """float32 ``actions`` as zlib-compressed byte planes (all first bytes, then all second bytes...): a float's sign and
+    exponent bytes repeat across actions, which zlib finds only once they stand together."""
+    import zlib
+
+    planes = np.ascontiguousarray(actions.contiguous().numpy().view(np.uint8).reshape(-1, 4).T)
+    return {"shape": tuple(actions.shape), "zlib": torch.frombuffer(bytearray(zlib.compress(planes.tobytes(), 6)), dtype=torch.uint8)}
+
+
+def _decompress(packed: dict) -> torch.Tensor:
+    import zlib
+
+    planes = np.frombuffer(zlib.decompress(packed["zlib"].numpy().tobytes()), dtype=np.uint8).reshape(4, -1)
+    return torch.from_numpy(np.ascontiguousarray(planes.T).view(np.float32).reshape(packed["shape"]))
 
 
 def load_action_pack(path: str | os.PathLike, workers: int | None = None, progress: bool = True) -> OfflineDataset:
