@@ -7,6 +7,8 @@
 # 2. as soon as an env's data is there, runs `scripts/results.py run --scale full --envs ENV --algos ALGO --seeds SEED`
 #    for each seed at once, with --speed $SPEED (default: device=cuda algo.cudagraphs=true); every run is stopped
 #    SECONDS after the script started.
+# DATASET=medium-expert (default medium) trains on medium-expert, rebuilt from the packs of its two parts
+# (.packs/ENV-medium.pt and .packs/ENV-expert.pt: `python scripts/action_pack.py pack hopper-expert .packs/hopper-expert.pt`).
 # With MPS=1 in the environment it first starts CUDA's MPS daemon and checks that a process can use the GPU through
 # it (if not, it quits it and the runs share the GPU by time slices: ~770 updates/s together, measured below).
 # 3. every 20 s, and at the end, packs each run directory (checkpoint, evaluations, logs) into OUT_DIR/<run>.tgz.
@@ -18,11 +20,17 @@
 # unpacking took 46 s; the three runs shared the GPU at ~770 updates/s together (each 10k-update block took 38-40 s,
 # about what one process gets alone: the GPU, not Python, bounds them), and their first 10k updates took 1:45 with
 # the compile and the first evaluation; 370 s took each to ~70k of 100k updates. Budget ~8.5 min for three 100k runs.
-# What travels (carry .whl and .packs, 64 MiB with the repository's ~12.5 MB): hopper-medium.pt is 9.7 MiB and
-# halfcheetah-medium.pt 17.6 MiB (compressed packs); both fit beside .whl (23 MB) once the rendering wheels
-# (pyopengl, glfw; no run here renders) are left out of it: 60.7 MiB in all.
+# With MPS=1 (same day, same card and SPEED; CQL on hopper-medium and halfcheetah-medium, seeds 4-6: six runs):
+# ~350 updates/s each once compiled, ~2,100 together (2.7x the time slices); every run finished its 100k updates in
+# about 6 min, the whole call in 471 s with the 47 s of unpacking. So: MPS=1, and six runs to a call.
+# A call returns at most 8 files: six run archives and logs.tgz fit.
+# What travels: carry .whl and the packs (the folder .packs, or single files such as .packs/hopper-medium.pt), 64 MiB
+# in all with the repository's ~12.5 MB. Packs: hopper-medium 9.7 MiB, hopper-expert 9.6, halfcheetah-medium 17.6,
+# halfcheetah-expert 18.3. .whl is 23 MB without pyopengl (no run here renders); glfw (0.25 MB) must stay: Gymnasium's
+# MuJoCo envs import it when MUJOCO_GL is unset. Both medium packs fit one call (61 MiB); medium-expert, one env a call.
 out=${1:?usage: gpu_runs.sh OUT_DIR PYTHON SECONDS ENV[,ENV...] ALGO SEED...}; py=${2:?}; limit=${3:?}; envs=${4:?}; algo=${5:?}; shift 5
 seeds=("$@")
+dataset=${DATASET:-medium}; parts=$dataset; [ "$dataset" = medium-expert ] && parts="medium expert"
 mkdir -p "$out" outputs/results/full
 export PYTHONUNBUFFERED=1 TORCHRL_OFFHRL_CACHE=${TORCHRL_OFFHRL_CACHE:-/tmp/offhrl_cache}
 t0=$SECONDS
@@ -38,13 +46,15 @@ if [ "${MPS:-0}" = 1 ]; then  # opt-in: CUDA MPS lets the processes' kernels run
 fi
 dirs=()
 for env in ${envs//,/ }; do
-    for s in "${seeds[@]}"; do dirs+=("$algo-$env-medium-seed$s"); done
+    for s in "${seeds[@]}"; do dirs+=("$algo-$env-$dataset-seed$s"); done
     (   # each env's seeds start as soon as its own dataset is rebuilt; every run stops at the common deadline
-        "$py" scripts/action_pack.py unpack ".packs/$env-medium.pt" --workers 8 > "$out/unpack-$env.log" 2>&1 \
-            || { tail -n 20 "$out/unpack-$env.log"; exit 1; }
+        for part in $parts; do
+            "$py" scripts/action_pack.py unpack ".packs/$env-$part.pt" --workers 8 > "$out/unpack-$env-$part.log" 2>&1 \
+                || { tail -n 20 "$out/unpack-$env-$part.log"; exit 1; }
+        done
         echo "$env unpacked after $((SECONDS - t0)) s"
         for s in "${seeds[@]}"; do
-            timeout $((limit - (SECONDS - t0))) "$py" scripts/results.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" \
+            timeout $((limit - (SECONDS - t0))) "$py" scripts/results.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" --datasets "$dataset" \
                 --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-$env-seed$s.log" 2>&1 &
         done
         wait
@@ -64,4 +74,6 @@ pack
 for env in ${envs//,/ }; do for s in "${seeds[@]}"; do
     echo "--- $env seed $s"; tr '\r' '\n' < "$out/run-$env-seed$s.log" | grep -E "real .* return|final|Error|error" | tail -n 14
 done; done
+# the logs travel as one archive: a call returns at most 8 files (six runs' archives and their eight logs lost six logs)
+(cd "$out" && tar czf logs.tgz ./*.log && rm -f ./*.log)
 echo "done after $((SECONDS - t0)) s"; ls -la "$out"

@@ -83,7 +83,9 @@ NOTES = {"demo": ("Seeds 4-6 were run once, with the defaults as they stood afte
 NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
                  "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
-                 "one core; CQL ~8 h per seed on one core and 48 min on an H100, where its update is launch-bound at 35 updates/s: more than the 15 GPU minutes a session is lent, so its column is still empty; `benchmarks/README.md`). The model-env agents run on models whose "
+                 "one core; CQL ~8 h per seed on one core, so its medium runs were made on a lent H100: the same config, data (rebuilt bit for "
+                 "bit from an action pack) and evaluation, its update captured as CUDA graphs and compiled, six seeds side by side under "
+                 "CUDA's MPS, ~6 min per 100k updates; `scripts/gpu_runs.sh`, `benchmarks/README.md`). The model-env agents run on models whose "
                  "ensemble was fitted at lr 1e-3: the first MOC runs, on the paper's lr 1e-4 fitted for the same 20k steps (kept in "
                  "`outputs/results/full_fitlr1e-4/`; seed 4: 28.5 from 31.7 after 1M frames), exploited the model, whose members agreed "
                  "where they were wrong (held-out error 1.8x their disagreement), so the pessimism never fired; the development-seed "
@@ -185,6 +187,19 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
                 print(f"{where} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
+# why a cell of the full-scale table has fewer than 3 seeds (paper_table's "Missing cells"; keys "<row>" or "<row>:<algo>")
+_MODEL_ENV_ME = ("Not run: the model-env agents (MOC, PPO, SAC, MOReL-style) first need an ensemble and a CVAE fitted on the 2M "
+                 "transitions, then ~1 h per seed for 205k frames on one core; the CPU went to the medium rows and to the transfer "
+                 "runs (issue 16) first.")
+_CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert MPS=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6` "
+           "with the medium and expert packs, at the next lent GPU.")
+MISSING = {"full": {"hopper-medium-expert": _MODEL_ENV_ME, "halfcheetah-medium-expert": _MODEL_ENV_ME,
+                    "hopper-medium-expert:cql": _CQL_ME, "halfcheetah-medium-expert:cql": _CQL_ME,
+                    "hopper-medium-expert:iql": "Running on the CPU (~1 h per seed on one core).",
+                    "halfcheetah-medium-expert:iql": "Not run yet: after Hopper's on the CPU (~1 h per seed on one core), or on a GPU.",
+                    "halfcheetah-medium-expert:td3bc": "Not run yet: after Hopper's on the CPU (~20 min per seed on one core), or on a GPU."}}
+
+
 def report(scale: str, tuning: bool = False) -> str:
     from torchrl_offhrl.recipes.report import aggregate, load_run, paper_table
 
@@ -199,7 +214,7 @@ def report(scale: str, tuning: bool = False) -> str:
     runs.sort(key=lambda r: r["name"])
     out = ROOT / "docs" / "results" / scale
     table = aggregate(runs, out)
-    paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale")  # table.md: the paper's Table I layout
+    paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale", missing_reasons=MISSING.get(scale))  # table.md: the paper's Table I layout
     lines = [f"# Offline results, `{name}` scale" + (", tuning seeds" if tuning else ""), "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
              f"Made by `python scripts/results.py report --scale {name}{' --tuning' if tuning else ''}` from the finished runs: those under `outputs/results/{scale}/` "
              f"are first archived to `docs/results/{scale}/runs/<run>/` (config, evaluations, summary, training-scalar tails), and the "

@@ -290,6 +290,17 @@ def test_paper_table_layout(tmp_path):
     rows = (tmp_path / "t" / "table.csv").read_text().splitlines()
     assert len(rows) == 1 + 5 and rows[0].startswith("env,dataset,algo,seeds,budget")
     assert (tmp_path / "t" / "curves_hopper-medium.png").is_file() and (tmp_path / "t" / "curves_halfcheetah-medium.png").is_file()
+    # every standard column with fewer than min_seeds seeds is listed with its reason: per cell, else per row, else none given
+    text = paper_table(runs, tmp_path / "m", min_seeds=2, missing_reasons={"hopper-medium:cql": "CQL needs a GPU.", "hopper-medium": "Not run yet."})
+    missing = text.split("## Missing cells (fewer than 2 seeds)")[1].split("## Published")[0]
+    assert "- hopper-medium: CQL (no run). CQL needs a GPU." in missing
+    assert "- hopper-medium: PPO (no run), SAC (no run), MOReL-style (1 seed), IQL (1 seed), TD3+BC (no run), BC (no run). Not run yet." in missing
+    cheetah = next(line for line in missing.splitlines() if line.startswith("- halfcheetah-medium:"))
+    assert cheetah.startswith("- halfcheetah-medium: MOC (1 seed), PPO (no run)") and cheetah.endswith("BC (no run). No reason given.")
+    assert "MOC (2" not in missing  # hopper's MOC has its 2 seeds
+    every = [_fake_run(tmp_path / "all", a, 0, "Hopper-v5", "medium", "frames", (1.0, 2.0, 3.0), ablation={"no_cvae": True} if a == "morel" else None)
+             for a in ("moc", "ppo", "sac", "morel", "iql", "cql", "td3bc", "bc")]
+    assert "None: every column has its seeds." in paper_table(every, tmp_path / "n", min_seeds=1).split("## Missing")[1]
 
 
 def test_archived_run_reads_like_its_run_directory(tmp_path):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import csv
 import json
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -562,7 +562,8 @@ def _cell(mean, std, n) -> str:
     return f"{mean:.1f} ({n})" if n == 1 else f"{mean:.1f} ± {std:.1f} ({n})"
 
 
-def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets") -> str:
+def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets", min_seeds: int = 3,
+                missing_reasons: Mapping[str, str] | None = None) -> str:
     """The paper's Table I from run directories: rows env x dataset, one column per algorithm, the behaviour data last.
 
     Writes ``out_dir/table.md`` (the final evaluations, the best evaluations
@@ -574,6 +575,12 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     algorithm with no run for that dataset. Runs with an ablation get their
     own column (``label [ablation]``), except MOReL-style runs, whose config
     is that ablation.
+
+    A section *Missing cells* lists, row by row, every standard column with
+    no run or fewer than ``min_seeds`` seeds, each with its reason from
+    ``missing_reasons``: keyed ``"<row>:<algo>"`` for one cell (e.g.
+    ``"hopper-medium-expert:cql"``) or ``"<row>"`` for the rest of a row;
+    a cell with neither says that no reason was given.
     """
     from ..scores import PUBLISHED_SCORES
 
@@ -608,12 +615,24 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         return lines
 
     budgets = sorted({f"{TABLE_COLUMNS.get(k[2], k[2])}: {st['budget']}" for k, st in stats.items()})
+    reasons = dict(missing_reasons or {})
+    short: list[str] = []
+    for env_id, dataset in datasets:
+        row = f"{_env_name(env_id)}-{_dataset_name(dataset)}"
+        by_reason: dict[str, list[str]] = defaultdict(list)
+        for c in TABLE_COLUMNS:
+            n = stats[(env_id, dataset, c)]["seeds"] if (env_id, dataset, c) in stats else 0
+            if n < min_seeds:
+                why = reasons.get(f"{row}:{c}", reasons.get(row, "No reason given."))
+                by_reason[why].append(f"{TABLE_COLUMNS[c]} ({n} seed{'s' if n != 1 else ''})" if n else f"{TABLE_COLUMNS[c]} (no run)")
+        short += [f"- {row}: {', '.join(cells)}. {why}" for why, cells in by_reason.items()]
+    missing = [f"## Missing cells (fewer than {min_seeds} seeds)", "", *(short or ["None: every column has its seeds."]), ""]
     md = [f"# {title}", "",
           "D4RL-normalised real-env return, deterministic evaluation, mean ± std over seeds (number of seeds).", "",
           "## Final evaluation", "", *table("score"), "",
           "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
           *table("best_score"), "",
-          "Budgets: " + "; ".join(budgets) + ".", "",
+          "Budgets: " + "; ".join(budgets) + ".", "", *missing,
           "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
           "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
           "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),
