@@ -612,3 +612,16 @@ def test_transfer_script_compares_deterministic_and_sampled_final_policies(monke
     assert len(calls) == 4  # cached: the runs have not moved
     mod.sampled(["hopper"], episodes=5)
     assert len(calls) == 8  # another episode count is another measurement
+
+
+def test_transfer_page_lists_the_rows_short_of_three_seeds():
+    """Every row the transfer setting asks for is named on the page while it has fewer than 3 seeds, with its reason."""
+    mod = load_script("transfer")
+    names = [f"{a}-{e}-medium-{k}-seed{s}" for a, e, k in mod.EXPECTED for s in (4, 5, 6)]
+    assert mod.short_rows(names) == []
+    names.remove("ppo-hopper-medium-scratch-seed6")
+    names = [n for n in names if not n.startswith("sac-halfcheetah-medium-transfer")] + ["moc_online-hopper-medium-scratch-seed4"]
+    lines = mod.short_rows(names)
+    assert lines[0] == "- ppo on hopper, scratch: 2 of 3 seeds. Running or queued on the CPU."
+    assert lines[1].startswith("- sac on halfcheetah, transfer: 0 of 3 seeds. Not run yet: SAC makes one gradient step per frame")
+    assert len(lines) == 2  # a variant's rows (moc_online) count for none of the expected ones
