@@ -469,6 +469,9 @@ def test_offhrl_report_on_real_runs(hopper_file, cache, tmp_path, capsys):
     assert cells[2].endswith("(1)") and cells[8].endswith("(1)") and cells[1] == "—"  # PPO and BC filled, MOC missing
     assert f"{bc['final']['normalized_d4rl']:.1f} (1)" == cells[8]  # one seed: no spread shown
     assert "BC: 4 updates" in table and "PPO: 64 frames" in table
+    assert "- hopper-hopper_random: MOC (no run), PPO (1 seed)" in table  # --min-seeds defaults to 3
+    assert main(["report", bc["run_dir"], ppo["run_dir"], "--out", str(tmp_path / "t1"), "--min-seeds", "1"]) == 0
+    assert "- hopper-hopper_random: MOC (no run), SAC (no run)" in (tmp_path / "t1" / "table.md").read_text()
     assert main(["aggregate", bc["run_dir"], ppo["run_dir"], "--out", str(tmp_path / "a")]) == 0
     assert "| bc | Hopper-v5 |" in (tmp_path / "a" / "results.md").read_text()
 

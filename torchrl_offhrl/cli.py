@@ -153,7 +153,7 @@ def cmd_aggregate(args) -> int:
 def cmd_report(args) -> int:
     from .recipes.report import paper_table
 
-    print(paper_table(args.runs, args.out))
+    print(paper_table(args.runs, args.out, min_seeds=args.min_seeds))
     print(f"\nwritten: {args.out}/table.md, table.csv, curves_<env>-<dataset>.png")
     return 0
 
@@ -268,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "(MOC, PPO, SAC, MOReL-style, IQL, CQL, TD3+BC, BC), the behaviour data, published scores apart")
     s.add_argument("runs", nargs="+", help="run directories (every algorithm and seed)")
     s.add_argument("--out", default="outputs/report")
+    s.add_argument("--min-seeds", type=int, default=3, help="cells with fewer seeds are listed under 'Missing cells' (default 3)")
     s.set_defaults(func=cmd_report)
 
     s = sub.add_parser("tune", help="a hyper-parameter search on Ray Tune: the paper's presets (models, pessimism, moc) or your YAML",
