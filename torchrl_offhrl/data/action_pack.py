@@ -6,9 +6,10 @@ the observations, rewards and episode ends follow from MuJoCo. An *action
 pack* keeps only those actions (Hopper's 1M transitions: 10 MB instead of
 95 MB of HDF5; the float32 actions are stored byte-shuffled and
 zlib-compressed, 16-24% smaller than raw, which decides whether two packs
-and the wheels fit one call's 64 MiB to a lent GPU machine), so the dataset can travel to a machine that cannot afford to
-generate it (a lent GPU machine has minutes, not the quarter of an hour that
-sampling the policy takes; a different torch there would not even draw the
+and the wheels fit the 64 MiB a call to a lent GPU machine carries), so the
+dataset can travel to a machine that cannot afford to generate it (a lent
+GPU machine has minutes, not the quarter of an hour that sampling the
+policy takes; a different torch there would not even draw the
 same actions). Rebuilding checks the content hash, so a run trained on the
 rebuilt data resumes anywhere on the original, and a replay that differs (a
 MuJoCo or Gymnasium that computes otherwise) is refused, not used.
