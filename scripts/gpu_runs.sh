@@ -9,6 +9,10 @@
 #    SECONDS after the script started.
 # DATASET=medium-expert (default medium) trains on medium-expert, rebuilt from the packs of its two parts
 # (.packs/ENV-medium.pt and .packs/ENV-expert.pt: `python scripts/action_pack.py pack hopper-expert .packs/hopper-expert.pt`).
+# A pack that was not carried is skipped, its dataset taken from the cache an earlier call on the same (warm) machine
+# rebuilt; UNPACK_ONLY=1 stops after rebuilding. HalfCheetah's medium-expert (two packs, 36 MiB, too much beside the
+# wheels): call 1 carries .whl and .packs/halfcheetah-medium.pt with UNPACK_ONLY=1; call 2, at once (a machine idle
+# for 30 s is given back), carries .packs/halfcheetah-expert.pt only and skips the pip install (/tmp/site stays).
 # With MPS=1 in the environment it first starts CUDA's MPS daemon and checks that a process can use the GPU through
 # it (if not, it quits it and the runs share the GPU by time slices: ~770 updates/s together, measured below).
 # 3. every 20 s, and at the end, packs each run directory (checkpoint, evaluations, logs) into OUT_DIR/<run>.tgz.
@@ -49,10 +53,14 @@ for env in ${envs//,/ }; do
     for s in "${seeds[@]}"; do dirs+=("$algo-$env-$dataset-seed$s"); done
     (   # each env's seeds start as soon as its own dataset is rebuilt; every run stops at the common deadline
         for part in $parts; do
+            if [ ! -f ".packs/$env-$part.pt" ]; then  # not carried this call: rebuilt into the cache by an earlier call
+                echo "no .packs/$env-$part.pt: using the $env-$part dataset an earlier call rebuilt into $TORCHRL_OFFHRL_CACHE"; continue
+            fi
             "$py" scripts/action_pack.py unpack ".packs/$env-$part.pt" --workers 8 > "$out/unpack-$env-$part.log" 2>&1 \
                 || { tail -n 20 "$out/unpack-$env-$part.log"; exit 1; }
         done
         echo "$env unpacked after $((SECONDS - t0)) s"
+        [ "${UNPACK_ONLY:-0}" = 1 ] && exit 0
         for s in "${seeds[@]}"; do
             timeout $((limit - (SECONDS - t0))) "$py" scripts/results.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" --datasets "$dataset" \
                 --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-$env-seed$s.log" 2>&1 &
@@ -72,6 +80,7 @@ wait
 pack
 [ "${MPS:-0}" = 1 ] && echo quit | nvidia-cuda-mps-control 2>/dev/null
 for env in ${envs//,/ }; do for s in "${seeds[@]}"; do
+    [ -f "$out/run-$env-seed$s.log" ] || continue
     echo "--- $env seed $s"; tr '\r' '\n' < "$out/run-$env-seed$s.log" | grep -E "real .* return|final|Error|error" | tail -n 14
 done; done
 # the logs travel as one archive: a call returns at most 8 files (six runs' archives and their eight logs lost six logs)
