@@ -628,3 +628,22 @@ def test_transfer_page_lists_the_rows_short_of_three_seeds():
     assert lines[0] == "- ppo on hopper, scratch: 2 of 3 seeds. Running or queued on the CPU."
     assert lines[1].startswith("- sac on halfcheetah, transfer: 0 of 3 seeds. Not run yet: SAC makes one gradient step per frame")
     assert len(lines) == 2  # a variant's rows (moc_online) count for none of the expected ones
+
+
+def test_dataset_agent_probe_rolls_out_what_the_evaluation_scores(hopper_file, cache, tmp_path, capsys):
+    """scripts/dataset_agent_probe.py: the same episodes as `offhrl evaluate` (returns equal), one line each, the critic's Q where there is one."""
+    mod = load_script("dataset_agent_probe")
+    for algo in ("td3bc", "bc"):
+        run = train(_cfg(algo, hopper_file, tmp_path / algo, "train.total_updates=4", "eval.every_updates=4"), progress=False)["run_dir"]
+        mod.main([run, "--episodes", "3", "--seed", "7", "--data-states", "50"])
+        out = capsys.readouterr().out
+        expected = evaluation_mod.evaluate_run(run, episodes=3, seed=7)["returns"]
+        lines = [line for line in out.splitlines() if line.startswith("  episode ")]
+        assert len(lines) == 3
+        assert [float(line.split("return")[1].split(",")[0]) for line in lines] == pytest.approx(expected, abs=0.051)
+        assert all(("Q(s, pi(s))" in line) == (algo == "td3bc") for line in lines)
+        if algo == "td3bc":
+            assert json.loads(out.strip().splitlines()[-1])["returns"] == pytest.approx(expected, abs=0.051)
+            assert "Q(s, pi(s)) on 50 " in out and " data states: " in out
+        else:
+            assert "(no critic: BC)" in out and "data states" not in out
