@@ -198,8 +198,7 @@ MISSING = {"full": {"hopper-medium-expert": _MODEL_ENV_ME, "halfcheetah-medium-e
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
                                                                 "wheels: rebuild the medium part in a first call, the expert part in "
                                                                 "a second on the still warm machine."),
-                    "halfcheetah-medium-expert:iql": "Queued on the CPU after TD3+BC (~1 h per seed on one core), or on a GPU.",
-                    "halfcheetah-medium-expert:td3bc": "Running on the CPU (~20 min per seed on one core)."}}
+                    "halfcheetah-medium-expert:iql": "Running on the CPU (~1 h per seed on one core), or on a GPU."}}
 
 
 def report(scale: str, tuning: bool = False) -> str:
