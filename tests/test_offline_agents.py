@@ -626,7 +626,7 @@ def test_transfer_page_lists_the_rows_short_of_three_seeds():
     names = [n for n in names if not n.startswith("sac-halfcheetah-medium-transfer")] + ["moc_online-hopper-medium-scratch-seed4"]
     lines = mod.short_rows(names)
     assert lines[0] == "- ppo on hopper, scratch: 2 of 3 seeds. Running or queued on the CPU."
-    assert lines[1].startswith("- sac on halfcheetah, transfer: 0 of 3 seeds. Not run yet: SAC makes one gradient step per frame")
+    assert lines[1].startswith("- sac on halfcheetah, transfer: 0 of 3 seeds. Running or queued on the CPU: SAC makes one gradient step per frame")
     assert len(lines) == 2  # a variant's rows (moc_online) count for none of the expected ones
 
 
