@@ -32,6 +32,7 @@ from tensordict import TensorDict
 
 from torchrl_offhrl.recipes.config import resolve_dataset
 from torchrl_offhrl.recipes.evaluation import evaluate_policy, load_run_agent
+from torchrl_offhrl.rollouts import first_episode_mask
 
 
 def first_critic(agent):
@@ -73,8 +74,7 @@ def main(argv=None) -> None:
     q = first_critic(agent)
     print(f"{run.name}: {state.get('updates', state.get('frames'))} updates, {args.episodes} deterministic episodes, seed {args.seed}; "
           f"{base:.0%} of the data's own states lie outside its 0.5-99.5% box")
-    alive = ~td["next", "done"].squeeze(-1).cumsum(-1).gt(0).roll(1, -1)
-    alive[:, 0] = True
+    alive = first_episode_mask(td["next", "done"].squeeze(-1))
     for i in range(args.episodes):
         o = td["observation"][i][alive[i]]
         outside = ((o < low) | (o > high)).any(-1).float().mean()

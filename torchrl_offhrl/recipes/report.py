@@ -595,6 +595,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         groups[(env_id, dataset, column)].append(r)
     stats = {key: group_stats(rs) for key, rs in groups.items()}
     datasets = sorted({(k[0], k[1]) for k in groups})
+    row_name = {(e, d): f"{_env_name(e)}-{_dataset_name(d)}" for e, d in datasets}  # "hopper-medium": table rows, missing cells, figures
     present = {k[2] for k in groups}
     columns = [*TABLE_COLUMNS, *sorted(present - set(TABLE_COLUMNS))]  # every standard column (missing ones shown as —), then others
     titles = [TABLE_COLUMNS.get(c, c) for c in columns]
@@ -611,14 +612,14 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                 cells.append(_cell(st[f"{kind}_mean"], st[f"{kind}_std"], st["seeds"]))
                 if st["behaviour_score"] is not None:
                     beh.append(st["behaviour_score"])
-            lines.append(f"| {_env_name(env_id)}-{_dataset_name(dataset)} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
+            lines.append(f"| {row_name[env_id, dataset]} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
         return lines
 
     budgets = sorted({f"{TABLE_COLUMNS.get(k[2], k[2])}: {st['budget']}" for k, st in stats.items()})
     reasons = dict(missing_reasons or {})
     short: list[str] = []
     for env_id, dataset in datasets:
-        row = f"{_env_name(env_id)}-{_dataset_name(dataset)}"
+        row = row_name[env_id, dataset]
         by_reason: dict[str, list[str]] = defaultdict(list)
         for c in TABLE_COLUMNS:
             n = stats[(env_id, dataset, c)]["seeds"] if (env_id, dataset, c) in stats else 0
@@ -659,9 +660,9 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                 whole = [r for r in groups[k] if not r.get("partial")]
                 if whole and run_unit(groups[k][0]) == unit:
                     plot_curve([r["evals"] for r in whole], None, label=TABLE_COLUMNS.get(k[2], k[2]), key="normalized_d4rl", ax=ax,
-                               title=f"{_env_name(env_id)}-{_dataset_name(dataset)}", xlabel=UNIT_LABELS.get(unit, unit))
+                               title=row_name[env_id, dataset], xlabel=UNIT_LABELS.get(unit, unit))
             ax.set_ylabel("D4RL-normalised score")
         fig.tight_layout()
-        fig.savefig(out / f"curves_{_env_name(env_id)}-{_dataset_name(dataset)}.png", dpi=110)
+        fig.savefig(out / f"curves_{row_name[env_id, dataset]}.png", dpi=110)
         plt.close(fig)
     return text
