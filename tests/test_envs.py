@@ -109,6 +109,18 @@ def test_partial_reset_only_touches_masked_envs(make_env):
         assert (starts == row).all(-1).any()
 
 
+def test_cyclic_member_draw_gives_every_member_its_share(make_env):
+    env = make_env(batch_size=[7], threshold=float("inf"), horizon=5, member_draw="cyclic")
+    k = env.num_members
+    expected = torch.arange(7) % k
+    for _ in range(2):  # at every reset, env i uses member i % K
+        td = env.rollout(6, break_when_any_done=False)
+        assert torch.equal(td["model_member"][:, 0].squeeze(-1), expected)
+        assert (td["model_member"].squeeze(-1) == expected[:, None]).all()  # kept through auto-resets
+    with pytest.raises(ValueError, match="member_draw"):
+        make_env(batch_size=[2], member_draw="round")
+
+
 def test_member_modes(make_env):
     env = make_env(batch_size=[64], threshold=float("inf"), horizon=50)
     td = env.rollout(20, break_when_any_done=False)

@@ -1,6 +1,6 @@
 """The layer contract: imports go downwards only, with no cycles and no private names across modules.
 
-Layers, lowest first (DESIGN): the shared base modules (``utils``, ``scores``,
+Layers, lowest first (DESIGN): the shared base modules (``utils``, ``scores``, ``stats``,
 ``registry``, ``nets``, ``rollouts``) < ``data`` < ``models`` < ``envs`` <
 ``modules`` / ``objectives`` < ``agents`` < ``recipes`` < ``cli``. Every
 import counts, those inside functions too. The checker is tested on
@@ -14,7 +14,7 @@ from pathlib import Path
 PKG = "torchrl_offhrl"
 ROOT = Path(__file__).resolve().parents[1] / PKG
 LAYERS = {
-    "utils": 0, "scores": 0, "registry": 0, "nets": 0, "rollouts": 0, "blockstack": 0,
+    "utils": 0, "scores": 0, "stats": 0, "registry": 0, "nets": 0, "rollouts": 0, "blockstack": 0,
     "data": 1, "models": 2, "envs": 3, "modules": 4, "objectives": 4,
     "agents": 5, "recipes": 6, "cli": 7,
 }

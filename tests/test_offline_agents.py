@@ -244,8 +244,9 @@ def test_aggregate_counts_dataset_runs_in_gradient_steps(tmp_path):
         (d / "config.json").write_text(json.dumps({"algo": {"name": algo}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {},
                                                    "unit": unit}))
     table = aggregate(sorted(tmp_path.glob("*-seed0")), tmp_path / "agg")
-    assert "| iql | Hopper-v5 | medium | - | 1 | 100 updates | 70.0 ± 0.0 | 7.0 ± 0.0 | 9.0 ± 0.0 | 1.0 | n/a |" in table
-    assert "| moc | Hopper-v5 | medium | - | 1 | 4096 frames | 40.0 ± 0.0 | 4.0 ± 0.0 | 5.0 ± 0.0 | 3.0 | n/a |" in table
+    # final, last-5 mean (after step 0), selected (none), best, untrained, change over the start
+    assert "| iql | Hopper-v5 | medium | - | 1 | 100 updates | 70.0 ± 0.0 | 7.0 | 7.0 ± 0.0 | 8.0 | — | 9.0 | 1.0 | +6.0 [+6.0, +6.0] (1/1) | n/a | s?: 7.0 |" in table
+    assert "| moc | Hopper-v5 | medium | - | 1 | 4096 frames | 40.0 ± 0.0 | 4.0 | 4.0 ± 0.0 | 4.5 | — | 5.0 | 3.0 | +1.0 [+1.0, +1.0] (1/1) | n/a | s?: 4.0 |" in table
     height, width = matplotlib.image.imread(tmp_path / "agg" / "curves.png").shape[:2]
     assert height > width  # one row of panels per unit (frames, gradient steps), one column per env
 
@@ -257,7 +258,7 @@ def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, a
     (d / "evals.json").write_text(json.dumps([{"frames": s, "updates": s, "step": s, "return_mean": 10 * v, "return_std": 0.0, "normalized_d4rl": v}
                                               for s, v in zip(steps, scores)]))
     cfg = {"algo": {"name": "ppo" if algo == "morel" else algo, **({"label": "morel"} if algo == "morel" else {})}, "env": {"env_id": env_id},
-           "dataset": dataset, "ablation": ablation or {}, "unit": unit}
+           "dataset": dataset, "ablation": ablation or {}, "unit": unit, "seed": seed}
     (d / "config.json").write_text(json.dumps(cfg))
     (d / "summary.json").write_text(json.dumps({"unit": unit, "behaviour_normalized_d4rl": behaviour}))
     return d
@@ -280,9 +281,12 @@ def test_paper_table_layout(tmp_path):
     best = text.split("## Best")[1].split("## Published")[0]
     header = "| dataset | MOC | PPO | SAC | MOReL-style | IQL | CQL | TD3+BC | BC | ppo [no_cvae] | behaviour data |"
     assert header in final and header in best
-    # MOC hopper: finals 40, 60 -> 50.0 ± 14.1; best after step 0: 50, 60 -> 55.0 ± 7.1
-    assert "| hopper-medium | 50.0 ± 14.1 (2) | — | — | 25.0 (1) | 42.0 (1) | — | — | — | 7.0 (1) | 37.0 |" in final
-    assert "| hopper-medium | 55.0 ± 7.1 (2) | — | — | 25.0 (1) | 45.0 (1) | — | — | — | 9.0 (1) | 37.0 |" in best
+    # MOC hopper: finals 40, 60 -> IQM 50.0, bootstrap CI [40, 60]; best after step 0: 50, 60 -> 55.0 [50, 60]
+    assert "| hopper-medium | 50.0 [40.0, 60.0] (2) | — | — | 25.0 (1) | 42.0 (1) | — | — | — | 7.0 (1) | 37.0 |" in final
+    assert "| hopper-medium | 55.0 [50.0, 60.0] (2) | — | — | 25.0 (1) | 45.0 (1) | — | — | — | 9.0 (1) | 37.0 |" in best
+    # per seed: final / selected / last-5 mean / best / untrained; MOC's change over its start: +30 and +50
+    assert "- hopper-medium, MOC: s0: 40.0 / n/a / 45.0 / 50.0 / 10.0; s1: 60.0 / n/a / 45.0 / 60.0 / 10.0; change over untrained +40.0" in text
+    assert (tmp_path / "t" / "performance_profile.png").is_file()
     assert "| halfcheetah-medium | 41.0 (1) | — |" in final
     published = text.split("## Published")[1]
     assert "not ours" in published.split("\n")[0] and "| Offline MOC (the paper) | 76.8 | 107.4 | 45.04 | 90.6 |" in published

@@ -199,7 +199,10 @@ def test_aggregate_seeds(tmp_path):
     table = aggregate(sorted(tmp_path.glob("moc-*")), tmp_path / "agg")
     # final returns 20 and 30: mean 25, std 7.07; scores 2 and 12: mean 7
     # best per seed: 2 and 12 (the last evaluation here); no frame-0 evaluation: untrained n/a; no summary: behaviour n/a
-    assert "| moc | Hopper-v5 | medium | - | 2 | 200 frames | 25.0 ± 7.1 | 7.0 ± 7.1 | 7.0 ± 7.1 | n/a | n/a |" in table
+    # IQM of 2 values: their mean (nothing cut); the bootstrap CI of 2 values spans them; last 5 evaluations: 1.5 and 11.5;
+    # no policy selection in these runs (no summary): —; no start: no change; seeds not in the configs: s?
+    assert ("| moc | Hopper-v5 | medium | - | 2 | 200 frames | 25.0 ± 7.1 | 7.0 [2.0, 12.0] | 7.0 ± 7.1 | 6.5 [1.5, 11.5] | — | "
+            "7.0 [2.0, 12.0] | n/a | n/a | n/a | s?: 2.0, s?: 12.0 |") in table
     assert (tmp_path / "agg" / "curves.png").is_file() and (tmp_path / "agg" / "results.csv").is_file()
 
 
@@ -302,8 +305,10 @@ def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
         (d / "evals.json").write_text(json.dumps(evals))
         (d / "config.json").write_text(json.dumps({"algo": {"name": "ppo"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {}}))
     table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
-    # final 3, 6 -> 4.5 ± 2.1; best 9, 8 -> 8.5 ± 0.7; untrained 5, 7 -> 6.0
-    assert "| ppo | Hopper-v5 | medium | - | 2 | 200 frames | 45.0 ± 21.2 | 4.5 ± 2.1 | 8.5 ± 0.7 | 6.0 | n/a |" in table
+    # final 3, 6 -> 4.5 ± 2.1; best 9, 8 -> 8.5; untrained 5, 7 -> 6.0; change over the start: -2 and -1 -> -1.5, 0 of 2 up
+    row = next(line for line in table.splitlines() if line.startswith("| ppo |")).split(" | ")
+    assert row[6:9] == ["45.0 ± 21.2", "4.5 [3.0, 6.0]", "4.5 ± 2.1"]
+    assert row[11:14] == ["8.5 [8.0, 9.0]", "6.0", "-1.5 [-2.0, -1.0] (0/2)"]
     # a seed whose untrained start is its highest score: the best counts evaluations after training began only
     d = tmp_path / "ppo-hopper-medium-seed2"
     d.mkdir()
@@ -311,8 +316,9 @@ def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
     (d / "evals.json").write_text(json.dumps(evals))
     (d / "config.json").write_text((tmp_path / "ppo-hopper-medium-seed0" / "config.json").read_text())
     table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
-    # final 3, 6, 5 -> 4.67 ± 1.53; best 9, 8, 5 -> 7.33 ± 2.08; untrained 5, 7, 20 -> 10.7
-    assert "| ppo | Hopper-v5 | medium | - | 3 | 200 frames | 46.7 ± 15.3 | 4.7 ± 1.5 | 7.3 ± 2.1 | 10.7 | n/a |" in table
+    # final 3, 6, 5 -> 4.67 ± 1.53; best 9, 8, 5 -> IQM (3 values, nothing cut) 7.33; untrained 5, 7, 20 -> 10.7
+    row = next(line for line in table.splitlines() if line.startswith("| ppo |")).split(" | ")
+    assert row[6] == "46.7 ± 15.3" and row[8] == "4.7 ± 1.5" and row[11].startswith("7.3 [") and row[12] == "10.7"
 
 
 def test_logged_tail_mean_reads_the_csv_logs(tmp_path):
@@ -447,3 +453,66 @@ def test_a_refused_run_leaves_the_running_one_alone(tmp_path):
         with pytest.raises(RuntimeError, match="in use by a run"):
             train(to_plain(compose("offline_train", [f"run_dir={tmp_path / 'run'}"])), progress=False)
         assert (tmp_path / "run" / ".lock").is_file()
+
+
+@pytest.mark.parametrize("criterion", ["model_lcb", "model_mean"])
+def test_offline_policy_selection_returns_the_policy_its_criterion_ranks_first(criterion, hopper_file, cache, tmp_path):
+    """selected.pt holds the agent state of the evaluation with the best offline score (not a real-env one), checkpointed like the run."""
+    from torchrl_offhrl.recipes.evaluation import load_run_agent
+    from torchrl_offhrl.recipes.selection import CRITERIA
+
+    extra = ["train.total_frames=384", "train.snapshot_frames=[128,256,384]", f"selection.criterion={criterion}", "eval.model_episodes=10"]
+    summary = train(_cfg("moc", hopper_file, tmp_path, extra), progress=False)
+    run = Path(summary["run_dir"])
+    evals = json.loads((run / "evals.json").read_text())
+    key = CRITERIA[criterion]
+    # every member rolls out the same number of model episodes (10 = 2 per member): the worst member's mean is at most the mean
+    assert all(e["model_return_min_member"] <= e["model_return_mean"] + 1e-6 for e in evals)
+    best = max(evals, key=lambda e: e[key])  # ties: the first, as the selector keeps the earlier policy
+    sel = summary["selected"]
+    assert sel["frames"] == best["frames"] and sel["criterion"] == criterion and sel["offline_score"] == pytest.approx(best[key])
+    assert sel["normalized_d4rl"] == best["normalized_d4rl"]  # its real-env score is the one measured when it was evaluated
+    chosen = torch.load(run / "selected.pt", weights_only=True)
+    snap = torch.load(run / f"snapshot-{best['frames']}.pt", weights_only=True)
+    for k, v in snap["agent"]["loss"].items():
+        torch.testing.assert_close(chosen["agent"]["loss"][k], v)
+    # the run's returned policy is what `offhrl evaluate` loads by default; --policy last loads the checkpoint
+    _, env, agent, state, _ = load_run_agent(run, num_envs=1, policy="selected")
+    for k, v in agent.loss.state_dict().items():
+        torch.testing.assert_close(v, snap["agent"]["loss"][k])
+    env.close()
+    assert state["frames"] == best["frames"]
+
+
+def test_policy_selection_without_a_model_env_returns_the_last_policy(hopper_file, cache, tmp_path):
+    summary = train(_cfg("ppo", hopper_file, tmp_path, ["eval.model_env=false"]), progress=False)
+    assert summary["selected"]["criterion"] == "last" and summary["selected"]["frames"] == summary["final"]["frames"]
+    assert not (Path(summary["run_dir"]) / "selected.pt").is_file()  # the checkpoint is the returned policy
+
+
+def test_policy_selector_resumes_and_refuses_another_criterion():
+    from torchrl_offhrl.recipes.selection import PolicySelector
+
+    class Agent:
+        w = 0
+
+        def state_dict(self):
+            return {"w": self.w}
+
+    a, sel = Agent(), PolicySelector("model_lcb")
+    a.w = 1
+    assert not sel.consider({"model_return_min_member": 5000.0}, a, step=0)  # the untrained agent is no candidate by default
+    assert sel.consider({"model_return_min_member": 10.0}, a, step=100)
+    a.w = 2
+    assert not sel.consider({"model_return_min_member": 10.0}, a, step=200)  # a tie keeps the earlier policy
+    again = PolicySelector("model_lcb")
+    again.load_state_dict(sel.state_dict())
+    a.w = 3
+    assert again.consider({"model_return_min_member": 11.0}, a, step=300)
+    assert again.selected["index"] == 3 and again.selected["agent"] == {"w": 3}
+    with pytest.raises(ValueError, match="same selection.criterion"):
+        PolicySelector("model_mean").load_state_dict(sel.state_dict())
+    with pytest.raises(ValueError, match="selection.criterion must be one of"):
+        PolicySelector("real_env")
+    start = PolicySelector("model_lcb", include_start=True)
+    assert start.consider({"model_return_min_member": 1.0}, a, step=0)

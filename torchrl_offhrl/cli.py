@@ -134,7 +134,8 @@ def cmd_train(args) -> int:
 def cmd_evaluate(args) -> int:
     from .recipes.evaluation import evaluate_run
 
-    res = evaluate_run(args.run_dir, episodes=args.episodes, seed=args.seed, frames_dir=args.frames, deterministic=not args.stochastic)
+    res = evaluate_run(args.run_dir, episodes=args.episodes, seed=args.seed, frames_dir=args.frames, deterministic=not args.stochastic,
+                       policy=args.policy)
     print(json.dumps(res, indent=2))
     return 0
 
@@ -257,6 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=12345)
     s.add_argument("--stochastic", action="store_true", help="sample actions and options instead of the deterministic policy")
     s.add_argument("--frames", help="save PNG frames of the first episode here (headless: set MUJOCO_GL=egl or osmesa)")
+    s.add_argument("--policy", choices=("selected", "last"), default="selected",
+                   help="selected (default): the policy the run returned by offline policy selection (selected.pt; runs without one: "
+                        "the last); last: the checkpoint's")
     s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("aggregate", help="aggregate several runs (seeds) into one table and one figure")

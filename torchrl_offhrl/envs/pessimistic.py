@@ -53,6 +53,11 @@ class PessimisticModelEnv(EnvBase):
             ``f(next_obs) -> bool[...]``, or ``None`` (never).
         horizon (int): truncation after this many steps (default 1000).
         member_mode (str): ``"episode"``, ``"step"`` or ``"mean"``.
+        member_draw (str): how an episode's member is chosen at reset:
+            ``"random"`` (uniformly, the default) or ``"cyclic"`` (env ``i``
+            of the batch always uses member ``i % K``: an evaluation that
+            gives every member the same number of episodes, so each member's
+            mean return, and the worst of them, can be read off).
         reset_states (str): ``"initial"`` (episode starts in the data) or
             ``"any"`` (any dataset state).
         bounds_margin (float): how many data ranges outside
@@ -101,6 +106,7 @@ class PessimisticModelEnv(EnvBase):
         horizon: int = 1000,
         member_mode: str = "episode",
         reset_states: str = "initial",
+        member_draw: str = "random",
         bounds_margin: float = 1.0,
         batch_size: Sequence[int] | torch.Size | None = None,
         device: str | torch.device = "cpu",
@@ -112,6 +118,8 @@ class PessimisticModelEnv(EnvBase):
             raise ValueError(f"discrepancy must be one of {DISCREPANCIES}, got {discrepancy!r}.")
         if member_mode not in _MEMBER_MODES:
             raise ValueError(f"member_mode must be one of {_MEMBER_MODES}, got {member_mode!r}.")
+        if member_draw not in ("random", "cyclic"):
+            raise ValueError(f"member_draw must be 'random' or 'cyclic', got {member_draw!r}.")
         if reset_states not in ("initial", "any"):
             raise ValueError(f"reset_states must be 'initial' or 'any', got {reset_states!r}.")
         if data.observation_dim != ensemble.observation_dim or data.action_dim != ensemble.action_dim:
@@ -128,6 +136,7 @@ class PessimisticModelEnv(EnvBase):
         self.penalty = float(penalty)
         self.horizon = int(horizon)
         self.member_mode = member_mode
+        self.member_draw = member_draw
         self.num_members = ensemble.num_members
 
         self._data = data
@@ -192,7 +201,10 @@ class PessimisticModelEnv(EnvBase):
         B = self.batch_size
         n = max(1, B.numel())
         idx = torch.randint(0, self.start_states.shape[0], (n,), generator=self._rng).to(self.device)
-        member = torch.randint(0, self.num_members, (n, 1), generator=self._rng).to(self.device)
+        member = torch.randint(0, self.num_members, (n, 1), generator=self._rng)
+        if self.member_draw == "cyclic":
+            member = (torch.arange(n) % self.num_members).reshape(n, 1)
+        member = member.to(self.device)
         out = TensorDict(
             {
                 "observation": self.start_states[idx].reshape(*B, -1),

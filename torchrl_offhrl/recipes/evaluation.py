@@ -78,14 +78,32 @@ class Evaluator:
         return rec
 
     def model_metrics(self, agent, real_mean: float) -> dict:
-        """The same deterministic policy in the pessimistic model env (if any): a large model-real gap means it exploits model errors."""
+        """The same deterministic policy in the pessimistic model env (if any): a large model-real gap means it exploits model errors.
+
+        Besides the mean return: ``model_return_min_member``, the mean return
+        of the ensemble member under which the policy does worst (a lower
+        confidence bound over the ensemble; with a ``member_draw="cyclic"``
+        env every member gets the same episodes' start states), and
+        ``model_penalized``, the share of model episodes ended by the
+        pessimism. Offline policy selection
+        (:class:`~torchrl_offhrl.recipes.selection.PolicySelector`) reads them.
+        """
         if self.model_env is None:
             return {}
+        n = self.model_env.batch_size.numel()
         with torch.random.fork_rng():
-            model_rets = evaluate_policy(self.model_env, agent.policy, self.model_env.batch_size.numel(), max_steps=self.max_steps, deterministic=True,
-                                         seed=self.seed)
+            model_rets, td = evaluate_policy(self.model_env, agent.policy, n, max_steps=self.max_steps, deterministic=True, seed=self.seed,
+                                             return_rollout=True)
         m = float(model_rets.mean())
-        return {"model_return_mean": m, "model_return_std": float(model_rets.std()), "model_real_gap": m - real_mean}
+        out = {"model_return_mean": m, "model_return_std": float(model_rets.std()), "model_real_gap": m - real_mean}
+        if "model_member" in td.keys():
+            member = td["model_member"][:, 0].reshape(-1).cpu()
+            rets = model_rets.double()
+            out["model_return_min_member"] = min(float(rets[member == k].mean()) for k in member.unique())
+        if ("next", "penalized") in td.keys(True):
+            alive = first_episode_mask(td["next", "done"].reshape(n, -1))
+            out["model_penalized"] = float((td["next", "penalized"].reshape(n, -1) & alive).any(1).float().mean())
+        return out
 
 
 class GoalEvaluator(Evaluator):
@@ -147,8 +165,12 @@ def acting_task(cfg: dict, state: dict) -> tuple[str, bool]:
     return tcfg["task"], acts_in_latent_space(cfg) and tcfg["decoder"] == "discard"
 
 
-def load_run_agent(run_dir, num_envs: int = 1):
+def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
     """``(cfg, env, agent, state, cvae)``: a run's agent rebuilt from ``config.json`` and ``checkpoint.pt``, acting in the real env.
+
+    ``policy="selected"`` loads the policy the run returned by offline policy
+    selection (``selected.pt``, :mod:`~torchrl_offhrl.recipes.selection`)
+    instead of the last one, where the run has it (else the last one).
 
     The env (``num_envs`` side by side) decodes through the run's CVAE, loaded
     from the model cache (``cvae``, None for a run without it); ``state`` is
@@ -185,12 +207,22 @@ def load_run_agent(run_dir, num_envs: int = 1):
     goal_key = "sub_goal" if env_id in BLOCKSTACK_IDS else None  # as the loop built it
     agent = make_agent(algo["name"], env, algo, action_key="latent_action" if latent else "action", goal_key=goal_key)
     agent.attach(env)
-    agent.load_state_dict(state["agent"])
+    if policy not in ("last", "selected"):
+        raise ValueError(f"policy must be 'last' or 'selected', got {policy!r}")
+    if policy == "selected" and (run / "selected.pt").is_file():
+        chosen = load_torch_file(run / "selected.pt", "selected policy", "rerun the training command to write it again")
+        agent.load_state_dict(chosen["agent"])
+        state = {**state, "frames": int(chosen["record"]["frames"])}
+    else:
+        agent.load_state_dict(state["agent"])
     return cfg, env, agent, state, cvae
 
 
-def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None, deterministic: bool = True) -> dict:
-    """Evaluate a run's checkpoint in the real env: returns, normalised scores, optional PNG frames.
+def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None, deterministic: bool = True, policy: str = "selected") -> dict:
+    """Evaluate a run's policy in the real env: returns, normalised scores, optional PNG frames.
+
+    ``policy``: ``"selected"`` (the policy the run returned, chosen by offline
+    policy selection; the last one for runs without it) or ``"last"``.
 
     Rebuilds the agent (:func:`load_run_agent`) and rolls ``episodes`` episodes out
     in the real Gymnasium env through the run's decoder. With
@@ -198,7 +230,7 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     machines need ``MUJOCO_GL=egl`` or ``osmesa``) and saved as PNG frames.
     """
     run = Path(run_dir)
-    cfg, env, agent, state, cvae = load_run_agent(run, num_envs=episodes)
+    cfg, env, agent, state, cvae = load_run_agent(run, num_envs=episodes, policy=policy)
     env_id = cfg["env"]["env_id"]
     bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
     task, discard = acting_task(cfg, state)
@@ -207,6 +239,7 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     env.close()
     res = {
         "run_dir": str(run),
+        "policy": policy if policy == "last" or (run / "selected.pt").is_file() else "last",
         "frames": int(state["frames"]),
         "task": task,
         "episodes": episodes,

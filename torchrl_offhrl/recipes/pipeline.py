@@ -187,6 +187,7 @@ def make_model_env(
     latent: bool = True,
     threshold: float | None = None,
     reset_states: str | None = None,
+    member_draw: str = "random",
 ) -> TransformedEnv:
     """``TransformedEnv(PessimisticModelEnv(...), LatentActionTransform(...))``.
 
@@ -196,6 +197,7 @@ def make_model_env(
     evaluation) without scoring the dataset again. ``reset_states`` overrides
     ``cfg.env.reset_states`` (``"initial"``, the default: episodes start where
     the data's episodes start; ``"any"``: at any dataset state).
+    ``member_draw="cyclic"`` gives env ``i`` member ``i % K`` (evaluations).
     """
     env_cfg = cfg["env"]
     if threshold is None:
@@ -212,6 +214,7 @@ def make_model_env(
         horizon=env_cfg.get("horizon", 1000),
         member_mode=env_cfg.get("member_mode", "episode"),
         reset_states=reset_states or env_cfg.get("reset_states", "initial"),
+        member_draw=member_draw,
         batch_size=[] if batch_size is None else [batch_size],
         device=cfg.get("device", "cpu"),
         seed=cfg.get("seed"),

@@ -18,13 +18,14 @@ from pathlib import Path
 import torch
 
 from ..scores import normalized_score
+from ..stats import iqm_ci, paired_change, plot_performance_profiles
 from ..utils import atomic_write
 from .config import transfer_config, transfer_label
 
 __all__ = [
-    "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "archive_run", "archive_runs", "fmt_number", "group_key", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
+    "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "archive_run", "archive_runs", "fmt_iqm", "fmt_number", "fmt_per_seed", "group_key", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
     "plot_curve", "plot_goal_success", "plot_training_metrics",
-    "plot_transfer", "read_scalar_logs", "run_summary", "run_unit", "transfer_stats",
+    "plot_transfer", "read_scalar_logs", "run_scores", "run_summary", "run_unit", "transfer_stats",
 ]
 
 
@@ -240,32 +241,102 @@ def group_key(run: dict) -> tuple:
     return (str(algo.get("label") or algo.get("name", "?")), cfg.get("env", {}).get("env_id", "?"), str(cfg.get("dataset", "?")), abl)
 
 
-def group_stats(rs: Sequence[dict]) -> dict:
-    """Statistics over the seeds of one group of loaded runs (:func:`load_run`): final, best and untrained scores, mean +- std.
+def _score(rec: dict | None):
+    return None if rec is None else rec.get("normalized_d4rl")
 
-    The final evaluation is each run's last; the best is the best evaluation
-    after training began (reported apart from the final one, never instead
-    of it); the untrained score is the evaluation at step 0.
+
+def run_scores(run: dict, last_n: int = 5) -> dict:
+    """One loaded run's scores (D4RL-normalised; None where it has none): how a run is scored beyond its last point.
+
+    ``final``: the last evaluation; ``best``: the best after training began;
+    ``start``: the evaluation at step 0 (the untrained agent); ``last5``: the
+    mean of the last ``last_n`` evaluations after step 0 (a run that
+    swings between evaluations is not judged by one of them); ``selected``:
+    the policy the run returned by offline policy selection
+    (``summary["selected"]``, chosen without the real env), else None.
+    """
+    evals = run["evals"]
+    trained = [e for e in evals if _step(e) > 0 and _score(e) is not None]
+    tail = trained[-last_n:]
+    summary = run.get("summary") or {}
+    return {
+        "seed": (run.get("config") or {}).get("seed"),
+        "final": _score(evals[-1]),
+        "best": max(_score(e) for e in trained) if trained else None,
+        "start": _score(evals[0]) if _step(evals[0]) == 0 else None,
+        "last5": sum(_score(e) for e in tail) / len(tail) if tail else None,
+        "selected": _score(summary.get("selected")),
+    }
+
+
+def _stat(values: Sequence, prefix: str) -> dict:
+    """``{prefix_iqm, prefix_ci}`` of the values that are not None (None, None when there are none)."""
+    vals = [v for v in values if v is not None]
+    if not vals:
+        return {f"{prefix}_iqm": None, f"{prefix}_ci": None}
+    m, lo, hi = iqm_ci(vals)
+    return {f"{prefix}_iqm": m, f"{prefix}_ci": (lo, hi)}
+
+
+def group_stats(rs: Sequence[dict]) -> dict:
+    """Statistics over the seeds of one group of loaded runs (:func:`load_run`).
+
+    Every score is D4RL-normalised; each comes as mean +- std and as the
+    interquartile mean with its 95% stratified-bootstrap CI
+    (:mod:`torchrl_offhrl.stats`), per seed in ``per_seed``
+    (:func:`run_scores`). The final evaluation is each run's last; the best
+    is the best evaluation after training began (reported apart from the
+    final one, never instead of it); the untrained score is the evaluation at
+    step 0; ``last5`` the mean of each run's last 5 evaluations;
+    ``selected`` the policy each run returned by offline policy selection;
+    ``change`` the paired change of the final score over the run's own
+    untrained start (mean, CI, and how many runs went up).
     """
     finals = torch.tensor([r["evals"][-1]["return_mean"] for r in rs], dtype=torch.float64)
-    scores = [r["evals"][-1].get("normalized_d4rl") for r in rs]
+    per = [run_scores(r) for r in rs]
+    scores = [p["final"] for p in per]
     sc = torch.tensor([s for s in scores if s is not None], dtype=torch.float64)
     unit = run_unit(rs[0])
     beh = [r["summary"]["behaviour_normalized_d4rl"] for r in rs if r["summary"] and r["summary"].get("behaviour_normalized_d4rl") is not None]
-    trained = [[e["normalized_d4rl"] for e in r["evals"] if _step(e) > 0 and e.get("normalized_d4rl") is not None] for r in rs]
-    best = [max(t) for t in trained if t]
-    start = [r["evals"][0]["normalized_d4rl"] for r in rs if _step(r["evals"][0]) == 0 and r["evals"][0].get("normalized_d4rl") is not None]
+    best = [p["best"] for p in per if p["best"] is not None]
+    start = [p["start"] for p in per if p["start"] is not None]
     bt, st = torch.tensor(best, dtype=torch.float64), torch.tensor(start, dtype=torch.float64)
+    pairs = [(p["final"], p["start"]) for p in per if None not in (p["final"], p["start"])]
+    change = paired_change([a for a, _ in pairs], [b for _, b in pairs]) if pairs else None
     return {
         "seeds": len(rs), "budget": f"{min(_step(r['evals'][-1]) for r in rs)} {unit}",
         "return_mean": float(finals.mean()), "return_std": float(finals.std()) if len(rs) > 1 else 0.0,
         "score_mean": float(sc.mean()) if sc.numel() else None,
         "score_std": float(sc.std()) if sc.numel() > 1 else 0.0,
+        **_stat(scores, "score"),
+        **_stat([p["last5"] for p in per], "last5"),
+        **_stat([p["selected"] for p in per], "selected"),
         "behaviour_score": float(sum(beh) / len(beh)) if beh else None,
         "best_score_mean": float(bt.mean()) if bt.numel() else None,
         "best_score_std": float(bt.std()) if bt.numel() > 1 else 0.0,
+        **_stat(best, "best_score"),
         "untrained_score_mean": float(st.mean()) if st.numel() else None,
+        "change_mean": None if change is None else change["mean"],
+        "change_ci": None if change is None else change["ci"],
+        "change_up": None if change is None else f"{change['up']}/{change['n']}",
+        "per_seed": per,
     }
+
+
+def fmt_iqm(m, ci, n: int | None = None) -> str:
+    """``IQM [lo, hi] (n)``; one value has no interval: ``x (1)``; ``—`` for None."""
+    if m is None:
+        return "—"
+    tail = "" if n is None else f" ({n})"
+    if ci is None or n == 1 or ci[0] == ci[1]:  # one run, or runs that agree: no interval to show
+        return f"{m:.1f}{tail}"
+    return f"{m:.1f} [{ci[0]:.1f}, {ci[1]:.1f}]{tail}"
+
+
+def fmt_per_seed(per: Sequence[dict], key: str = "final") -> str:
+    """``s4: 95.9, s5: 83.8`` (seed order) of one score of each run."""
+    rows = sorted(per, key=lambda p: (p["seed"] is None, p["seed"] if p["seed"] is not None else 0))
+    return ", ".join(f"s{'?' if p['seed'] is None else p['seed']}: {fmt_number(p[key])}" for p in rows)
 
 
 def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:
@@ -360,18 +431,25 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
     tables = []
     if standard:
         rows = [{"algo": key[0], "env": key[1], "dataset": key[2], "ablation": key[3], **group_stats(rs)} for key, rs in sorted(standard.items())]
-        header = ("| algo | env | dataset | ablation | seeds | budget | final return (mean ± std) | final D4RL score (mean ± std) | "
-                  "best D4RL score (mean ± std) | untrained score | behaviour score |")
-        lines = [header, "|" + "---|" * 11]
+        header = ("| algo | env | dataset | ablation | seeds | budget | final return (mean ± std) | final D4RL: IQM [95% CI] | final D4RL (mean ± std) | "
+                  "last 5 evals: IQM [95% CI] | selected policy: IQM [95% CI] | best D4RL: IQM [95% CI] | untrained score | "
+                  "change over untrained [95% CI] (runs up) | behaviour score | final per seed |")
+        lines = [header, "|" + "---|" * 16]
         for r in rows:
             score = "n/a" if r["score_mean"] is None else f"{r['score_mean']:.1f} ± {r['score_std']:.1f}"
-            best = "n/a" if r["best_score_mean"] is None else f"{r['best_score_mean']:.1f} ± {r['best_score_std']:.1f}"
+            change = "n/a" if r["change_mean"] is None else f"{r['change_mean']:+.1f} [{r['change_ci'][0]:+.1f}, {r['change_ci'][1]:+.1f}] ({r['change_up']})"
             lines.append(
                 f"| {r['algo']} | {r['env']} | {r['dataset']} | {r['ablation']} | {r['seeds']} | {r['budget']} | "
-                f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {score} | {best} | {fmt_number(r['untrained_score_mean'])} | "
-                f"{fmt_number(r['behaviour_score'])} |"
+                f"{r['return_mean']:.1f} ± {r['return_std']:.1f} | {fmt_iqm(r['score_iqm'], r['score_ci'])} | {score} | "
+                f"{fmt_iqm(r['last5_iqm'], r['last5_ci'])} | {fmt_iqm(r['selected_iqm'], r['selected_ci'])} | "
+                f"{fmt_iqm(r['best_score_iqm'], r['best_score_ci'])} | {fmt_number(r['untrained_score_mean'])} | {change} | "
+                f"{fmt_number(r['behaviour_score'])} | {fmt_per_seed(r['per_seed'])} |"
             )
-        tables.append("\n".join(lines))
+        tables.append("D4RL-normalised real-env scores over seeds: interquartile mean with its 95% stratified-bootstrap confidence "
+                      "interval, and mean ± std. *Final*: each run's last evaluation; *last 5 evals*: the mean of its last five; "
+                      "*selected policy*: the policy chosen by offline policy selection, without the real env; *best*: its best "
+                      "evaluation after training began (never instead of the final one).\n\n" + "\n".join(lines))
+        rows = [{**r, "per_seed": json.dumps(r["per_seed"])} for r in rows]
         with open(out / "results.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
             w.writeheader()
@@ -555,11 +633,8 @@ def _dataset_name(dataset: str) -> str:
     return Path(dataset).stem if "/" in dataset or Path(dataset).suffix else dataset
 
 
-def _cell(mean, std, n) -> str:
-    """``mean ± std (n)``; one seed has no spread to show: ``mean (1)``."""
-    if mean is None:
-        return "—"
-    return f"{mean:.1f} ({n})" if n == 1 else f"{mean:.1f} ± {std:.1f} ({n})"
+#: the :func:`run_scores` key behind each kind of table cell
+PER_SEED_KEY = {"score": "final", "best_score": "best", "last5": "last5", "selected": "selected"}
 
 
 def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets", min_seeds: int = 3,
@@ -609,7 +684,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                 if st is None:
                     cells.append("—")
                     continue
-                cells.append(_cell(st[f"{kind}_mean"], st[f"{kind}_std"], st["seeds"]))
+                n = sum(p[PER_SEED_KEY[kind]] is not None for p in st["per_seed"])
+                cells.append(fmt_iqm(st[f"{kind}_iqm"], st[f"{kind}_ci"], n) if n else "—")
                 if st["behaviour_score"] is not None:
                     beh.append(st["behaviour_score"])
             lines.append(f"| {row_name[env_id, dataset]} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
@@ -628,12 +704,28 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                 by_reason[why].append(f"{TABLE_COLUMNS[c]} ({n} seed{'s' if n != 1 else ''})" if n else f"{TABLE_COLUMNS[c]} (no run)")
         short += [f"- {row}: {', '.join(cells)}. {why}" for why, cells in by_reason.items()]
     missing = [f"## Missing cells (fewer than {min_seeds} seeds)", "", *(short or ["None: every column has its seeds."]), ""]
+    per_seed = ["## Per-seed values (final / selected / last-5 mean / best / untrained)", ""]
+    for env_id, dataset in datasets:
+        for c in columns:
+            st = stats.get((env_id, dataset, c))
+            if st is None:
+                continue
+            vals = "; ".join(f"s{p['seed']}: {fmt_number(p['final'])} / {fmt_number(p['selected'])} / {fmt_number(p['last5'])} / "
+                             f"{fmt_number(p['best'])} / {fmt_number(p['start'])}"
+                             for p in sorted(st["per_seed"], key=lambda p: (p["seed"] is None, p["seed"] or 0)))
+            change = "" if st["change_mean"] is None else (f"; change over untrained {st['change_mean']:+.1f} "
+                                                           f"[{st['change_ci'][0]:+.1f}, {st['change_ci'][1]:+.1f}], {st['change_up']} runs up")
+            per_seed.append(f"- {row_name[env_id, dataset]}, {TABLE_COLUMNS.get(c, c)}: {vals}{change}")
+    per_seed.append("")
     md = [f"# {title}", "",
-          "D4RL-normalised real-env return, deterministic evaluation, mean ± std over seeds (number of seeds).", "",
+          "D4RL-normalised real-env return, deterministic evaluation: interquartile mean over seeds with its 95% stratified-bootstrap "
+          "confidence interval, [lower, upper], (number of seeds); mean ± std per cell in table.csv.", "",
           "## Final evaluation", "", *table("score"), "",
+          "## Selected policy (offline policy selection, without the real env)", "", *table("selected"), "",
+          "## Mean of the last 5 evaluations", "", *table("last5"), "",
           "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
           *table("best_score"), "",
-          "Budgets: " + "; ".join(budgets) + ".", "", *missing,
+          "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing,
           "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
           "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
           "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),
@@ -644,7 +736,13 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         w = csv.DictWriter(f, fieldnames=["env", "dataset", "algo", *next(iter(stats.values())).keys()])
         w.writeheader()
         for (env_id, dataset, c), st in sorted(stats.items()):
-            w.writerow({"env": env_id, "dataset": dataset, "algo": c, **st})
+            w.writerow({"env": env_id, "dataset": dataset, "algo": c, **st, "per_seed": json.dumps(st["per_seed"])})
+    profile: dict[str, list[float]] = defaultdict(list)  # every final score of each column, pooled over the rows it has
+    for (env_id, dataset, c), st in sorted(stats.items()):
+        profile[TABLE_COLUMNS.get(c, c)] += [p["final"] for p in st["per_seed"] if p["final"] is not None]
+    if any(profile.values()):
+        plot_performance_profiles({k: v for k, v in profile.items() if v}, out / "performance_profile.png",
+                                  title=f"{title}: final scores of every run, pooled over {len(datasets)} dataset row(s)")
     plt = _plt()
     for env_id, dataset in datasets:
         keys = [k for k in sorted(groups) if k[:2] == (env_id, dataset)]

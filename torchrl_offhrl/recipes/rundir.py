@@ -2,7 +2,7 @@
 
 Layout (``outputs/runs/<algo>-<env>-<dataset>-seed<seed>/``): ``config.json``,
 ``checkpoint.pt`` (the agent's state, frame and update counters, evaluation
-records, RNG state, the config fingerprint and, for agents with a replay
+records, RNG state, the offline policy selection's state, the config fingerprint and, for agents with a replay
 buffer, the name of the ``replay-<frames>/`` folder saved with it),
 ``evals.json``, ``logs/`` (TorchRL logger) and whatever the report writes.
 Every file is written atomically; a replay folder is written before the
@@ -50,6 +50,7 @@ class RunDirectory:
         self.updates = 0
         self.unit = "frames"  # what the run's budget counts: "frames" (collected) or "updates" (gradient steps, dataset agents)
         self.records: list[dict] = []
+        self.selector = None  # a PolicySelector: its state (the selected policy) is checkpointed with the run
         self._replay: str | None = None
 
     @property
@@ -126,6 +127,8 @@ class RunDirectory:
             )
         agent.load_state_dict(state["agent"])
         self.frames, self.updates, self.records = int(state["frames"]), int(state["updates"]), list(state["records"])
+        if self.selector is not None:
+            self.selector.load_state_dict(state.get("selection"))
         torch.set_rng_state(state["rng"])
         replay = state.get("replay")
         if replay is not None and not (isinstance(replay, str) and re.fullmatch(r"replay-\d+", replay)):
@@ -156,6 +159,7 @@ class RunDirectory:
         state = {
             "agent": agent.state_dict(), "frames": self.frames, "updates": self.updates, "records": self.records,
             "rng": torch.get_rng_state(), "replay": new_replay, "fingerprint": self.fingerprint, "data_hash": self.data_hash,
+            "selection": None if self.selector is None else self.selector.state_dict(),
         }
         if self.checkpoint_path.is_file():  # the one before stays, for a checkpoint damaged later (resume falls back to it)
             with atomic_write(self.previous_path) as tmp:

@@ -44,6 +44,7 @@ from .pipeline import fit_or_load_models, make_model_env, make_real_env
 from .report import UNIT_LABELS, fmt_number, plot_curve, plot_goal_success, plot_training_metrics, plot_transfer, run_summary
 from .rundir import RunDirectory
 from .schema import validate_config
+from .selection import PolicySelector
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 
 TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
@@ -184,8 +185,9 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     if eval_env is not None:
         agent.attach(eval_env)
     if env is not None and not online and cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
-        model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=episodes, latent=latent, threshold=threshold,
-                                         reset_states="initial")  # the real env's start states, whatever training uses
+        # the real env's start states, whatever training uses; every member rolls out the same number of episodes (the LCB over members)
+        model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=int(cfg["eval"].get("model_episodes") or episodes),
+                                         latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic")
         agent.attach(model_eval_env)
     ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
     ref = ref if None not in ref else None
@@ -210,6 +212,11 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     # 4. resume, log, train, evaluate, checkpoint
     run.data_hash = data.content_hash()  # a run never resumes on other data found at the same path
     run.unit = unit
+    # offline policy selection: the policy a run returns is chosen from its evaluations without the real env; it needs the
+    # model env's evaluation, so dataset agents, online and transfer runs, and block stacking return their last policy
+    scfg = cfg.get("selection") or {}
+    selectable = model_eval_env is not None and tcfg is None and not stacking
+    run.selector = PolicySelector(scfg.get("criterion", "model_lcb") if selectable else "last", scfg.get("include_start", False))
     previous_summary = None
     if run.resume(agent, device) and (run.path / "summary.json").is_file():
         previous_summary = json.loads((run.path / "summary.json").read_text())
@@ -223,6 +230,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         if phase is not None:
             rec["phase"] = phase
         rec.update(ev(agent, save_to=save_to, title=title))
+        if phase in (None, "offline"):  # the offline phase's policies are the candidates of the selection
+            run.selector.consider(rec, agent, run.step)
         return rec
 
     def train_phase(source, start: int, budget: int, every: int, ev: Evaluator, desc: str, batch_metrics, phase: str | None, final_dir) -> None:
@@ -330,8 +339,14 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
             source.shutdown()
     last_evaluator = evaluator if tcfg is None else online_evaluator
     if not all((run.path / f).is_file() for f in agent.evaluation_files):
-        run.records[-1] = evaluate(last_evaluator, save_to=run.path, phase=run.records[-1].get("phase"))
+        rec = {**run.records[-1], **last_evaluator(agent, save_to=run.path, title=title)}  # the same policy again, for its files
+        run.records[-1] = rec
         run.checkpoint(agent)
+    selected = run.selector.selected
+    if selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
+        with atomic_write(run.path / "selected.pt") as tmp:
+            torch.save({"agent": selected["agent"], "step": selected["step"], "criterion": run.selector.criterion,
+                        "record": run.records[selected["index"]]}, tmp)
     elapsed = time.time() - t_train
     train_time = timing["update_time_s"]
 
@@ -357,6 +372,8 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         summary.update({k: previous_summary[k] for k in TIMING_KEYS if k in previous_summary})
     if stacking and data.metadata.get("goal_success"):  # the behaviour data's own per-goal success (its collection's horizon)
         summary["behaviour_success_per_goal"] = [data.metadata["goal_success"].get(str(k)) for k in range(n_goals)]
+    if selected is not None:
+        summary["selected"] = {**run.records[selected["index"]], "criterion": run.selector.criterion, "offline_score": selected["score"]}
     if tcfg is not None:
         summary["transfer"] = {**tcfg, "switch_frame": switch}
         summary["offline_final"] = next((r for r in reversed(run.records) if r.get("phase") == "offline"), None)

@@ -1,0 +1,107 @@
+"""Offline policy selection: which of a run's policies to return, chosen without the real env.
+
+Training on a learned model swings: a policy can be good at one evaluation
+and lose its gait at the next (``docs/results/demo_robustness.md``). The
+last update's policy is then a draw from those swings. A
+:class:`PolicySelector` looks at every evaluation of a run and keeps the
+agent's state at the one with the best *offline* score: a number computed
+from the pessimistic model env, never from the real env (the real-env
+evaluation stays in the record for reporting, unread by the selector).
+
+Criteria (``selection.criterion``):
+
+* ``model_lcb`` (default): the mean model return of the worst ensemble
+  member (``model_return_min_member``: every member rolls the policy out
+  from the same start states, see
+  :meth:`~torchrl_offhrl.recipes.evaluation.Evaluator.model_metrics`). A
+  lower confidence bound over the ensemble: a policy that scores high only
+  under some members is exploiting their errors. On the demo's tuning
+  datasets it ranked a run's policies as the real env did (Spearman +1.0 and
+  +0.8) where the mean model return did not (+0.2 and -0.4;
+  ``scripts/selection_probe.py``).
+* ``model_mean``: the mean model return.
+* ``last``: no selection; the last policy (what the runs returned before).
+
+Evaluations at step 0 (the untrained agent) are candidates only with
+``include_start=True``: by default the returned policy is a trained one.
+"""
+from __future__ import annotations
+
+import copy
+
+__all__ = ["CRITERIA", "PolicySelector"]
+
+#: criterion -> the evaluation-record key it maximises (None: the last evaluation wins)
+CRITERIA: dict[str, str | None] = {"model_lcb": "model_return_min_member", "model_mean": "model_return_mean", "last": None}
+
+
+class PolicySelector:
+    """Keeps the agent state of the best evaluation by an offline criterion.
+
+    Args:
+        criterion: a key of :data:`CRITERIA`.
+        include_start: whether the evaluation at step 0 is a candidate.
+
+    ``consider(record, agent, step)`` after each evaluation; ``selected``
+    is ``{"index", "step", "score", "agent"}`` of the best so far (None
+    before the first candidate; ``agent`` is None for ``last``: the run's
+    checkpoint holds that policy). Ties keep the earlier policy. The state
+    is part of the run's checkpoint (:meth:`state_dict`), so a resumed run
+    selects as an uninterrupted one.
+
+    Examples:
+        >>> class Agent:
+        ...     def __init__(self): self.w = 0
+        ...     def state_dict(self): return {"w": self.w}
+        >>> sel, agent = PolicySelector("model_lcb"), Agent()
+        >>> for i, (w, lcb) in enumerate([(0, 900.0), (1, 500.0), (2, 700.0), (3, 650.0)]):
+        ...     agent.w = w
+        ...     _ = sel.consider({"model_return_min_member": lcb}, agent, step=i * 100)
+        >>> sel.selected["step"], sel.selected["agent"]
+        (200, {'w': 2})
+    """
+
+    def __init__(self, criterion: str = "model_lcb", include_start: bool = False):
+        if criterion not in CRITERIA:
+            raise ValueError(f"selection.criterion must be one of {sorted(CRITERIA)}, got {criterion!r}")
+        self.criterion, self.key, self.include_start = criterion, CRITERIA[criterion], bool(include_start)
+        self.selected: dict | None = None
+        self._count = 0
+
+    def score(self, record: dict) -> float | None:
+        """The record's offline score (None: the record lacks it, e.g. an agent evaluated without a model env)."""
+        if self.key is None:
+            return float(self._count)  # later is better: the last evaluation wins
+        v = record.get(self.key)
+        return None if v is None else float(v)
+
+    def consider(self, record: dict, agent, step: int) -> bool:
+        """Take the evaluation ``record`` of ``agent`` at ``step`` into account; True when it becomes the selected one."""
+        index = self._count
+        self._count += 1
+        if step == 0 and not self.include_start:
+            return False
+        s = self.score(record)
+        if s is None:
+            if self.key is not None and self.selected is None and step > 0:
+                raise ValueError(f"selection.criterion={self.criterion} reads {self.key!r}, which the evaluation records of this run "
+                                 "lack (it needs the model env's evaluation: eval.model_env=true on a model-env agent); "
+                                 "use selection.criterion=last")
+            return False
+        if self.selected is not None and s <= self.selected["score"]:
+            return False
+        # the last policy is the run's own checkpoint: no copy kept
+        state = None if self.key is None else copy.deepcopy(agent.state_dict())
+        self.selected = {"index": index, "step": int(step), "score": s, "agent": state}
+        return True
+
+    def state_dict(self) -> dict:
+        return {"criterion": self.criterion, "include_start": self.include_start, "count": self._count, "selected": self.selected}
+
+    def load_state_dict(self, state: dict | None) -> None:
+        if not state:
+            return
+        if state.get("criterion") != self.criterion:
+            raise ValueError(f"the checkpoint selected its policy by {state.get('criterion')!r}, this run by {self.criterion!r}: "
+                             "resume with the same selection.criterion")
+        self._count, self.selected = int(state["count"]), state["selected"]
