@@ -32,11 +32,14 @@ DOC = ROOT / "docs" / "results" / "demo_robustness.md"
 
 #: name -> (what it changes, overrides of configs/demo.yaml)
 VARIANTS: dict[str, tuple[str, list[str]]] = {
-    "demo": ("the demo as shipped (configs/demo.yaml)", []),
-    "last": ("the demo returning its last policy (no offline policy selection)", ["selection.criterion=last"]),
-    "model_mean": ("policy selection by the mean model return instead of the worst member's", ["selection.criterion=model_mean"]),
-    "one_option": ("the demo with one option (MOC's machinery without options)", ["algo.num_options=1"]),
-    "bound1": ("latent box [-1, 1] instead of [-2, 2] (a trust region around the CVAE prior's mode)", ["model_env.latent_bound=1.0"]),
+    "shipped": ("the demo as shipped (configs/demo.yaml): 100-step model episodes branched from any dataset state, the last policy", []),
+    "horizon1000_lcb": ("the demo before issue 37: 1000-step model episodes from the data's start states; returned policy by model_lcb",
+                        ["model_env.reset_states=initial", "model_env.horizon=1000", "selection.criterion=model_lcb"]),
+    "branch": ("the shipped demo with the returned policy chosen by model_lcb", ["selection.criterion=model_lcb"]),
+    "bound1": ("horizon1000_lcb with the latent box [-1, 1] instead of [-2, 2] (a trust region around the CVAE prior's mode)",
+               ["model_env.reset_states=initial", "model_env.horizon=1000", "selection.criterion=model_lcb", "model_env.latent_bound=1.0"]),
+    "branch_bound1": ("branch with the latent box [-1, 1]", ["selection.criterion=model_lcb", "model_env.latent_bound=1.0"]),
+    "one_option": ("the shipped demo with one option (MOC's machinery without options)", ["algo.num_options=1"]),
 }
 
 
@@ -48,7 +51,9 @@ def run(variant: str, seeds: list[int]) -> None:
         if (out / "demo_summary.json").is_file():
             print(f"{out}: done")
             continue
-        run_demo([*VARIANTS[variant][1], f"dataset_seed={d}", f"run_dir={out}"], progress=False)
+        # every evaluation's policy kept (snapshot-<frames>.pt): other selection criteria can be scored afterwards
+        snaps = f"train.snapshot_frames=[{','.join(str(10240 * k) for k in range(1, 9))}]"
+        run_demo([*VARIANTS[variant][1], f"dataset_seed={d}", f"run_dir={out}", snaps], progress=False)
 
 
 def _score(rec):
@@ -67,8 +72,43 @@ def rows_of(variant: str) -> list[dict]:
             "last": _score(s["final"]), "selected": _score(sel) if sel else _score(s["final"]),
             "selected_frames": (sel or s["final"])["frames"], "best": max(_score(e) for e in trained),
             "last5": sum(_score(e) for e in trained[-5:]) / len(trained[-5:]),
+            "option_kl": (sel or s["final"]).get("option_kl"), "option_switches": (sel or s["final"]).get("option_switches"),
         })
     return rows
+
+
+def criteria_rows(variant: str, seeds) -> list[str]:
+    """Every selection criterion scored afterwards on the same runs: the real score of the evaluation each would pick."""
+    from torchrl_offhrl.recipes.selection import CRITERIA
+
+    out = []
+    runs = []
+    for d in seeds:
+        p = OUT / variant / f"d{d}"
+        if (p / "demo_summary.json").is_file():
+            s = json.loads((p / "demo_summary.json").read_text())
+            runs.append((d, json.loads((p / "evals.json").read_text()), s))
+    if not runs:
+        return out
+    out += ["| criterion | picked real score per dataset seed | mean | within 5 of best | beats untrained and data |", "|---|---|---|---|---|"]
+    for name, key in CRITERIA.items():
+        picks, hits, wins = [], 0, 0
+        for d, evals, s in runs:
+            cands = [e for e in evals if e["frames"] > 0]
+            if key is None:
+                e = cands[-1]
+            elif any(key not in c for c in cands):
+                break
+            else:
+                e = max(cands, key=lambda c: c[key])  # the first of equals, as the selector
+            best = max(c["normalized_d4rl"] for c in cands)
+            picks.append(e["normalized_d4rl"])
+            hits += best - e["normalized_d4rl"] <= 5.0
+            wins += e["normalized_d4rl"] > s["initial"]["normalized_d4rl"] and e["normalized_d4rl"] > s["behaviour_normalized_d4rl"]
+        else:
+            out.append(f"| {name} | {', '.join(f'd{d}: {x:.1f}' for (d, _, _), x in zip(runs, picks))} | {sum(picks) / len(picks):.1f} | "
+                       f"{hits}/{len(picks)} | {wins}/{len(picks)} |")
+    return out + [""]
 
 
 def table(variants: list[str]) -> str:
@@ -90,19 +130,27 @@ def table(variants: list[str]) -> str:
             if not rs:
                 continue
             lines += [f"## {v}: {VARIANTS[v][0]} ({group})", "",
-                      "| dataset seed | data | untrained | returned (frames) | last | best | last-5 mean | beats both |", "|---|---|---|---|---|---|---|---|"]
-            wins = 0
+                      "| dataset seed | data | untrained | returned (frames) | last | best | last-5 mean | beats both | selection within 5 of best | "
+                      "options' KL / switches per episode (returned) |", "|---|---|---|---|---|---|---|---|---|---|"]
+            wins = hits = 0
             for r in rs:
                 win = r["selected"] > r["untrained"] and r["selected"] > r["behaviour"]
-                wins += win
+                hit = r["best"] - r["selected"] <= 5.0
+                wins, hits = wins + win, hits + hit
+                opt = "n/a" if r["option_kl"] is None else f"{r['option_kl']:.2f} / {r['option_switches']:.1f}"
                 lines.append(f"| {r['dataset_seed']} | {r['behaviour']:.1f} | {r['untrained']:.1f} | {r['selected']:.1f} ({r['selected_frames']}) | "
-                             f"{r['last']:.1f} | {r['best']:.1f} | {r['last5']:.1f} | {'yes' if win else 'no'} |")
+                             f"{r['last']:.1f} | {r['best']:.1f} | {r['last5']:.1f} | {'yes' if win else 'no'} | {'yes' if hit else 'no'} | {opt} |")
             agg = []
             for k in ("behaviour", "untrained", "selected", "last", "best", "last5"):
                 m, lo, hi = iqm_ci([r[k] for r in rs])
                 agg.append(f"{m:.1f} [{lo:.1f}, {hi:.1f}]")
-            lines.append(f"| IQM [95% CI] | {agg[0]} | {agg[1]} | {agg[2]} | {agg[3]} | {agg[4]} | {agg[5]} | {wins}/{len(rs)} |")
+            lines.append(f"| IQM [95% CI] | {agg[0]} | {agg[1]} | {agg[2]} | {agg[3]} | {agg[4]} | {agg[5]} | {wins}/{len(rs)} | "
+                         f"{hits}/{len(rs)} | |")
             lines.append("")
+            crit = criteria_rows(v, [r["dataset_seed"] for r in rs])
+            if crit:
+                lines += [f"Selection criteria compared on the same runs ({group}): the real score of the evaluation each criterion "
+                          "picks (after step 0; `selection.criterion`, `torchrl_offhrl.recipes.selection.CRITERIA`).", "", *crit]
     return "\n".join(lines)
 
 

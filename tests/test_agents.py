@@ -275,3 +275,31 @@ def test_training_loop_reports_progress_before_each_update(toy_registered, hoppe
     cfg["algo"] = {"name": "toy-pg", "frames_per_batch": 64}
     train(cfg, progress=False)
     assert seen == [0.0, 0.5]
+
+
+def test_moc_option_kl_and_switches_hand_computed():
+    """option_kl: mean KL between options' Gaussians at the visited states (|mu_i - mu_j|^2 / 2 at unit scale); one option: 0."""
+    from tensordict import TensorDict
+
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import ConditionalVAE, DynamicsEnsemble
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    d = make_toy_dataset(num_episodes=4, episode_length=10)
+    env = make_model_env({"env": {"threshold": 1.0}}, DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)),
+                         ConditionalVAE.for_dataset(d, hidden_sizes=(8,)), d, batch_size=4)
+    moc = make_agent("moc", env, hidden_sizes=[8], num_options=2, init_log_std=0.0)
+    last = moc.policy.heads.intra_head[-1]
+    with torch.no_grad():  # option 0's pre-tanh means are 0, option 1's are 1 and 2 (A = 2), whatever the state
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([0.0, 0.0, 1.0, 2.0]))
+    E, T = 2, 3
+    alive = torch.tensor([[True, True, True], [True, True, False]])
+    td = TensorDict({"observation": torch.randn(E, T, d.observation_dim), "option": torch.tensor([[0, 1, 1], [1, 1, 0]]),
+                     "option_start": torch.tensor([[True, True, False], [True, False, True]])}, [E, T])
+    m = moc.evaluation_metrics(td, alive)
+    assert m["option_kl"] == pytest.approx((1.0 + 4.0) / 2)  # both ordered pairs: KL symmetric at equal scales
+    assert m["option_switches"] == pytest.approx((1 + 0) / 2)  # the dead step's start does not count, nor the first step's
+    assert m["option_usage_mean"] == pytest.approx([1 / 5, 4 / 5])
+    one = make_agent("moc", env, hidden_sizes=[8], num_options=1)
+    assert one.evaluation_metrics(td.set("option", torch.zeros(E, T, dtype=torch.long)), alive)["option_kl"] == 0.0

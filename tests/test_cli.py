@@ -109,8 +109,10 @@ def test_demo_tiny(cache, tmp_path, capsys):
     args = ["demo", "num_transitions=400", f"out_root={tmp_path}", *TINY_MODELS, *TINY_TRAIN]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "behaviour data (hopper-medium)" in out and "MOC agent, real Hopper-v5" in out and "400 transitions" in out
+    assert "behaviour data (hopper-medium)" in out and "MOC agent returned (128 frames)" in out and "400 transitions" in out
     assert "MOC agent before training" in out
+    # the demo says how its returned policy was chosen (the last one by default)
+    assert "The returned policy is the last one (selection.criterion=last)" in out
     assert "short-budget run" in out and "offhrl train algo=moc env=hopper dataset=medium" in out
     run = tmp_path / "moc-hopper-medium-seed0"
     assert (run / "option_usage.png").is_file() and (run / "demo_summary.json").is_file()

@@ -334,11 +334,12 @@ def test_partial_runs_count_in_the_tables_but_draw_no_curves(tmp_path):
     part = {**whole, "dir": "legacy#moc-seed1", "partial": True, "evals": [{"step": 0, "frames": 0, "normalized_d4rl": 10.0, "return_mean": 100.0},
                                                                             {"step": 200, "frames": 200, "normalized_d4rl": 60.0, "return_mean": 600.0}]}
     text = paper_table([whole, part], tmp_path / "t")
-    assert "| hopper-medium | 50.0 ± 14.1 (2) |" in text.split("## Best")[0]  # finals 40 and 60
-    assert "| hopper-medium | 55.0 ± 7.1 (2) |" in text.split("## Best")[1]  # best after step 0: 50 and 60
+    assert "| hopper-medium | 50.0 [40.0, 60.0] (2) |" in text.split("## Best")[0]  # finals 40 and 60
+    assert "| hopper-medium | 55.0 [50.0, 60.0] (2) |" in text.split("## Best")[1]  # best after step 0: 50 and 60
+    assert "s0*: 60.0 / n/a / n/a / 60.0 / 10.0" in text  # the partial run (its config is seed 0's): marked, no last five
     assert (tmp_path / "t" / "curves_hopper-medium.png").is_file()
     only_partial = paper_table([part], tmp_path / "p")
-    assert "| hopper-medium | 60.0 (1) |" in only_partial and not list((tmp_path / "p").glob("*.png"))
+    assert "| hopper-medium | 60.0 (1) |" in only_partial and not list((tmp_path / "p").glob("curves*.png"))
     aggregate([part], tmp_path / "a")
     assert (tmp_path / "a" / "results.csv").is_file() and not (tmp_path / "a" / "curves.png").exists()
 

@@ -501,18 +501,18 @@ def test_policy_selector_resumes_and_refuses_another_criterion():
 
     a, sel = Agent(), PolicySelector("model_lcb")
     a.w = 1
-    assert not sel.consider({"model_return_min_member": 5000.0}, a, step=0)  # the untrained agent is no candidate by default
-    assert sel.consider({"model_return_min_member": 10.0}, a, step=100)
+    assert not sel.consider({"model_discounted_min_member": 5000.0}, a, step=0)  # the untrained agent is no candidate by default
+    assert sel.consider({"model_discounted_min_member": 10.0}, a, step=100)
     a.w = 2
-    assert not sel.consider({"model_return_min_member": 10.0}, a, step=200)  # a tie keeps the earlier policy
+    assert not sel.consider({"model_discounted_min_member": 10.0}, a, step=200)  # a tie keeps the earlier policy
     again = PolicySelector("model_lcb")
     again.load_state_dict(sel.state_dict())
     a.w = 3
-    assert again.consider({"model_return_min_member": 11.0}, a, step=300)
+    assert again.consider({"model_discounted_min_member": 11.0}, a, step=300)
     assert again.selected["index"] == 3 and again.selected["agent"] == {"w": 3}
     with pytest.raises(ValueError, match="same selection.criterion"):
         PolicySelector("model_mean").load_state_dict(sel.state_dict())
     with pytest.raises(ValueError, match="selection.criterion must be one of"):
         PolicySelector("real_env")
     start = PolicySelector("model_lcb", include_start=True)
-    assert start.consider({"model_return_min_member": 1.0}, a, step=0)
+    assert start.consider({"model_discounted_min_member": 1.0}, a, step=0)

@@ -240,8 +240,37 @@ class MOCAgent(OnPolicyAgent):
         return self.policy.make_transforms()
 
     def evaluation_metrics(self, rollout, alive) -> dict:
+        """Option usage and whether the options differ, on the states the evaluation visited.
+
+        ``option_usage_mean``: the share of steps each option ran;
+        ``option_switches``: option changes per episode (after its first
+        step); ``option_kl``: the mean KL divergence between two options'
+        intra-option policies at the same states, over the ordered pairs of
+        options (0 with one option, or when the options act alike: the
+        tanh-Gaussians' KL is their Gaussians', tanh and the box's affine map
+        being bijections).
+        """
         usage = F.one_hot(rollout["option"].reshape(alive.shape), self.num_options).float()[alive].mean(0)
-        return {"option_usage_mean": usage.tolist()}
+        out = {"option_usage_mean": usage.tolist()}
+        start = rollout.get("option_start", None)
+        if start is not None:
+            first = torch.zeros_like(alive)
+            first[:, 0] = True
+            switches = (start.reshape(alive.shape) & alive & ~first).sum(1).float()
+            out["option_switches"] = float(switches.mean())
+        n = self.num_options
+        if n > 1:
+            obs = rollout["observation"].reshape(*alive.shape, -1)[alive]
+            with torch.no_grad():
+                _, loc, scale, _ = self.policy.heads(obs)  # [S, n, A]
+            mu_i, mu_j = loc.unsqueeze(2), loc.unsqueeze(1)
+            s_i, s_j = scale.unsqueeze(2), scale.unsqueeze(1)
+            kl = (torch.log(s_j / s_i) + (s_i ** 2 + (mu_i - mu_j) ** 2) / (2 * s_j ** 2) - 0.5).sum(-1)  # [S, n, n]
+            off = ~torch.eye(n, dtype=torch.bool, device=kl.device)
+            out["option_kl"] = float(kl[:, off].mean())
+        else:
+            out["option_kl"] = 0.0
+        return out
 
     def save_evaluation(self, rollout, alive, run_dir: Path, title: str) -> None:
         usage = option_usage(rollout, self.num_options, alive)

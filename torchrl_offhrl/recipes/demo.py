@@ -32,10 +32,16 @@ def selection_lines(s: dict, cfg: dict) -> list[str]:
     sel = s.get("selected")
     if sel is None:
         return []
-    how = {"model_lcb": "the best mean return of the worst ensemble member in the pessimistic model",
-           "model_mean": "the best mean return in the pessimistic model", "last": "the last policy"}[sel["criterion"]]
-    out = [f"The returned policy is chosen from the run's evaluations without the real env (selection.criterion={sel['criterion']}: "
-           f"{how});", " the real-env scores above are reported, never used to choose."]
+    if sel["criterion"] == "last":
+        out = ["The returned policy is the last one (selection.criterion=last). Choosing it offline by the pessimistic model",
+               " (selection.criterion=model_lcb) picked near-behaviour-cloning policies on the tuning datasets: docs/results/demo_robustness.md."]
+    else:
+        how = {"model_lcb": "the best discounted return of the worst ensemble member in the pessimistic model",
+               "model_mean": "the best discounted mean return in the pessimistic model",
+               "model_lcb_undiscounted": "the best return of the worst ensemble member in the pessimistic model",
+               "model_mean_undiscounted": "the best mean return in the pessimistic model"}[sel["criterion"]]
+        out = [f"The returned policy is chosen from the run's evaluations without the real env (selection.criterion={sel['criterion']}: {how});",
+               " the real-env scores above are reported, never used to choose."]
     if CHECKED["seeds"]:
         out.append(f"This setting was checked on {CHECKED['seeds']} fresh dataset seeds (each its own 100k transitions and model fits): "
                    f"the returned policy beat its untrained start and the data on {CHECKED['beats_both']} of them "

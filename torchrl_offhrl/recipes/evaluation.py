@@ -51,10 +51,12 @@ class Evaluator:
     ``save_to=run_dir`` it also has the agent write its evaluation files.
     """
 
-    def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None, model_env=None, task: str | None = None):
+    def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None, model_env=None, task: str | None = None,
+                 gamma: float = 0.99):
         self.env, self.env_id, self.episodes, self.max_steps, self.seed, self.ref = env, env_id, episodes, max_steps, seed, ref
         self.model_env = model_env
         self.task = task
+        self.gamma = float(gamma)
 
     def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
         rets, td = evaluate_policy(
@@ -83,8 +85,10 @@ class Evaluator:
         Besides the mean return: ``model_return_min_member``, the mean return
         of the ensemble member under which the policy does worst (a lower
         confidence bound over the ensemble; with a ``member_draw="cyclic"``
-        env every member gets the same episodes' start states), and
-        ``model_penalized``, the share of model episodes ended by the
+        env every member gets the same episodes' start states);
+        ``model_discounted_mean`` / ``model_discounted_min_member``, the same
+        for the return discounted with ``gamma`` (the agent's own objective);
+        and ``model_penalized``, the share of model episodes ended by the
         pessimism. Offline policy selection
         (:class:`~torchrl_offhrl.recipes.selection.PolicySelector`) reads them.
         """
@@ -96,12 +100,16 @@ class Evaluator:
                                              return_rollout=True)
         m = float(model_rets.mean())
         out = {"model_return_mean": m, "model_return_std": float(model_rets.std()), "model_real_gap": m - real_mean}
+        alive = first_episode_mask(td["next", "done"].reshape(n, -1))
+        reward = td["next", "reward"].reshape(n, -1).double().cpu()
+        disc = (reward * alive.cpu() * self.gamma ** torch.arange(reward.shape[1], dtype=torch.float64)).sum(1)
+        out["model_discounted_mean"] = float(disc.mean())
         if "model_member" in td.keys():
             member = td["model_member"][:, 0].reshape(-1).cpu()
             rets = model_rets.double()
             out["model_return_min_member"] = min(float(rets[member == k].mean()) for k in member.unique())
+            out["model_discounted_min_member"] = min(float(disc[member == k].mean()) for k in member.unique())
         if ("next", "penalized") in td.keys(True):
-            alive = first_episode_mask(td["next", "done"].reshape(n, -1))
             out["model_penalized"] = float((td["next", "penalized"].reshape(n, -1) & alive).any(1).float().mean())
         return out
 

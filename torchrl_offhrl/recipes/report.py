@@ -264,8 +264,10 @@ def run_scores(run: dict, last_n: int = 5) -> dict:
         "final": _score(evals[-1]),
         "best": max(_score(e) for e in trained) if trained else None,
         "start": _score(evals[0]) if _step(evals[0]) == 0 else None,
-        "last5": sum(_score(e) for e in tail) / len(tail) if tail else None,
+        # a run known only by a few evaluations (``partial``: start, best, final) has no last five to average
+        "last5": sum(_score(e) for e in tail) / len(tail) if tail and not run.get("partial") else None,
         "selected": _score(summary.get("selected")),
+        "rebuilt": bool(run.get("partial")),
     }
 
 
@@ -704,13 +706,17 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                 by_reason[why].append(f"{TABLE_COLUMNS[c]} ({n} seed{'s' if n != 1 else ''})" if n else f"{TABLE_COLUMNS[c]} (no run)")
         short += [f"- {row}: {', '.join(cells)}. {why}" for why, cells in by_reason.items()]
     missing = [f"## Missing cells (fewer than {min_seeds} seeds)", "", *(short or ["None: every column has its seeds."]), ""]
-    per_seed = ["## Per-seed values (final / selected / last-5 mean / best / untrained)", ""]
+    def has(key: str) -> bool:  # a table only where some run has that score
+        return any(p[key] is not None for st in stats.values() for p in st["per_seed"])
+
+    per_seed = ["## Per-seed values (final / selected / last-5 mean / best / untrained)", "",
+                "`*`: a run known only from an earlier page (start, best and final: no last five, no selection).", ""]
     for env_id, dataset in datasets:
         for c in columns:
             st = stats.get((env_id, dataset, c))
             if st is None:
                 continue
-            vals = "; ".join(f"s{p['seed']}: {fmt_number(p['final'])} / {fmt_number(p['selected'])} / {fmt_number(p['last5'])} / "
+            vals = "; ".join(f"s{p['seed']}{'*' if p['rebuilt'] else ''}: {fmt_number(p['final'])} / {fmt_number(p['selected'])} / {fmt_number(p['last5'])} / "
                              f"{fmt_number(p['best'])} / {fmt_number(p['start'])}"
                              for p in sorted(st["per_seed"], key=lambda p: (p["seed"] is None, p["seed"] or 0)))
             change = "" if st["change_mean"] is None else (f"; change over untrained {st['change_mean']:+.1f} "
@@ -721,8 +727,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
           "D4RL-normalised real-env return, deterministic evaluation: interquartile mean over seeds with its 95% stratified-bootstrap "
           "confidence interval, [lower, upper], (number of seeds); mean ± std per cell in table.csv.", "",
           "## Final evaluation", "", *table("score"), "",
-          "## Selected policy (offline policy selection, without the real env)", "", *table("selected"), "",
-          "## Mean of the last 5 evaluations", "", *table("last5"), "",
+          *(["## Selected policy (offline policy selection, without the real env)", "", *table("selected"), ""] if has("selected") else []),
+          *(["## Mean of the last 5 evaluations", "", *table("last5"), ""] if has("last5") else []),
           "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
           *table("best_score"), "",
           "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing,

@@ -18,6 +18,7 @@ from typing import Any
 import torch
 
 from ..envs import TASKS
+from .selection import CRITERIA
 
 __all__ = ["validate_config"]
 
@@ -96,7 +97,7 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "eval.every_updates": _int(1),
     "eval.episodes": _int(1),
     "eval.model_episodes": _int(1, optional=True),
-    "selection.criterion": _choice("model_lcb", "model_mean", "last"),
+    "selection.criterion": _choice(*CRITERIA),
     "selection.include_start": ("true or false", lambda v: isinstance(v, bool)),
     "eval.max_steps": _int(1),
     "transfer.task": (f"null or a task of torchrl_offhrl.envs.TASKS ({', '.join(map(repr, TASKS))})", lambda v: v is None or v in TASKS),

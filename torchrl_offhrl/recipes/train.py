@@ -198,7 +198,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                                   seed=eval_seed, model_env=model_eval_env)
     elif eval_env is not None:
         evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=eval_seed, ref=ref, model_env=model_eval_env,
-                              task=None if tcfg is None else "forward")
+                              task=None if tcfg is None else "forward", gamma=float(algo.get("gamma", 0.99)))
     if tcfg is not None:
         with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
             if online_env is None:
@@ -216,7 +216,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     # model env's evaluation, so dataset agents, online and transfer runs, and block stacking return their last policy
     scfg = cfg.get("selection") or {}
     selectable = model_eval_env is not None and tcfg is None and not stacking
-    run.selector = PolicySelector(scfg.get("criterion", "model_lcb") if selectable else "last", scfg.get("include_start", False))
+    run.selector = PolicySelector(scfg.get("criterion", "last") if selectable else "last", scfg.get("include_start", False))
     previous_summary = None
     if run.resume(agent, device) and (run.path / "summary.json").is_file():
         previous_summary = json.loads((run.path / "summary.json").read_text())
