@@ -131,3 +131,19 @@ def test_hydra_deletion_overrides_are_accepted():
     assert "minibatch_size" not in cfg.algo
     with pytest.raises(SystemExit, match="key=value"):
         compose("demo", ["algo.minibatch_size"])
+
+
+def test_the_demo_cites_what_its_robustness_page_measured():
+    """The count the demo prints (recipes.demo.CHECKED) is the one docs/results/demo_robustness.md shows for the shipped config."""
+    import re
+
+    from torchrl_offhrl.recipes.demo import CHECKED
+
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "results" / "demo_robustness.md").read_text()
+    section = page.split("## shipped:")[1].split("(evaluation seeds 4+)")[1].split("\n## ")[0]
+    iqm_row = next(line for line in section.splitlines() if line.startswith("| IQM"))
+    beats, seeds = map(int, re.findall(r"\| (\d+)/(\d+) \|", iqm_row)[0])
+    assert (CHECKED["beats_both"], CHECKED["seeds"]) == (beats, seeds)
+    assert seeds >= 10
