@@ -140,9 +140,13 @@ def performance_profile(scores, taus: Sequence[float], reps: int = DEFAULT_REPS,
     return frac, lo, hi
 
 
-def plot_performance_profiles(groups: dict[str, np.ndarray], path, taus: Sequence[float] | None = None, title: str = "",
-                              xlabel: str = "D4RL-normalised score (tau)", reference: float | None = None, reps: int = 2000):
-    """One curve per group (``{label: scores [runs] or [runs, tasks]}``): fraction of runs with score > tau, 95% bands."""
+def plot_performance_profiles(groups: dict[str, np.ndarray], path=None, taus: Sequence[float] | None = None, title: str = "",
+                              xlabel: str = "D4RL-normalised score (tau)", reference: float | None = None, reps: int = 2000, ax=None):
+    """One curve per group (``{label: scores [runs] or [runs, tasks]}``): fraction of runs with score > tau, 95% bands.
+
+    Draws on ``ax`` when given (the caller saves the figure), else on a new
+    figure saved to ``path``.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,21 +155,24 @@ def plot_performance_profiles(groups: dict[str, np.ndarray], path, taus: Sequenc
     allx = np.concatenate([_as_matrix(v).ravel() for v in groups.values()])
     if taus is None:
         taus = np.linspace(min(0.0, allx.min()), allx.max() * 1.05 + 1e-9, 101)
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+    own = ax is None
+    if own:
+        fig, ax = plt.subplots(figsize=(6.5, 4))
     for label, s in groups.items():
         f, lo, hi = performance_profile(s, taus, reps=reps)
-        line, = ax.plot(taus, f, label=f"{label} ({_as_matrix(s).size} runs)")
-        ax.fill_between(taus, lo, hi, color=line.get_color(), alpha=0.2)
+        line, = ax.plot(taus, f, label=f"{label} ({_as_matrix(s).size})")
+        ax.fill_between(taus, lo, hi, color=line.get_color(), alpha=0.15)
     if reference is not None:
         ax.axvline(reference, color="gray", ls="--", lw=1, label="behaviour data")
     ax.set_xlabel(xlabel)
-    ax.set_ylabel("fraction of runs with score > tau")
+    ax.set_ylabel("fraction of runs > tau")
     ax.set_ylim(0, 1.02)
-    ax.set_title(title)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7)
+    if own:
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
     return path
 
 

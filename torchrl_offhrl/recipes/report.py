@@ -743,12 +743,17 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         w.writeheader()
         for (env_id, dataset, c), st in sorted(stats.items()):
             w.writerow({"env": env_id, "dataset": dataset, "algo": c, **st, "per_seed": json.dumps(st["per_seed"])})
-    profile: dict[str, list[float]] = defaultdict(list)  # every final score of each column, pooled over the rows it has
-    for (env_id, dataset, c), st in sorted(stats.items()):
-        profile[TABLE_COLUMNS.get(c, c)] += [p["final"] for p in st["per_seed"] if p["final"] is not None]
-    if any(profile.values()):
-        plot_performance_profiles({k: v for k, v in profile.items() if v}, out / "performance_profile.png",
-                                  title=f"{title}: final scores of every run, pooled over {len(datasets)} dataset row(s)")
+    plt = _plt()  # performance profiles: one panel per dataset row, one curve per column (its runs' final scores)
+    fig, axes = plt.subplots(1, len(datasets), figsize=(5.5 * len(datasets), 4), squeeze=False)
+    for ax, (env_id, dataset) in zip(axes[0], datasets):
+        curves = {TABLE_COLUMNS.get(c, c): [p["final"] for p in stats[(e, d, c)]["per_seed"] if p["final"] is not None]
+                  for (e, d, c) in sorted(stats) if (e, d) == (env_id, dataset)}
+        beh = next((stats[k]["behaviour_score"] for k in stats if k[:2] == (env_id, dataset) and stats[k]["behaviour_score"] is not None), None)
+        plot_performance_profiles({k: v for k, v in curves.items() if v}, ax=ax, title=f"{row_name[env_id, dataset]}: final scores",
+                                  reference=beh)
+    fig.tight_layout()
+    fig.savefig(out / "performance_profile.png", dpi=100)
+    plt.close(fig)
     plt = _plt()
     for env_id, dataset in datasets:
         keys = [k for k in sorted(groups) if k[:2] == (env_id, dataset)]
