@@ -72,7 +72,7 @@ def rows_of(variant: str) -> list[dict]:
             "last": _score(s["final"]), "selected": _score(sel) if sel else _score(s["final"]),
             "selected_frames": (sel or s["final"])["frames"], "best": max(_score(e) for e in trained),
             "last5": sum(_score(e) for e in trained[-5:]) / len(trained[-5:]),
-            "option_kl": (sel or s["final"]).get("option_kl"), "option_switches": (sel or s["final"]).get("option_switches"),
+            "option_kl": (sel or s["final"]).get("option_kl"), "option_starts": (sel or s["final"]).get("option_starts", (sel or s["final"]).get("option_switches")),
         })
     return rows
 
@@ -131,13 +131,13 @@ def table(variants: list[str]) -> str:
                 continue
             lines += [f"## {v}: {VARIANTS[v][0]} ({group})", "",
                       "| dataset seed | data | untrained | returned (frames) | last | best | last-5 mean | beats both | selection within 5 of best | "
-                      "options' KL / switches per episode (returned) |", "|---|---|---|---|---|---|---|---|---|---|"]
+                      "options' KL / option starts per episode (returned) |", "|---|---|---|---|---|---|---|---|---|---|"]
             wins = hits = 0
             for r in rs:
                 win = r["selected"] > r["untrained"] and r["selected"] > r["behaviour"]
                 hit = r["best"] - r["selected"] <= 5.0
                 wins, hits = wins + win, hits + hit
-                opt = "n/a" if r["option_kl"] is None else f"{r['option_kl']:.2f} / {r['option_switches']:.1f}"
+                opt = "n/a" if r["option_kl"] is None else f"{r['option_kl']:.2f} / {r['option_starts']:.1f}"
                 lines.append(f"| {r['dataset_seed']} | {r['behaviour']:.1f} | {r['untrained']:.1f} | {r['selected']:.1f} ({r['selected_frames']}) | "
                              f"{r['last']:.1f} | {r['best']:.1f} | {r['last5']:.1f} | {'yes' if win else 'no'} | {'yes' if hit else 'no'} | {opt} |")
             agg = []

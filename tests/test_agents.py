@@ -277,7 +277,7 @@ def test_training_loop_reports_progress_before_each_update(toy_registered, hoppe
     assert seen == [0.0, 0.5]
 
 
-def test_moc_option_kl_and_switches_hand_computed():
+def test_moc_option_kl_and_starts_hand_computed():
     """option_kl: mean KL between options' Gaussians at the visited states (|mu_i - mu_j|^2 / 2 at unit scale); one option: 0."""
     from tensordict import TensorDict
 
@@ -299,7 +299,7 @@ def test_moc_option_kl_and_switches_hand_computed():
                      "option_start": torch.tensor([[True, True, False], [True, False, True]])}, [E, T])
     m = moc.evaluation_metrics(td, alive)
     assert m["option_kl"] == pytest.approx((1.0 + 4.0) / 2)  # both ordered pairs: KL symmetric at equal scales
-    assert m["option_switches"] == pytest.approx((1 + 0) / 2)  # the dead step's start does not count, nor the first step's
+    assert m["option_starts"] == pytest.approx((1 + 0) / 2)  # the dead step's start does not count, nor the first step's
     assert m["option_usage_mean"] == pytest.approx([1 / 5, 4 / 5])
     one = make_agent("moc", env, hidden_sizes=[8], num_options=1)
     assert one.evaluation_metrics(td.set("option", torch.zeros(E, T, dtype=torch.long)), alive)["option_kl"] == 0.0

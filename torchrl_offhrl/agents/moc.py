@@ -243,8 +243,9 @@ class MOCAgent(OnPolicyAgent):
         """Option usage and whether the options differ, on the states the evaluation visited.
 
         ``option_usage_mean``: the share of steps each option ran;
-        ``option_switches``: option changes per episode (after its first
-        step); ``option_kl``: the mean KL divergence between two options'
+        ``option_starts``: option starts per episode after its first step
+        (a termination and a new pick, which may pick the same option
+        again); ``option_kl``: the mean KL divergence between two options'
         intra-option policies at the same states, over the ordered pairs of
         options (0 with one option, or when the options act alike: the
         tanh-Gaussians' KL is their Gaussians', tanh and the box's affine map
@@ -257,7 +258,7 @@ class MOCAgent(OnPolicyAgent):
             first = torch.zeros_like(alive)
             first[:, 0] = True
             switches = (start.reshape(alive.shape) & alive & ~first).sum(1).float()
-            out["option_switches"] = float(switches.mean())
+            out["option_starts"] = float(switches.mean())
         n = self.num_options
         if n > 1:
             obs = rollout["observation"].reshape(*alive.shape, -1)[alive]
