@@ -9,8 +9,9 @@ Data generated on another CPU differs in its floating-point details; a new
 policy, its own ensemble and CVAE fits) simulates that. Each variant is a
 list of hydra overrides of ``configs/demo.yaml``; one agent seed (0) per
 dataset seed. Dataset seeds 1-3 are for choosing (tuning); 4 and up for
-reporting. Run directories: ``outputs/demo_robustness/<variant>/d<seed>``
-(the cache, ``$TORCHRL_OFFHRL_CACHE``, keeps the datasets and models: a
+reporting. Run directories: ``outputs/demo_robustness/<variant>/d<seed>``; what the
+table reads (config, evaluations, summaries) is archived in the repo under
+``docs/results/demo_robustness_runs/<variant>/d<seed>`` as each run finishes (the cache, ``$TORCHRL_OFFHRL_CACHE``, keeps the datasets and models: a
 second variant on the same dataset seed costs only its agent's training).
 
 The table scores, per dataset seed, the behaviour data, the untrained agent
@@ -29,6 +30,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "outputs" / "demo_robustness"
 DOC = ROOT / "docs" / "results" / "demo_robustness.md"
+#: what the table reads: each finished run's config, evals, summary and demo summary (``archive_run``), kept in the repo
+ARCHIVE = ROOT / "docs" / "results" / "demo_robustness_runs"
 
 #: name -> (what it changes, overrides of configs/demo.yaml)
 VARIANTS: dict[str, tuple[str, list[str]]] = {
@@ -50,10 +53,19 @@ def run(variant: str, seeds: list[int]) -> None:
         out = OUT / variant / f"d{d}"
         if (out / "demo_summary.json").is_file():
             print(f"{out}: done")
+            if not (ARCHIVE / variant / f"d{d}" / "demo_summary.json").is_file():
+                archive(variant, d)
             continue
         # every evaluation's policy kept (snapshot-<frames>.pt): other selection criteria can be scored afterwards
         snaps = f"train.snapshot_frames=[{','.join(str(10240 * k) for k in range(1, 9))}]"
         run_demo([*VARIANTS[variant][1], f"dataset_seed={d}", f"run_dir={out}", snaps], progress=False)
+        archive(variant, d)
+
+
+def archive(variant: str, d: int) -> None:
+    from torchrl_offhrl.recipes.report import archive_run
+
+    archive_run(OUT / variant / f"d{d}", ARCHIVE / variant / f"d{d}", extra=("demo_summary.json",))
 
 
 def _score(rec):
@@ -62,7 +74,7 @@ def _score(rec):
 
 def rows_of(variant: str) -> list[dict]:
     rows = []
-    for path in sorted((OUT / variant).glob("d*/demo_summary.json"), key=lambda p: int(p.parent.name[1:])):
+    for path in sorted((ARCHIVE / variant).glob("d*/demo_summary.json"), key=lambda p: int(p.parent.name[1:])):
         s = json.loads(path.read_text())
         evals = json.loads((path.parent / "evals.json").read_text())
         trained = [e for e in evals if e["frames"] > 0]
@@ -84,7 +96,7 @@ def criteria_rows(variant: str, seeds) -> list[str]:
     out = []
     runs = []
     for d in seeds:
-        p = OUT / variant / f"d{d}"
+        p = ARCHIVE / variant / f"d{d}"
         if (p / "demo_summary.json").is_file():
             s = json.loads((p / "demo_summary.json").read_text())
             runs.append((d, json.loads((p / "evals.json").read_text()), s))
@@ -115,10 +127,10 @@ def table(variants: list[str]) -> str:
     from torchrl_offhrl.stats import iqm_ci
 
     lines = ["# The demo on many dataset seeds", "",
-             "Made by `python scripts/demo_robustness.py table` from `python scripts/demo_robustness.py run VARIANT --dataset-seeds ...`.",
+             "Made by `python scripts/demo_robustness.py table` from the runs archived in `docs/results/demo_robustness_runs/` by `python scripts/demo_robustness.py run VARIANT --dataset-seeds ...`.",
              "Each dataset seed generates its own 100k hopper-medium transitions and fits its own ensemble and CVAE (what another "
              "machine's floating point does to the demo); one agent seed (0). D4RL-normalised scores, 30 deterministic real-env "
-             "episodes per evaluation (10 for runs made before that default). *returned*: the policy the run returns (offline policy "
+             "episodes per evaluation. *returned*: the policy the run returns (offline policy "
              "selection, chosen without the real env; the last policy for `last`); *beats both*: returned > untrained and > data. "
              "Dataset seeds 1-3 were used for choices; 4 and up only for reporting.", ""]
     for v in variants:
