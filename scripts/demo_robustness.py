@@ -72,54 +72,61 @@ def _score(rec):
     return None if rec is None else rec.get("normalized_d4rl")
 
 
+def runs_of(variant: str) -> list[tuple[int, list[dict], dict]]:
+    """``(dataset seed, evaluation records, demo summary)`` of each archived run of ``variant``, by seed."""
+    out = []
+    for path in sorted((ARCHIVE / variant).glob("d*/demo_summary.json"), key=lambda p: int(p.parent.name[1:])):
+        out.append((int(path.parent.name[1:]), json.loads((path.parent / "evals.json").read_text()), json.loads(path.read_text())))
+    return out
+
+
+def beats_both(score: float, s: dict) -> bool:
+    """A policy's score above both the run's untrained start and its behaviour data."""
+    return score > _score(s["initial"]) and score > s["behaviour_normalized_d4rl"]
+
+
 def rows_of(variant: str) -> list[dict]:
     rows = []
-    for path in sorted((ARCHIVE / variant).glob("d*/demo_summary.json"), key=lambda p: int(p.parent.name[1:])):
-        s = json.loads(path.read_text())
-        evals = json.loads((path.parent / "evals.json").read_text())
+    for d, evals, s in runs_of(variant):
         trained = [e for e in evals if e["frames"] > 0]
-        sel = s.get("selected")
+        ret = s.get("selected") or s["final"]  # the returned policy's record
         rows.append({
-            "dataset_seed": int(path.parent.name[1:]), "behaviour": s["behaviour_normalized_d4rl"], "untrained": _score(s.get("initial")),
-            "last": _score(s["final"]), "selected": _score(sel) if sel else _score(s["final"]),
-            "selected_frames": (sel or s["final"])["frames"], "best": max(_score(e) for e in trained),
-            "last5": sum(_score(e) for e in trained[-5:]) / len(trained[-5:]),
-            "option_kl": (sel or s["final"]).get("option_kl"), "option_starts": (sel or s["final"]).get("option_starts", (sel or s["final"]).get("option_switches")),
+            "dataset_seed": d, "behaviour": s["behaviour_normalized_d4rl"], "untrained": _score(s.get("initial")),
+            "last": _score(s["final"]), "selected": _score(ret), "selected_frames": ret["frames"], "best": max(_score(e) for e in trained),
+            "last5": sum(_score(e) for e in trained[-5:]) / len(trained[-5:]), "beats_both": beats_both(_score(ret), s),
+            "option_kl": ret.get("option_kl"), "option_starts": ret.get("option_starts", ret.get("option_switches")),
         })
     return rows
 
 
-def criteria_rows(variant: str, seeds) -> list[str]:
-    """Every selection criterion scored afterwards on the same runs: the real score of the evaluation each would pick."""
-    from torchrl_offhrl.recipes.selection import CRITERIA
+def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
+    """Every selection criterion scored afterwards on the same runs: the real score of the evaluation its selector picks."""
+    from torchrl_offhrl.recipes.selection import CRITERIA, PolicySelector
 
-    out = []
-    runs = []
-    for d in seeds:
-        p = ARCHIVE / variant / f"d{d}"
-        if (p / "demo_summary.json").is_file():
-            s = json.loads((p / "demo_summary.json").read_text())
-            runs.append((d, json.loads((p / "evals.json").read_text()), s))
+    class _Index:  # stands for the agent: its "state" is the index of the evaluation being considered
+        i = 0
+
+        def state_dict(self):
+            return self.i
+
     if not runs:
-        return out
-    out += ["| criterion | picked real score per dataset seed | mean | within 5 of best | beats untrained and data |", "|---|---|---|---|---|"]
+        return []
+    out = ["| criterion | picked real score per dataset seed | mean | within 5 of best | beats untrained and data |", "|---|---|---|---|---|"]
     for name, key in CRITERIA.items():
+        if key is not None and any(key not in e for _, evals, _ in runs for e in evals):
+            continue  # a run made before the criterion's record existed
         picks, hits, wins = [], 0, 0
-        for d, evals, s in runs:
-            cands = [e for e in evals if e["frames"] > 0]
-            if key is None:
-                e = cands[-1]
-            elif any(key not in c for c in cands):
-                break
-            else:
-                e = max(cands, key=lambda c: c[key])  # the first of equals, as the selector
-            best = max(c["normalized_d4rl"] for c in cands)
+        for _, evals, s in runs:
+            sel, agent = PolicySelector(name), _Index()
+            for agent.i, e in enumerate(evals):
+                sel.consider(e, agent, e["frames"])
+            e = evals[sel.selected["index"]]
+            best = max(c["normalized_d4rl"] for c in evals if c["frames"] > 0)
             picks.append(e["normalized_d4rl"])
             hits += best - e["normalized_d4rl"] <= 5.0
-            wins += e["normalized_d4rl"] > s["initial"]["normalized_d4rl"] and e["normalized_d4rl"] > s["behaviour_normalized_d4rl"]
-        else:
-            out.append(f"| {name} | {', '.join(f'd{d}: {x:.1f}' for (d, _, _), x in zip(runs, picks))} | {sum(picks) / len(picks):.1f} | "
-                       f"{hits}/{len(picks)} | {wins}/{len(picks)} |")
+            wins += beats_both(e["normalized_d4rl"], s)
+        out.append(f"| {name} | {', '.join(f'd{d}: {x:.1f}' for (d, _, _), x in zip(runs, picks))} | {sum(picks) / len(picks):.1f} | "
+                   f"{hits}/{len(picks)} | {wins}/{len(picks)} |")
     return out + [""]
 
 
@@ -134,7 +141,7 @@ def table(variants: list[str]) -> str:
              "selection, chosen without the real env; the last policy for `last`); *beats both*: returned > untrained and > data. "
              "Dataset seeds 1-3 were used for choices; 4 and up only for reporting.", ""]
     for v in variants:
-        rows = rows_of(v)
+        rows, runs = rows_of(v), runs_of(v)
         if not rows:
             continue
         for group, pick in (("tuning seeds 1-3", lambda r: r["dataset_seed"] <= 3), ("evaluation seeds 4+", lambda r: r["dataset_seed"] >= 4)):
@@ -146,7 +153,7 @@ def table(variants: list[str]) -> str:
                       "options' KL / option starts per episode (returned) |", "|---|---|---|---|---|---|---|---|---|---|"]
             wins = hits = 0
             for r in rs:
-                win = r["selected"] > r["untrained"] and r["selected"] > r["behaviour"]
+                win = r["beats_both"]
                 hit = r["best"] - r["selected"] <= 5.0
                 wins, hits = wins + win, hits + hit
                 opt = "n/a" if r["option_kl"] is None else f"{r['option_kl']:.2f} / {r['option_starts']:.1f}"
@@ -159,7 +166,7 @@ def table(variants: list[str]) -> str:
             lines.append(f"| IQM [95% CI] | {agg[0]} | {agg[1]} | {agg[2]} | {agg[3]} | {agg[4]} | {agg[5]} | {wins}/{len(rs)} | "
                          f"{hits}/{len(rs)} | |")
             lines.append("")
-            crit = criteria_rows(v, [r["dataset_seed"] for r in rs])
+            crit = criteria_rows([run for run in runs if pick({"dataset_seed": run[0]})])
             if crit:
                 lines += [f"Selection criteria compared on the same runs ({group}): the real score of the evaluation each criterion "
                           "picks (after step 0; `selection.criterion`, `torchrl_offhrl.recipes.selection.CRITERIA`).", "", *crit]

@@ -52,6 +52,13 @@ def _as_matrix(scores) -> np.ndarray:
     return x
 
 
+def _resample(x: np.ndarray, reps: int, seed: int) -> np.ndarray:
+    """``[reps, runs, tasks]`` stratified bootstrap replicates of ``x [runs, tasks]``: runs drawn with replacement within each task."""
+    n, t = x.shape
+    idx = np.random.default_rng(seed).integers(0, n, size=(int(reps), n, t))
+    return np.take_along_axis(np.broadcast_to(x, (int(reps), n, t)), idx, axis=1)
+
+
 def _iqm_last2(x: np.ndarray) -> np.ndarray:
     """IQM over the last two axes (runs x tasks pooled), for a stack of replicates ``[..., runs, tasks]``."""
     flat = np.sort(x.reshape(*x.shape[:-2], -1), axis=-1)
@@ -86,10 +93,7 @@ def bootstrap_ci(scores, statistic: Callable[[np.ndarray], np.ndarray] | str = "
         raise ValueError(f"statistic must be 'iqm', 'mean' or a function, got {statistic!r}")
     if not 0 < ci < 1:
         raise ValueError(f"ci must be in (0, 1), got {ci}")
-    n, t = x.shape
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, n, size=(int(reps), n, t))  # per task, its own draws of runs: stratified
-    boot = fn(np.take_along_axis(np.broadcast_to(x, (int(reps), n, t)), idx, axis=1))
+    boot = fn(_resample(x, reps, seed))
     lo, hi = np.quantile(boot, [(1 - ci) / 2, 1 - (1 - ci) / 2])
     return float(lo), float(hi)
 
@@ -131,10 +135,7 @@ def performance_profile(scores, taus: Sequence[float], reps: int = DEFAULT_REPS,
     x = _as_matrix(scores)
     taus = np.asarray(taus, dtype=np.float64)
     frac = (x.ravel()[None, :] > taus[:, None]).mean(-1)
-    n, t = x.shape
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, n, size=(int(reps), n, t))
-    boot = np.take_along_axis(np.broadcast_to(x, (int(reps), n, t)), idx, axis=1).reshape(int(reps), -1)
+    boot = _resample(x, reps, seed).reshape(int(reps), -1)
     bfrac = (boot[:, None, :] > taus[None, :, None]).mean(-1)  # [reps, taus]
     lo, hi = np.quantile(bfrac, [(1 - ci) / 2, 1 - (1 - ci) / 2], axis=0)
     return frac, lo, hi

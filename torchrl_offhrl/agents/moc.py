@@ -254,11 +254,9 @@ class MOCAgent(OnPolicyAgent):
         usage = F.one_hot(rollout["option"].reshape(alive.shape), self.num_options).float()[alive].mean(0)
         out = {"option_usage_mean": usage.tolist()}
         start = rollout.get("option_start", None)
-        if start is not None:
-            first = torch.zeros_like(alive)
-            first[:, 0] = True
-            switches = (start.reshape(alive.shape) & alive & ~first).sum(1).float()
-            out["option_starts"] = float(switches.mean())
+        if start is not None:  # every episode starts an option at its first step: those do not count
+            starts = (start.reshape(alive.shape) & alive)[:, 1:].sum(1).float()
+            out["option_starts"] = float(starts.mean())
         n = self.num_options
         if n > 1:
             obs = rollout["observation"].reshape(*alive.shape, -1)[alive]

@@ -201,9 +201,10 @@ class PessimisticModelEnv(EnvBase):
         B = self.batch_size
         n = max(1, B.numel())
         idx = torch.randint(0, self.start_states.shape[0], (n,), generator=self._rng).to(self.device)
-        member = torch.randint(0, self.num_members, (n, 1), generator=self._rng)
         if self.member_draw == "cyclic":
             member = (torch.arange(n) % self.num_members).reshape(n, 1)
+        else:
+            member = torch.randint(0, self.num_members, (n, 1), generator=self._rng)
         member = member.to(self.device)
         out = TensorDict(
             {

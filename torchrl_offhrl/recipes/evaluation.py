@@ -106,9 +106,13 @@ class Evaluator:
         out["model_discounted_mean"] = float(disc.mean())
         if "model_member" in td.keys():
             member = td["model_member"][:, 0].reshape(-1).cpu()
-            rets = model_rets.double()
-            out["model_return_min_member"] = min(float(rets[member == k].mean()) for k in member.unique())
-            out["model_discounted_min_member"] = min(float(disc[member == k].mean()) for k in member.unique())
+            members = member.unique()
+
+            def worst_member(per_episode):  # the mean over each member's episodes, the lowest of them
+                return min(float(per_episode[member == k].mean()) for k in members)
+
+            out["model_return_min_member"] = worst_member(model_rets.double())
+            out["model_discounted_min_member"] = worst_member(disc)
         if ("next", "penalized") in td.keys(True):
             out["model_penalized"] = float((td["next", "penalized"].reshape(n, -1) & alive).any(1).float().mean())
         return out
