@@ -165,6 +165,13 @@ def table(variants: list[str]) -> str:
                 agg.append(f"{m:.1f} [{lo:.1f}, {hi:.1f}]")
             lines.append(f"| IQM [95% CI] | {agg[0]} | {agg[1]} | {agg[2]} | {agg[3]} | {agg[4]} | {agg[5]} | {wins}/{len(rs)} | "
                          f"{hits}/{len(rs)} | |")
+            msd = []
+            for k in ("behaviour", "untrained", "selected", "last", "best", "last5"):
+                x = [r[k] for r in rs]
+                m = sum(x) / len(x)
+                sd = (sum((v - m) ** 2 for v in x) / (len(x) - 1)) ** 0.5 if len(x) > 1 else 0.0
+                msd.append(f"{m:.1f} ± {sd:.1f}")
+            lines.append("| mean ± std | " + " | ".join(msd) + " | | | |")
             lines.append("")
             crit = criteria_rows([run for run in runs if pick({"dataset_seed": run[0]})])
             if crit:
