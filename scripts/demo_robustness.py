@@ -43,41 +43,63 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
                ["model_env.reset_states=initial", "model_env.horizon=1000", "selection.criterion=model_lcb", "model_env.latent_bound=1.0"]),
     "branch_bound1": ("branch with the latent box [-1, 1]", ["selection.criterion=model_lcb", "model_env.latent_bound=1.0"]),
     "one_option": ("the shipped demo with one option (MOC's machinery without options)", ["algo.num_options=1"]),
+    "pess_q999": ("the shipped demo with the P-MDP threshold at the 99.9% quantile of the data's discrepancies, not 1.08 x their max",
+                  ["model_env.pessimism={quantile: 0.999, penalty: 20.0}"]),
+    "pess_q99": ("the shipped demo with the P-MDP threshold at the 99% quantile of the data's discrepancies, not 1.08 x their max",
+                 ["model_env.pessimism={quantile: 0.99, penalty: 20.0}"]),
 }
 
 
-def run(variant: str, seeds: list[int]) -> None:
+def run_name(d: int, a: int = 0) -> str:
+    """The folder of dataset seed ``d`` and agent seed ``a``: ``d<d>`` for the demo's agent seed 0, else ``d<d>a<a>``."""
+    return f"d{d}" if a == 0 else f"d{d}a{a}"
+
+
+def parse_name(name: str) -> tuple[int, int]:
+    """``(dataset seed, agent seed)`` of a run folder named by :func:`run_name`."""
+    d, _, a = name[1:].partition("a")
+    return int(d), int(a or 0)
+
+
+def run(variant: str, seeds: list[int], agent_seeds: list[int] = (0,)) -> None:
     from torchrl_offhrl.recipes.demo import run_demo
 
     for d in seeds:
-        out = OUT / variant / f"d{d}"
-        if (out / "demo_summary.json").is_file():
-            print(f"{out}: done")
-            if not (ARCHIVE / variant / f"d{d}" / "demo_summary.json").is_file():
-                archive(variant, d)
-            continue
-        # every evaluation's policy kept (snapshot-<frames>.pt): other selection criteria can be scored afterwards
-        snaps = f"train.snapshot_frames=[{','.join(str(10240 * k) for k in range(1, 9))}]"
-        run_demo([*VARIANTS[variant][1], f"dataset_seed={d}", f"run_dir={out}", snaps], progress=False)
-        archive(variant, d)
+        for a in agent_seeds:
+            name = run_name(d, a)
+            out = OUT / variant / name
+            if (out / "demo_summary.json").is_file():
+                print(f"{out}: done")
+                if not (ARCHIVE / variant / name / "demo_summary.json").is_file():
+                    archive(variant, name)
+                continue
+            # every evaluation's policy kept (snapshot-<frames>.pt): other selection criteria can be scored afterwards
+            snaps = f"train.snapshot_frames=[{','.join(str(10240 * k) for k in range(1, 9))}]"
+            run_demo([*VARIANTS[variant][1], f"dataset_seed={d}", f"seed={a}", f"run_dir={out}", snaps], progress=False)
+            archive(variant, name)
 
 
-def archive(variant: str, d: int) -> None:
+def archive(variant: str, name: str) -> None:
     from torchrl_offhrl.recipes.report import archive_run
 
-    archive_run(OUT / variant / f"d{d}", ARCHIVE / variant / f"d{d}", extra=("demo_summary.json",))
+    archive_run(OUT / variant / name, ARCHIVE / variant / name, extra=("demo_summary.json",))
 
 
 def _score(rec):
     return None if rec is None else rec.get("normalized_d4rl")
 
 
-def runs_of(variant: str) -> list[tuple[int, list[dict], dict]]:
-    """``(dataset seed, evaluation records, demo summary)`` of each archived run of ``variant``, by seed."""
+def runs_of(variant: str) -> list[tuple[tuple[int, int], list[dict], dict]]:
+    """``((dataset seed, agent seed), evaluation records, demo summary)`` of each archived run of ``variant``, by seeds."""
     out = []
-    for path in sorted((ARCHIVE / variant).glob("d*/demo_summary.json"), key=lambda p: int(p.parent.name[1:])):
-        out.append((int(path.parent.name[1:]), json.loads((path.parent / "evals.json").read_text()), json.loads(path.read_text())))
+    for path in sorted((ARCHIVE / variant).glob("d*/demo_summary.json"), key=lambda p: parse_name(p.parent.name)):
+        out.append((parse_name(path.parent.name), json.loads((path.parent / "evals.json").read_text()), json.loads(path.read_text())))
     return out
+
+
+def label(seeds: tuple[int, int]) -> str:
+    """A run's name in the tables: its dataset seed, and its agent seed where it is not the demo's 0."""
+    return str(seeds[0]) if seeds[1] == 0 else f"{seeds[0]} (agent {seeds[1]})"
 
 
 def beats_both(score: float, s: dict) -> bool:
@@ -87,11 +109,11 @@ def beats_both(score: float, s: dict) -> bool:
 
 def rows_of(variant: str) -> list[dict]:
     rows = []
-    for d, evals, s in runs_of(variant):
+    for (d, a), evals, s in runs_of(variant):
         trained = [e for e in evals if e["frames"] > 0]
         ret = s.get("selected") or s["final"]  # the returned policy's record
         rows.append({
-            "dataset_seed": d, "behaviour": s["behaviour_normalized_d4rl"], "untrained": _score(s.get("initial")),
+            "dataset_seed": d, "agent_seed": a, "behaviour": s["behaviour_normalized_d4rl"], "untrained": _score(s.get("initial")),
             "last": _score(s["final"]), "selected": _score(ret), "selected_frames": ret["frames"], "best": max(_score(e) for e in trained),
             "last5": sum(_score(e) for e in trained[-5:]) / len(trained[-5:]), "beats_both": beats_both(_score(ret), s),
             "option_kl": ret.get("option_kl"), "option_starts": ret.get("option_starts", ret.get("option_switches")),
@@ -125,7 +147,7 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
             picks.append(e["normalized_d4rl"])
             hits += best - e["normalized_d4rl"] <= 5.0
             wins += beats_both(e["normalized_d4rl"], s)
-        out.append(f"| {name} | {', '.join(f'd{d}: {x:.1f}' for (d, _, _), x in zip(runs, picks))} | {sum(picks) / len(picks):.1f} | "
+        out.append(f"| {name} | {', '.join(f'd{label(k)}: {x:.1f}' for (k, _, _), x in zip(runs, picks))} | {sum(picks) / len(picks):.1f} | "
                    f"{hits}/{len(picks)} | {wins}/{len(picks)} |")
     return out + [""]
 
@@ -157,7 +179,7 @@ def table(variants: list[str]) -> str:
                 hit = r["best"] - r["selected"] <= 5.0
                 wins, hits = wins + win, hits + hit
                 opt = "n/a" if r["option_kl"] is None else f"{r['option_kl']:.2f} / {r['option_starts']:.1f}"
-                lines.append(f"| {r['dataset_seed']} | {r['behaviour']:.1f} | {r['untrained']:.1f} | {r['selected']:.1f} ({r['selected_frames']}) | "
+                lines.append(f"| {label((r['dataset_seed'], r['agent_seed']))} | {r['behaviour']:.1f} | {r['untrained']:.1f} | {r['selected']:.1f} ({r['selected_frames']}) | "
                              f"{r['last']:.1f} | {r['best']:.1f} | {r['last5']:.1f} | {'yes' if win else 'no'} | {'yes' if hit else 'no'} | {opt} |")
             agg = []
             for k in ("behaviour", "untrained", "selected", "last", "best", "last5"):
@@ -173,7 +195,7 @@ def table(variants: list[str]) -> str:
                 msd.append(f"{m:.1f} ± {sd:.1f}")
             lines.append("| mean ± std | " + " | ".join(msd) + " | | | |")
             lines.append("")
-            crit = criteria_rows([run for run in runs if pick({"dataset_seed": run[0]})])
+            crit = criteria_rows([run for run in runs if pick({"dataset_seed": run[0][0]})])
             if crit:
                 lines += [f"Selection criteria compared on the same runs ({group}): the real score of the evaluation each criterion "
                           "picks (after step 0; `selection.criterion`, `torchrl_offhrl.recipes.selection.CRITERIA`).", "", *crit]
@@ -186,12 +208,13 @@ def main(argv=None) -> int:
     r = sub.add_parser("run")
     r.add_argument("variant", choices=sorted(VARIANTS))
     r.add_argument("--dataset-seeds", type=int, nargs="+", required=True)
+    r.add_argument("--agent-seeds", type=int, nargs="+", default=[0], help="agent seeds per dataset seed (default: the demo's 0)")
     t = sub.add_parser("table")
     t.add_argument("variants", nargs="*")
     sub.add_parser("list")
     a = p.parse_args(argv)
     if a.cmd == "run":
-        run(a.variant, a.dataset_seeds)
+        run(a.variant, a.dataset_seeds, a.agent_seeds)
     elif a.cmd == "table":
         text = table(a.variants or list(VARIANTS))
         DOC.write_text(text + "\n")

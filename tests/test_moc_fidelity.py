@@ -166,3 +166,36 @@ def test_intra_head_gain_sets_the_initial_means_scale(gain):
     heads = OptionHeads(5, 3, num_options=2, hidden=(16,), intra_head_gain=gain)
     w = heads.intra_head[-1].weight  # [n * A, hidden]: orthogonal rows of norm `gain`
     torch.testing.assert_close(w @ w.T, gain**2 * torch.eye(6), atol=1e-5 * max(gain**2, 1e-2), rtol=0)
+
+
+def test_subclassed_loss_trains_through_moc_agent():
+    """A contributor's OptionCriticLoss subclass trains through a MOCAgent subclass that names it (CONTRIBUTING.md):
+    its overridden term is the one the termination head learns from, and nothing of the agent is copied."""
+    from torchrl_offhrl.agents import AGENTS, make_agent
+    from torchrl_offhrl.agents.moc import MOCAgent
+    from torchrl_offhrl.agents.registry import register_agent
+
+    calls = []
+
+    class PushUpLoss(OptionCriticLoss):  # a termination loss whose gradient pushes every beta up: beta must rise
+        def termination_loss(self, td):
+            calls.append(td.batch_size.numel())
+            k = self.tensor_keys
+            return {"loss_termination": -td.get(k.termination_probs).mean()}, {}
+
+    try:
+        register_agent("moc_push_up")(type("PushUpAgent", (MOCAgent,), {"loss_class": PushUpLoss}))
+        env = _moc_env()
+        agent = make_agent("moc_push_up", env, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=32, termination_lr=1e-2)
+        assert type(agent.loss) is PushUpLoss
+        agent.attach(env)
+        probe = env.reset()["observation"]
+        beta0 = agent.policy.heads(probe)[3].mean()
+        for _ in range(3):
+            with torch.no_grad():
+                batch = env.rollout(8, agent.policy, break_when_any_done=False)
+            agent.update(batch)
+        assert calls and calls[-1] == 64  # the per-term schedule: the whole 64-frame batch, once per update
+        assert agent.policy.heads(probe)[3].mean() > beta0 + 0.01
+    finally:
+        AGENTS.pop("moc_push_up", None)

@@ -119,6 +119,11 @@ class MOCAgent(OnPolicyAgent):
     """
 
     evaluation_files = ("option_usage.png",)
+    #: the loss the agent trains: a subclass of :class:`~torchrl_offhrl.objectives.OptionCriticLoss` (a new
+    #: option-critic variant) trains through this agent unchanged when a registered subclass of the agent sets it,
+    #: e.g. ``@register_agent("ppoc_dc") class DCAgent(MOCAgent): loss_class = DeliberationCostLoss`` (CONTRIBUTING.md).
+    #: It is built with the actor, the critic and the loss arguments below; the optimisers group its parameters by name.
+    loss_class: type[OptionCriticLoss] = OptionCriticLoss
 
     def __init__(
         self,
@@ -174,7 +179,7 @@ class MOCAgent(OnPolicyAgent):
         )
         self.policy = OptionCriticActor(heads, low=low, high=high, action_key=action_key)
         critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale, obs_clip=obs_clip)
-        self.loss = OptionCriticLoss(
+        self.loss = self.loss_class(
             self.policy,
             critic,
             num_options=n,
