@@ -172,7 +172,7 @@ def report() -> str:
         plt.close(fig)
         lines += [f"![success per goal]({png.relative_to(OUT)})", ""]
         uof = algos.get("uof", [])
-        usage = [torch.load(d / "option_usage.pt") for d in uof if (d / "option_usage.pt").is_file()]
+        usage = [torch.load(d / "option_usage.pt", weights_only=True) for d in uof if (d / "option_usage.pt").is_file()]
         if usage:
             from torchrl_offhrl.agents.uof import plot_goal_option_usage
 

@@ -42,7 +42,7 @@ def policy_actions(agent, cvae, bound: float, obs: torch.Tensor, chunk: int = 20
     return torch.cat(out)
 
 
-def probe(run_dir: Path, steps: int, seed: int = 0) -> dict:
+def probe(run_dir: Path, steps: int, seed: int = 0, gamma: float = 0.99, tau: float = 0.005) -> dict:
     cfg, _, agent, state, cvae = load_run_agent(run_dir, num_envs=1)
     data = resolve_dataset(cfg)
     records = {int(r["frames"]): r for r in state["records"]} if "records" in state else {
@@ -60,8 +60,8 @@ def probe(run_dir: Path, steps: int, seed: int = 0) -> dict:
         next_actions.append(policy_actions(agent, cvae, bound, nobs))
         start_actions.append(policy_actions(agent, cvae, bound, starts))
     stats = data.stats()
-    scale = auto_reward_scale(data, 0.99)
-    fit = fitted_q_evaluation(obs, act, rew, nobs, term, torch.stack(next_actions), starts, torch.stack(start_actions), steps=steps,
+    scale = auto_reward_scale(data, gamma)
+    fit = fitted_q_evaluation(obs, act, rew, nobs, term, torch.stack(next_actions), starts, torch.stack(start_actions), steps=steps, gamma=gamma, tau=tau,
                               reward_scale=scale, obs_loc=stats.obs_mean, obs_scale=stats.obs_std, seed=seed)
     real = [records[f]["normalized_d4rl"] for f in frames]
     return {"run": str(run_dir), "frames": frames, "real": real, "fqe_start": fit["value"].tolist(), "td_error": fit["td_error"].tolist()}
@@ -71,12 +71,14 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path)
     p.add_argument("--steps", type=int, default=5000)
+    p.add_argument("--gamma", type=float, default=0.99, help="the discount of the value FQE estimates")
+    p.add_argument("--tau", type=float, default=0.005, help="the target critics' Polyak rate")
     p.add_argument("--out", type=Path)
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     results, hits = [], 0
     for run in a.runs:
-        r = probe(run, a.steps)
+        r = probe(run, a.steps, gamma=a.gamma, tau=a.tau)
         results.append(r)
         k = max(range(len(r["frames"])), key=lambda i: r["fqe_start"][i])
         best = max(r["real"])

@@ -39,7 +39,7 @@ from ..blockstack import BLOCKSTACK_IDS
 from ..blockstack import goals as G
 from ..data.collect import package_versions
 from ..data.policies import POLICY_DIR
-from ..utils import atomic_write, cache_dir
+from ..utils import atomic_write, cache_dir, load_torch_file
 from .pipeline import make_real_env
 
 __all__ = ["EPOCH_FRAMES", "UOFController", "is_uof_policy", "load_uof_policy", "ship_uof_policy", "uof_dataset_path"]
@@ -72,7 +72,7 @@ def ship_uof_policy(run_dir, frames: int, name: str | None = None, dest=None, co
     if cfg["algo"]["name"] != "uof" or not cfg.get("train", {}).get("online"):
         raise ValueError(f"{run} is not an online UOF run (algo={cfg['algo']['name']}, train.online={cfg.get('train', {}).get('online')})")
     env_id = cfg["env"]["env_id"]
-    state = torch.load(snap, map_location="cpu", weights_only=False)
+    state = load_torch_file(snap, "UOF snapshot", f"train the run again with train.snapshot_frames=[{frames}]")
     agent = _agent(env_id, cfg["algo"])
     agent.load_state_dict(state["agent"])
     full = agent.policy.state_dict()
