@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -168,34 +169,63 @@ def test_intra_head_gain_sets_the_initial_means_scale(gain):
     torch.testing.assert_close(w @ w.T, gain**2 * torch.eye(6), atol=1e-5 * max(gain**2, 1e-2), rtol=0)
 
 
+
+class PushUpLoss(OptionCriticLoss):
+    """A contributor's option-critic variant, defined here: a termination loss whose gradient pushes every beta up."""
+
+    calls: list = []
+
+    def termination_loss(self, td):
+        PushUpLoss.calls.append(td.batch_size.numel())
+        return {"loss_termination": -td.get(self.tensor_keys.termination_probs).mean()}, {}
+
+
 def test_subclassed_loss_trains_through_moc_agent():
-    """A contributor's OptionCriticLoss subclass trains through a MOCAgent subclass that names it (CONTRIBUTING.md):
-    its overridden term is the one the termination head learns from, and nothing of the agent is copied."""
+    """A contributor's OptionCriticLoss subclass trains through MOCAgent with no library code touched (CONTRIBUTING.md):
+    named in the config (algo.loss, a dotted path) or set by a registered subclass of the agent; its overridden term is
+    the one the termination head learns from."""
     from torchrl_offhrl.agents import AGENTS, make_agent
     from torchrl_offhrl.agents.moc import MOCAgent
     from torchrl_offhrl.agents.registry import register_agent
 
-    calls = []
-
-    class PushUpLoss(OptionCriticLoss):  # a termination loss whose gradient pushes every beta up: beta must rise
-        def termination_loss(self, td):
-            calls.append(td.batch_size.numel())
-            k = self.tensor_keys
-            return {"loss_termination": -td.get(k.termination_probs).mean()}, {}
-
+    env = _moc_env()
     try:
         register_agent("moc_push_up")(type("PushUpAgent", (MOCAgent,), {"loss_class": PushUpLoss}))
-        env = _moc_env()
-        agent = make_agent("moc_push_up", env, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=32, termination_lr=1e-2)
+        agents = [make_agent("moc", env, {"loss": f"{__name__}.PushUpLoss"}, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=32,
+                             termination_lr=1e-2),
+                  make_agent("moc_push_up", env, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=32, termination_lr=1e-2)]
+    finally:
+        AGENTS.pop("moc_push_up", None)
+    for agent in agents:
         assert type(agent.loss) is PushUpLoss
         agent.attach(env)
         probe = env.reset()["observation"]
         beta0 = agent.policy.heads(probe)[3].mean()
+        PushUpLoss.calls.clear()
         for _ in range(3):
             with torch.no_grad():
                 batch = env.rollout(8, agent.policy, break_when_any_done=False)
             agent.update(batch)
-        assert calls and calls[-1] == 64  # the per-term schedule: the whole 64-frame batch, once per update
+        assert PushUpLoss.calls.count(64) == 3  # the per-term schedule steps it on the whole 64-frame batch, once per update
         assert agent.policy.heads(probe)[3].mean() > beta0 + 0.01
-    finally:
-        AGENTS.pop("moc_push_up", None)
+    env = _moc_env()
+    with pytest.raises(ValueError, match=r"algo.loss='no_such_pkg.Loss': cannot import 'no_such_pkg'"):
+        make_agent("moc", env, {"loss": "no_such_pkg.Loss"})
+    with pytest.raises(TypeError, match=r"algo.loss='collections.OrderedDict' is not a subclass of OptionCriticLoss"):
+        make_agent("moc", env, {"loss": "collections.OrderedDict"})
+
+
+def test_a_subclassed_loss_named_in_the_config_trains_end_to_end(hopper_file, cache, tmp_path):
+    """offhrl's loop with algo.loss=<this module>.PushUpLoss: the run trains, checkpoints and records the loss it used."""
+    import json
+
+    from test_recipes import _cfg
+
+    from torchrl_offhrl.recipes.train import train
+
+    PushUpLoss.calls.clear()
+    summary = train(_cfg("moc", hopper_file, tmp_path, extra=[f"algo.loss={__name__}.PushUpLoss"]), progress=False)
+    # per 64-frame batch: 2 epochs of one 64-frame minibatch (every term computed) + the per-term full-batch step
+    assert summary["frames"] == 256 and PushUpLoss.calls == [64] * (256 // 64) * (2 + 1)
+    cfg = json.loads((Path(summary["run_dir"]) / "config.json").read_text())
+    assert cfg["algo"]["loss"] == f"{__name__}.PushUpLoss"

@@ -126,3 +126,31 @@ def to_plain(cfg) -> dict:
     except ImportError:  # pragma: no cover
         pass
     return dict(cfg)
+
+
+def import_class(path: str, base: type, key: str) -> type:
+    """The class at the dotted ``path`` (``"package.module.Class"``), checked to subclass ``base``; ``key`` names the setting in errors.
+
+    Example:
+        >>> import collections
+        >>> import_class("collections.OrderedDict", dict, "algo.loss") is collections.OrderedDict
+        True
+        >>> import_class("collections.OrderedDict", list, "algo.loss")
+        Traceback (most recent call last):
+        ...
+        TypeError: algo.loss='collections.OrderedDict' is not a subclass of list
+    """
+    import importlib
+
+    module, _, name = str(path).rpartition(".")
+    if not module:
+        raise ValueError(f"{key}={path!r}: give a dotted path 'package.module.Class'")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except ModuleNotFoundError as err:
+        raise ValueError(f"{key}={path!r}: cannot import {module!r} ({err}); is the package installed or on PYTHONPATH?") from None
+    except AttributeError:
+        raise ValueError(f"{key}={path!r}: {module!r} has no {name!r}") from None
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise TypeError(f"{key}={path!r} is not a subclass of {base.__name__}")
+    return cls

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from ..modules import OptionCriticActor, OptionHeads, make_option_critic
 from ..objectives import OptionCriticLoss
 from ..rollouts import first_episode_mask
+from ..utils import import_class
 from .base import OnPolicyAgent, action_box, adam
 from .registry import register_agent
 
@@ -114,15 +115,20 @@ class MOCAgent(OnPolicyAgent):
       option starts near the box's centre) or 1.0 (O(1) means, like TorchRL's PPO
       actor).
 
+    ``loss`` (``algo.loss``): a dotted path to a subclass of
+    :class:`~torchrl_offhrl.objectives.OptionCriticLoss` to train instead of
+    it (None: :attr:`loss_class`), built with the same arguments.
+
     ``fused_adam`` is a speed switch (the same update rule, see
     :func:`~torchrl_offhrl.agents.adam`).
     """
 
     evaluation_files = ("option_usage.png",)
-    #: the loss the agent trains: a subclass of :class:`~torchrl_offhrl.objectives.OptionCriticLoss` (a new
-    #: option-critic variant) trains through this agent unchanged when a registered subclass of the agent sets it,
-    #: e.g. ``@register_agent("ppoc_dc") class DCAgent(MOCAgent): loss_class = DeliberationCostLoss`` (CONTRIBUTING.md).
-    #: It is built with the actor, the critic and the loss arguments below; the optimisers group its parameters by name.
+    #: the loss the agent trains unless ``loss`` (``algo.loss``) names another: a subclass of
+    #: :class:`~torchrl_offhrl.objectives.OptionCriticLoss` (a new option-critic variant) trains through this agent
+    #: unchanged, from the config (``algo.loss=my_package.MyOptionLoss``, a dotted path) or from a registered subclass
+    #: of the agent that sets this attribute (CONTRIBUTING.md). It is built with the actor, the critic and the loss
+    #: arguments below; the optimisers group its parameters by name.
     loss_class: type[OptionCriticLoss] = OptionCriticLoss
 
     def __init__(
@@ -164,6 +170,7 @@ class MOCAgent(OnPolicyAgent):
         fused_adam: bool = True,
         compile: bool | str = False,
         anneal_lr: bool = True,
+        loss: str | None = None,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         if update_schedule not in self.UPDATE_SCHEDULES:
@@ -179,7 +186,8 @@ class MOCAgent(OnPolicyAgent):
         )
         self.policy = OptionCriticActor(heads, low=low, high=high, action_key=action_key)
         critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale, obs_clip=obs_clip)
-        self.loss = self.loss_class(
+        loss_class = self.loss_class if loss is None else import_class(loss, OptionCriticLoss, "algo.loss")
+        self.loss = loss_class(
             self.policy,
             critic,
             num_options=n,
