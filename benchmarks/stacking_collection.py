@@ -28,10 +28,11 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     import gymnasium as gym
 
-    from torchrl_offhrl.blockstack import BLOCKSTACK_IDS, goals as G, make_blockstack_env
+    from torchrl_offhrl.blockstack import goals as G, make_blockstack_env
+    from torchrl_offhrl.registry import task_of
     from torchrl_offhrl.data.stacking import SCRIPT_LEVELS, ScriptedStacker, collect_stacking
 
-    n_blocks = BLOCKSTACK_IDS[a.env]
+    n_blocks = task_of(a.env).n_blocks
     rows = []
 
     env = gym.make(a.env).unwrapped

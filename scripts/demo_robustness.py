@@ -45,6 +45,8 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "one_option": ("the shipped demo with one option (MOC's machinery without options)", ["algo.num_options=1"]),
     "pess_q999": ("the shipped demo with the P-MDP threshold at the 99.9% quantile of the data's discrepancies, not 1.08 x their max",
                   ["model_env.pessimism={quantile: 0.999, penalty: 20.0}"]),
+    "ema": ("the shipped demo returning the Polyak average of the policy's weights (algo.policy_ema=0.1 per 2048-frame batch)",
+            ["algo.policy_ema=0.1"]),
     "pess_q99": ("the shipped demo with the P-MDP threshold at the 99% quantile of the data's discrepancies, not 1.08 x their max",
                  ["model_env.pessimism={quantile: 0.99, penalty: 20.0}"]),
 }

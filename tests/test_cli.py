@@ -163,3 +163,22 @@ def test_the_robustness_page_is_what_its_archived_runs_give():
     assert [r["dataset_seed"] for r in rows] == list(range(4, 14))
     wins = sum(r["selected"] > r["untrained"] and r["selected"] > r["behaviour"] for r in rows)
     assert f"| {wins}/10 |" in page
+
+
+@pytest.mark.parametrize("argv, expect", [
+    # the README's and `sweep --help`'s example: overrides after an option with several values
+    (["sweep", "--algos", "moc", "ppo", "iql", "--envs", "hopper", "halfcheetah", "--seeds", "4", "5", "6", "train.total_frames=204800"],
+     {"algos": ["moc", "ppo", "iql"], "envs": ["hopper", "halfcheetah"], "seeds": [4, 5, 6], "overrides": ["train.total_frames=204800"]}),
+    (["tune", "my.yaml", "--name", "x", "--max-concurrent", "1", "env=hopper", "dataset=medium"],
+     {"preset": "my.yaml", "name": "x", "max_concurrent": 1, "overrides": ["env=hopper", "dataset=medium"]}),
+    (["sweep", "train.total_frames=1", "--algos", "moc", "--seeds", "4"], {"algos": ["moc"], "seeds": [4], "overrides": ["train.total_frames=1"]}),
+    (["sweep", "--algos", "moc", "--", "train.total_frames=1"], {"algos": ["moc"], "overrides": ["train.total_frames=1"]}),
+    (["train", "algo=moc", "env=hopper"], {"overrides": ["algo=moc", "env=hopper"]}),
+    (["evaluate", "some/run", "--episodes", "3"], {"run_dir": "some/run", "episodes": 3}),
+])
+def test_overrides_parse_wherever_they_come(argv, expect):
+    """Hydra overrides may follow any option (issue: `--seeds 4 5 6 train.total_frames=...` was read as a seed)."""
+    from torchrl_offhrl.cli import build_parser, overrides_last
+
+    args = vars(build_parser().parse_args(overrides_last(argv)))
+    assert {k: args[k] for k in expect} == expect

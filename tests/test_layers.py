@@ -156,3 +156,19 @@ def test_checker_catches_private_names_and_cycles(tmp_path):
     mods = module_sources(root)
     assert violations(mods, root) == ["torchrl_offhrl.data.a:1 imports the private name _helper from torchrl_offhrl.data.b"]
     assert cycles(mods, root) == [["torchrl_offhrl.data.a", "torchrl_offhrl.data.b"]]
+
+
+def test_the_task_registry_is_the_one_place_that_knows_the_stacking_envs():
+    """Code asks torchrl_offhrl.registry.task_of(env) what kind of task an env is; no id list is tested elsewhere."""
+    import re
+
+    from torchrl_offhrl.registry import TASKS, stacking_tasks, task_of
+
+    assert {k: t.n_blocks for k, t in stacking_tasks().items()} == {"BlockStack2-v0": 2, "BlockStack3-v0": 3}
+    assert not task_of("Hopper-v5").goal_conditioned and task_of("hopper") == TASKS["Hopper-v5"]
+    assert not task_of(None).goal_conditioned and not task_of("Toy").goal_conditioned  # no id: no goals
+    pattern = re.compile(r"BLOCKSTACK_IDS|STACKING_ENVS|\"BlockStack[23]-v0\" in |in \(\"blockstack2\"")
+    offenders = [f"{path.relative_to(ROOT.parent)}:{i}" for top in (ROOT, ROOT.parent / "scripts", ROOT.parent / "benchmarks")
+                 for path in sorted(top.rglob("*.py")) if path.name != "registry.py"
+                 for i, line in enumerate(path.read_text().splitlines(), 1) if pattern.search(line)]
+    assert not offenders, offenders

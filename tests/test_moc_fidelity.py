@@ -229,3 +229,30 @@ def test_a_subclassed_loss_named_in_the_config_trains_end_to_end(hopper_file, ca
     assert summary["frames"] == 256 and PushUpLoss.calls == [64] * (256 // 64) * (2 + 1)
     cfg = json.loads((Path(summary["run_dir"]) / "config.json").read_text())
     assert cfg["algo"]["loss"] == f"{__name__}.PushUpLoss"
+
+
+def test_policy_ema_averages_the_weights_and_is_what_evaluations_use():
+    """algo.policy_ema: after each update the averaged copy moves policy_ema of the way to the policy's new weights
+    (hand-computed on every parameter); eval_policy is that copy; it is checkpointed; off (None), eval_policy is the policy."""
+    from torchrl_offhrl.agents import make_agent
+
+    env = _moc_env()
+    agent = make_agent("moc", env, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=32, policy_ema=0.25)
+    agent.attach(env)
+    assert agent.eval_policy is agent.averaged_policy and agent.eval_policy is not agent.policy
+    for _ in range(2):
+        before = [p.detach().clone() for p in agent.averaged_policy.parameters()]
+        with torch.no_grad():
+            batch = env.rollout(8, agent.policy, break_when_any_done=False)
+        agent.update(batch)
+        for avg, old, new in zip(agent.averaged_policy.parameters(), before, agent.policy.parameters()):
+            torch.testing.assert_close(avg, old + 0.25 * (new.detach() - old))
+    assert any(not torch.equal(a, p) for a, p in zip(agent.averaged_policy.parameters(), agent.policy.parameters()))
+    again = make_agent("moc", env, num_options=2, hidden_sizes=[8], policy_ema=0.25)
+    again.load_state_dict(agent.state_dict())
+    for a, b in zip(again.averaged_policy.parameters(), agent.averaged_policy.parameters()):
+        torch.testing.assert_close(a, b)
+    plain = make_agent("moc", env, num_options=2, hidden_sizes=[8])
+    assert plain.eval_policy is plain.policy and "averaged_policy" not in plain.state_dict()
+    with pytest.raises(ValueError, match=r"algo.policy_ema must be in \(0, 1\]"):
+        make_agent("moc", env, num_options=2, hidden_sizes=[8], policy_ema=1.5)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torchrl_offhrl.recipes import rundir
-from torchrl_offhrl.recipes import train as train_mod
+from torchrl_offhrl.recipes import setting as setting_mod  # where the run builds its agent and models
 from torchrl_offhrl.recipes.config import pessimism_for
 from torchrl_offhrl.recipes.report import aggregate
 from torchrl_offhrl.recipes.train import train
@@ -69,7 +69,7 @@ def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
 
 def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, monkeypatch):
     cfg = _cfg("moc", hopper_file, tmp_path)
-    real_make_agent = train_mod.make_agent
+    real_make_agent = setting_mod.make_agent
     calls = {"n": 0}
 
     def crashing_agent(*a, **k):
@@ -85,17 +85,17 @@ def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, m
         agent.update = crash_on_fourth
         return agent
 
-    monkeypatch.setattr(train_mod, "make_agent", crashing_agent)
+    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, progress=False)
     run = next(tmp_path.glob("moc-*"))
     first = json.loads((run / "evals.json").read_text())
     assert [e["frames"] for e in first] == [128]
     saved = torch.load(run / "checkpoint.pt", weights_only=True)["agent"]["loss"]
-    monkeypatch.setattr(train_mod, "make_agent", real_make_agent)
+    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
 
     loaded = {}
-    real_load = train_mod.make_agent
+    real_load = setting_mod.make_agent
 
     def spy_make_agent(*a, **k):
         agent = real_load(*a, **k)
@@ -108,7 +108,7 @@ def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, m
         agent.load_state_dict = load
         return agent
 
-    monkeypatch.setattr(train_mod, "make_agent", spy_make_agent)
+    monkeypatch.setattr(setting_mod, "make_agent", spy_make_agent)
     summary = train(cfg, progress=False)
     evals = json.loads((run / "evals.json").read_text())
     assert [e["frames"] for e in evals] == [128, 256]
@@ -204,6 +204,15 @@ def test_aggregate_seeds(tmp_path):
     assert ("| moc | Hopper-v5 | medium | - | 2 | 200 frames | 25.0 ± 7.1 | 7.0 [2.0, 12.0] | 7.0 ± 7.1 | 6.5 [1.5, 11.5] | — | "
             "7.0 [2.0, 12.0] | n/a | n/a | n/a | s?: 2.0, s?: 12.0 |") in table
     assert (tmp_path / "agg" / "curves.png").is_file() and (tmp_path / "agg" / "results.csv").is_file()
+    # a sweep's folder (its run directories beside Ray's files) stands for the runs in it
+    sweep = tmp_path / "sweep"
+    (sweep / "ray-experiment" / "trial_0").mkdir(parents=True)
+    (sweep / "ray-experiment" / "tuner.pkl").write_text("")
+    for d in sorted(tmp_path.glob("moc-*")):
+        d.rename(sweep / d.name)
+    assert aggregate([sweep], tmp_path / "agg2") == table.replace(str(tmp_path / "agg"), str(tmp_path / "agg2"))
+    with pytest.raises(FileNotFoundError, match="ray-experiment has no evals.json: not a run directory"):
+        aggregate([sweep / "ray-experiment"], tmp_path / "agg3")
 
 
 def test_offline_train_script_cli(hopper_file, cache, tmp_path):

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchrl_offhrl.envs import AffineActionMap, make_task_env, task_kwargs
-from torchrl_offhrl.recipes import train as train_mod
+from torchrl_offhrl.recipes import setting as setting_mod  # where the run builds its agent and models
 from torchrl_offhrl.recipes.config import config_fingerprint, transfer_config
 from torchrl_offhrl.recipes.report import aggregate, transfer_stats
 from torchrl_offhrl.recipes.schema import validate_config
@@ -165,7 +165,7 @@ def test_transfer_stats_hand_computed():
 
 def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, monkeypatch):
     cfg = _cfg("moc", hopper_file, tmp_path, TRANSFER)
-    real_make_agent = train_mod.make_agent
+    real_make_agent = setting_mod.make_agent
     state = {"new_task": 0, "online_updates": 0, "crash": "switch"}
 
     def crashing_agent(*a, **k):
@@ -190,7 +190,7 @@ def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, mo
         agent.new_task, agent.update = new_task, update
         return agent
 
-    monkeypatch.setattr(train_mod, "make_agent", crashing_agent)
+    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, progress=False)
     run = next(tmp_path.glob("moc-*"))
@@ -209,7 +209,7 @@ def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, mo
 
 def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path, monkeypatch):
     seen = {}
-    real_make_agent = train_mod.make_agent
+    real_make_agent = setting_mod.make_agent
 
     def watching_agent(*a, **k):
         agent = real_make_agent(*a, **k)
@@ -223,7 +223,7 @@ def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path,
         agent.new_task = new_task
         return agent
 
-    monkeypatch.setattr(train_mod, "make_agent", watching_agent)
+    monkeypatch.setattr(setting_mod, "make_agent", watching_agent)
     short = ["train.total_frames=128", "transfer.online_frames=128"]
     s = train(_cfg("sac", hopper_file, tmp_path, [*TRANSFER, *short]), progress=False)
     assert seen["before"] == (128, 128) and seen["after"] == (0, 0)
@@ -234,7 +234,7 @@ def test_from_scratch_has_no_offline_phase_and_fits_no_model(hopper_file, cache,
     def no_models(*a, **k):
         raise AssertionError("a from-scratch run without the decoder fits no model")
 
-    monkeypatch.setattr(train_mod, "fit_or_load_models", no_models)
+    monkeypatch.setattr(setting_mod, "fit_or_load_models", no_models)
     s = train(_cfg("ppo", hopper_file, tmp_path, [*TRANSFER, "transfer.from_scratch=true"]), progress=False)
     evals = json.loads((Path(s["run_dir"]) / "evals.json").read_text())
     assert [(e["frames"], e["phase"]) for e in evals] == [(0, "online"), (128, "online"), (256, "online")]

@@ -87,13 +87,14 @@ def test_tiny_model_search_scores_trials_and_picks_each_model_by_its_loss(ray_se
     spec = tmp_path / "tiny.yaml"
     spec.write_text("kind: models\nnum_samples: 2\ngrid:\n  ensemble.hidden_sizes: [[8, 8], [16]]\n  cvae.hidden_sizes: [[8], [16]]\n"
                     "overrides: [ensemble.num_models=2, ensemble.fit.max_steps=10, cvae.fit.max_steps=10]\n")
-    best = tune_search(str(spec), [f"dataset={hopper_file}"], out_root=str(tmp_path / "out"), verbose=0)
+    # the user's ensemble.fit.max_steps=12 overrides the preset's 10 in every trial, and must in the printed command too
+    best = tune_search(str(spec), [f"dataset={hopper_file}", "ensemble.fit.max_steps=12"], out_root=str(tmp_path / "out"), verbose=0)
     out = Path(best["out"])
     rows = (out / "results.csv").read_text().splitlines()
     assert len(rows) == 3 and "ensemble_val_loss" in rows[0]
     saved = json.loads((out / "best.json").read_text())
     assert saved["ensemble_val_loss"] <= 10 and saved["cvae_val_loss"] <= 10
-    assert saved["command"].startswith("offhrl fit dataset=") and "++ensemble.hidden_sizes=" in saved["command"]
+    assert saved["command"].startswith("offhrl fit ") and f"dataset={hopper_file}" in saved["command"] and "++ensemble.hidden_sizes=" in saved["command"]
     # the winners are in the model cache: the printed command, split as a shell splits it, loads them
     from torchrl_offhrl.recipes.config import compose, model_config, resolve_dataset
     from torchrl_offhrl.recipes.pipeline import fit_or_load_models
@@ -101,6 +102,7 @@ def test_tiny_model_search_scores_trials_and_picks_each_model_by_its_loss(ray_se
     words = shlex.split(saved["command"])
     assert words[:2] == ["offhrl", "fit"] and set(saved["overrides"]) <= set(words)  # one shell word per override ([8,8], no space)
     cfg = compose("offline_train", words[2:])
+    assert cfg.ensemble.fit.max_steps == 12
     _, _, info = fit_or_load_models(model_config(cfg), resolve_dataset(cfg), progress=False)
     assert info["ensemble"].startswith("loaded") and info["cvae"].startswith("loaded")
 
@@ -135,3 +137,33 @@ def test_tiny_sweep_resumes_an_interrupted_sweep_without_redoing_finished_trials
     assert finished_run(root / "bc-hopper-hopper_tiny-seed4", cfg)["step"] == 20
     assert finished_run(root / "bc-hopper-hopper_tiny-seed4", compose("offline_train", ["algo=bc", *over, "train.total_updates=40"])) is None
     assert finished_run(root / "bc-hopper-hopper_tiny-seed6", cfg) is None
+
+
+def test_the_number_of_trials_is_an_option_and_a_search_key_override_says_so(tmp_path):
+    """`offhrl tune PRESET --num-samples N` sets how many grid points are drawn; `num_samples=2` as an override is refused with that hint."""
+    from torchrl_offhrl.cli import build_parser, overrides_last
+    from torchrl_offhrl.recipes.tune import tune_search
+
+    args = build_parser().parse_args(overrides_last(["tune", "models", "env=hopper", "--num-samples", "3"]))
+    assert args.num_samples == 3 and args.overrides == ["env=hopper"]
+    with pytest.raises(ValueError, match=r"--num-samples N"):
+        tune_search("models", ["num_samples=2"], out_root=str(tmp_path))
+    with pytest.raises(ValueError, match=r"--num-samples must be >= 1"):
+        tune_search("models", [], num_samples=0, out_root=str(tmp_path))
+
+
+def test_an_interrupted_search_raises_before_writing_blank_rows():
+    """Ctrl-C with trials pending: Ray's results hold trials with no config (never started) or no metrics (cut mid-run).
+    The rows refuse them with a resume hint (was: TypeError on r.config["trial"], or blank rows over the old tables)."""
+    from types import SimpleNamespace as R
+
+    from torchrl_offhrl.recipes.tune import SearchInterrupted, _rows
+
+    trials = [{"params": {"seed": s}} for s in (4, 5, 6)]
+    done = R(config={"trial": 0}, metrics={"final_normalized_d4rl": 50.0}, error=None)
+    for cut in (R(config=None, metrics=None, error=None), R(config={"trial": 1}, metrics={}, error=None)):  # never started | cut mid-run
+        with pytest.raises(SearchInterrupted, match=r"sweep x: interrupted with 1 of 3 trials finished; run the same command again"):
+            _rows([done, cut], trials, ["seed"], "sweep x")
+    failed = R(config={"trial": 1}, metrics={}, error=ValueError("bad"))
+    rows = _rows([done, failed, R(config={"trial": 2}, metrics={"final_normalized_d4rl": 1.0}, error=None)], trials, ["seed"])
+    assert [(r["trial"], r["seed"], r["error"]) for r in rows] == [(0, 4, None), (1, 5, "ValueError"), (2, 6, None)]

@@ -58,13 +58,13 @@ def cmd_collect(args) -> int:
 
     t0 = time.time()
     if args.policy:  # the paper's route: a UOF policy trained online collects the block-stacking data
-        from .blockstack import BLOCKSTACK_IDS
+        from .registry import task_of
         from .data.stacking import collect_stacking
         from .recipes.uof_policies import load_uof_policy, uof_dataset_path
         from .registry import resolve_env
 
         env_id, _ = resolve_env(args.env)
-        if env_id not in BLOCKSTACK_IDS or args.level not in (None, "uof"):
+        if not task_of(env_id).goal_conditioned or args.level not in (None, "uof"):
             raise ValueError(f"--policy collects block-stacking data with a shipped UOF policy: `offhrl collect blockstack2 --policy "
                              f"blockstack2-uof-epoch20`; got env {args.env!r}, level {args.level!r}")
         import torch
@@ -177,7 +177,7 @@ def _ray_kwargs(args) -> dict:
 def cmd_tune(args) -> int:
     from .recipes.tune import tune_search
 
-    best = tune_search(args.preset, args.overrides, name=args.name, **_ray_kwargs(args))
+    best = tune_search(args.preset, args.overrides, name=args.name, num_samples=args.num_samples, **_ray_kwargs(args))
     print(best["table"])
     print(f"written: {best['out']}/results.md, results.csv, best.json ({best['wall_s']:.0f} s)")
     print("best: " + json.dumps(best["settings"]))
@@ -264,13 +264,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("aggregate", help="aggregate several runs (seeds) into one table and one figure")
-    s.add_argument("runs", nargs="+", help="run directories")
+    s.add_argument("runs", nargs="+", help="run directories, or folders of them (e.g. an `offhrl sweep` folder)")
     s.add_argument("--out", default="outputs/report")
     s.set_defaults(func=cmd_aggregate)
 
     s = sub.add_parser("report", help="the paper's Table I from run directories: env x dataset rows, one column per algorithm "
                                       "(MOC, PPO, SAC, MOReL-style, IQL, CQL, TD3+BC, BC), the behaviour data, published scores apart")
-    s.add_argument("runs", nargs="+", help="run directories (every algorithm and seed)")
+    s.add_argument("runs", nargs="+", help="run directories (every algorithm and seed), or folders of them (e.g. an `offhrl sweep` folder)")
     s.add_argument("--out", default="outputs/report")
     s.add_argument("--min-seeds", type=int, default=3, help="cells with fewer seeds are listed under 'Missing cells' (default 3)")
     s.set_defaults(func=cmd_report)
@@ -280,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "of the paper's grid, each model chosen by its validation loss). Needs `pip install 'torchrl-offhrl[tune]'`.")
     s.add_argument("preset", help="configs/tune/<preset>.yaml, or a path to a search YAML")
     s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml for every trial")
+    s.add_argument("--num-samples", type=int, help="how many grid points to draw (default: the preset's num_samples; all of them if it has none)")
     _ray_options(s)
     s.set_defaults(func=cmd_tune)
 
@@ -296,22 +297,50 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def overrides_last(argv: list[str]) -> list[str]:
+    """``argv`` with its hydra ``key=value`` overrides moved to just after the command's own positional arguments.
+
+    So overrides may come anywhere after the command: without it an option
+    taking several values swallows the overrides that follow it
+    (``--seeds 4 5 6 train.total_frames=204800``) and overrides after an
+    option are refused. An argv with ``--`` is left as given.
+
+    Examples:
+        >>> overrides_last(["sweep", "--seeds", "4", "5", "train.total_frames=8", "--name", "x"])
+        ['sweep', 'train.total_frames=8', '--seeds', '4', '5', '--name', 'x']
+        >>> overrides_last(["tune", "moc", "--name", "x", "env=hopper"])
+        ['tune', 'moc', 'env=hopper', '--name', 'x']
+    """
+    if "--" in argv:
+        return list(argv)
+    is_override = [("=" in a and not a.startswith("-")) for a in argv]
+    overrides = [a for a, o in zip(argv, is_override) if o]
+    rest = [a for a, o in zip(argv, is_override) if not o]
+    first_option = next((i for i, a in enumerate(rest) if i > 0 and a.startswith("-")), len(rest))
+    return rest[:first_option] + overrides + rest[first_option:]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run a command; a user error (missing file or policy, bad name or value) prints one message and returns 2."""
     from .data import DatasetError, PolicyNotFoundError
 
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(overrides_last(sys.argv[1:] if argv is None else list(argv)))
     # TorchRL's INFO lines (spec inference, spec checks) are noise on a command line; torchrl sets
     # its logger's level when imported (RL_LOGGING_LEVEL), so import it first, unless the user chose
     import torchrl  # noqa: F401
 
     if "RL_LOGGING_LEVEL" not in os.environ:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
+    from .recipes.tune import SearchInterrupted
+
     try:
         return args.func(args)
-    except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError, ImportError) as err:
+    except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError, ImportError, ConnectionError) as err:
         print(f"offhrl {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except SearchInterrupted as err:  # Ctrl-C during a search or sweep: the tables stay as they were
+        print(f"offhrl {args.command}: {err}", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

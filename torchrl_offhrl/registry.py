@@ -1,4 +1,10 @@
-"""The envs and dataset levels the project knows by name (below every other layer).
+"""The envs, tasks and dataset levels the project knows by name (below every other layer).
+
+The task registry (:data:`TASKS`, :func:`task_of`) is the one place that
+says what kind of task an env is: a Markov *locomotion* task (Hopper,
+HalfCheetah, and any other Gymnasium id, read as one), or a goal-conditioned
+*stacking* task with its number of blocks. Code asks ``task_of(env_id)``
+instead of testing ids against lists.
 
 Reference scores live in :mod:`torchrl_offhrl.scores`, termination functions
 of the model env in :mod:`torchrl_offhrl.envs.termination`.
@@ -6,8 +12,9 @@ of the model env in :mod:`torchrl_offhrl.envs.termination`.
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 
-__all__ = ["ENV_IDS", "LEVELS", "resolve_env"]
+__all__ = ["ENV_IDS", "LEVELS", "TASKS", "Task", "resolve_env", "stacking_tasks", "task_of"]
 
 #: Short dataset names of the envs and their Gymnasium ids.
 ENV_IDS: dict[str, str] = {"hopper": "Hopper-v5", "halfcheetah": "HalfCheetah-v5", "blockstack2": "BlockStack2-v0", "blockstack3": "BlockStack3-v0"}
@@ -34,3 +41,56 @@ def resolve_env(env_id_or_short: str) -> tuple[str, str]:
         f"{env_id_or_short!r}: not a known short name {sorted(ENV_IDS)} nor a Gymnasium id "
         f"like 'Hopper-v5'."
     )
+
+
+@dataclass(frozen=True)
+class Task:
+    """What kind of task an env is.
+
+    ``family``: ``"locomotion"`` (a Markov task scored by its return, D4RL's
+    normalisation where defined) or ``"stacking"`` (goal-conditioned block
+    stacking: per-goal success, agents conditioned on the sub-goal, episodes of
+    ``horizon`` steps); ``n_blocks``: the blocks of a stacking task (0 otherwise).
+    """
+
+    env_id: str
+    short: str
+    family: str = "locomotion"
+    n_blocks: int = 0
+
+    @property
+    def goal_conditioned(self) -> bool:
+        """Whether the task has goals (the block-stacking tasks)."""
+        return self.family == "stacking"
+
+
+#: Every task the project ships, by Gymnasium id.
+TASKS: dict[str, Task] = {
+    "Hopper-v5": Task("Hopper-v5", "hopper"),
+    "HalfCheetah-v5": Task("HalfCheetah-v5", "halfcheetah"),
+    "BlockStack2-v0": Task("BlockStack2-v0", "blockstack2", "stacking", 2),
+    "BlockStack3-v0": Task("BlockStack3-v0", "blockstack3", "stacking", 3),
+}
+
+
+def task_of(env: str | None) -> Task:
+    """The :class:`Task` of a Gymnasium id or short name; an id the project does not ship is a locomotion task.
+
+    Examples:
+        >>> task_of("blockstack3").n_blocks, task_of("BlockStack3-v0").goal_conditioned
+        (3, True)
+        >>> task_of("Walker2d-v5")
+        Task(env_id='Walker2d-v5', short='walker2d', family='locomotion', n_blocks=0)
+    """
+    if env is None:
+        return Task("", "")
+    try:
+        env_id, short = resolve_env(env)
+    except ValueError:  # a name that is no Gymnasium id (e.g. a toy dataset's): a task without goals
+        return Task(str(env), str(env).lower())
+    return TASKS.get(env_id) or Task(env_id, short)
+
+
+def stacking_tasks() -> dict[str, Task]:
+    """The goal-conditioned block-stacking tasks, by Gymnasium id."""
+    return {k: t for k, t in TASKS.items() if t.goal_conditioned}

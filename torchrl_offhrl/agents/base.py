@@ -193,6 +193,12 @@ class Agent:
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         raise NotImplementedError
 
+    @property
+    def eval_policy(self) -> nn.Module:
+        """The policy evaluations, offline policy selection and ``offhrl evaluate`` act with: :attr:`policy`, unless the agent
+        keeps another for that (e.g. MOC's ``policy_ema``: a Polyak average of the policy's weights)."""
+        return self.__dict__.get("averaged_policy") or self.policy
+
     def evaluation_metrics(self, rollout: TensorDictBase, alive: torch.Tensor) -> dict[str, Any]:
         """Extra JSON-able numbers of a real-env evaluation (``rollout`` is ``[E, T]``, ``alive`` marks each env's first episode)."""
         return {}

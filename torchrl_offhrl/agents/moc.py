@@ -8,6 +8,7 @@ option is active at each step).
 """
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -119,6 +120,12 @@ class MOCAgent(OnPolicyAgent):
     :class:`~torchrl_offhrl.objectives.OptionCriticLoss` to train instead of
     it (None: :attr:`loss_class`), built with the same arguments.
 
+    ``policy_ema`` (``algo.policy_ema``, default None: off): after each
+    batch's update the weights of a copy of the policy move this far towards
+    the policy's (``avg += policy_ema * (policy - avg)``); evaluations, the
+    offline policy selection, the returned policy and ``offhrl evaluate`` act
+    with that average (:attr:`eval_policy`), the collector with the policy.
+
     ``fused_adam`` is a speed switch (the same update rule, see
     :func:`~torchrl_offhrl.agents.adam`).
     """
@@ -171,6 +178,7 @@ class MOCAgent(OnPolicyAgent):
         compile: bool | str = False,
         anneal_lr: bool = True,
         loss: str | None = None,
+        policy_ema: float | None = None,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         if update_schedule not in self.UPDATE_SCHEDULES:
@@ -205,6 +213,11 @@ class MOCAgent(OnPolicyAgent):
         self.update_schedule = update_schedule
         self.action_key = action_key
         self.num_options = n
+        if policy_ema is not None and not 0.0 < float(policy_ema) <= 1.0:
+            raise ValueError(f"algo.policy_ema must be in (0, 1] (the weight of the new policy per batch) or null, got {policy_ema}")
+        self.policy_ema = None if policy_ema is None else float(policy_ema)
+        # evaluated, selected and returned instead of the policy: the weights' Polyak average over the batches (eval_policy)
+        self.averaged_policy = copy.deepcopy(self.policy).requires_grad_(False) if self.policy_ema is not None else None
         if update_schedule == "joint":
             self.optimizer = adam(self.loss.parameters(), lr=lr, eps=adam_eps, fused=fused_adam)
             self.termination_optimizer = self.option_optimizer = None
@@ -224,6 +237,14 @@ class MOCAgent(OnPolicyAgent):
         self.loss.prepare_batch(batch)
 
     def update(self, batch) -> dict:
+        metrics = self._update(batch)
+        if self.averaged_policy is not None:
+            with torch.no_grad():
+                for avg, p in zip(self.averaged_policy.parameters(), self.policy.parameters()):
+                    avg.lerp_(p, self.policy_ema)
+        return metrics
+
+    def _update(self, batch) -> dict:
         if self.update_schedule == "joint":
             return super().update(batch)
         metrics = self.minibatch_epochs(batch, self.optimizer, lambda out: sum(out[k] for k in self.MINIBATCH_TERMS))
@@ -238,6 +259,8 @@ class MOCAgent(OnPolicyAgent):
 
     def state_dict(self) -> dict:
         state = super().state_dict()
+        if self.averaged_policy is not None:
+            state["averaged_policy"] = self.averaged_policy.state_dict()
         if self.update_schedule == "per_term":
             state["termination_optimizer"] = self.termination_optimizer.state_dict()
             state["option_optimizer"] = self.option_optimizer.state_dict()
@@ -245,6 +268,8 @@ class MOCAgent(OnPolicyAgent):
 
     def load_state_dict(self, state) -> None:
         super().load_state_dict(state)
+        if self.averaged_policy is not None:
+            self.averaged_policy.load_state_dict(state["averaged_policy"])
         if self.update_schedule == "per_term":
             self.termination_optimizer.load_state_dict(state["termination_optimizer"])
             self.option_optimizer.load_state_dict(state["option_optimizer"])

@@ -11,8 +11,8 @@ the data layer collects datasets in these envs, the env layer builds the
 pessimistic model env on the same functions.
 """
 from . import goals
-from .env import BLOCKSTACK_IDS, DEFAULT_HORIZON, make_blockstack_env, register_blockstack_envs
+from .env import DEFAULT_HORIZON, make_blockstack_env, register_blockstack_envs
 
-__all__ = ["BLOCKSTACK_IDS", "DEFAULT_HORIZON", "goals", "make_blockstack_env", "register_blockstack_envs"]
+__all__ = ["DEFAULT_HORIZON", "goals", "make_blockstack_env", "register_blockstack_envs"]
 
 register_blockstack_envs()  # gymnasium-robotics is imported only when one of the envs is made

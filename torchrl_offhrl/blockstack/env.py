@@ -39,14 +39,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..registry import stacking_tasks, task_of
 from . import goals as G
 
-__all__ = ["BLOCK_COLOURS", "BLOCKSTACK_IDS", "BlockStackEnv", "blockstack_xml", "make_blockstack_env", "register_blockstack_envs"]
+__all__ = ["BLOCK_COLOURS", "BlockStackEnv", "blockstack_xml", "make_blockstack_env", "register_blockstack_envs"]
 
 BLOCK_COLOURS = ("red", "blue", "green")
 _RGBA = {"red": "0.85 0.1 0.1 1", "blue": "0.1 0.2 0.85 1", "green": "0.1 0.7 0.2 1"}
 #: registered id -> number of blocks
-BLOCKSTACK_IDS = {"BlockStack2-v0": 2, "BlockStack3-v0": 3}
 DEFAULT_HORIZON = 25
 
 
@@ -251,9 +251,9 @@ def register_blockstack_envs() -> None:
     """Register ``BlockStack2-v0`` / ``BlockStack3-v0`` with Gymnasium (25 steps; ``gymnasium.make(id, max_episode_steps=50)`` for 50)."""
     import gymnasium
 
-    for env_id, n in BLOCKSTACK_IDS.items():
+    for env_id, task in stacking_tasks().items():  # the task registry's stacking tasks
         if env_id not in gymnasium.registry:
-            gymnasium.register(env_id, entry_point=f"{__name__}:_entry_point", max_episode_steps=DEFAULT_HORIZON, kwargs={"n_blocks": n})
+            gymnasium.register(env_id, entry_point=f"{__name__}:_entry_point", max_episode_steps=DEFAULT_HORIZON, kwargs={"n_blocks": task.n_blocks})
 
 
 def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", goals: Sequence[int] | None = None, **gym_kwargs):
@@ -271,8 +271,8 @@ def make_blockstack_env(env_id: str, num_envs: int = 1, device="cpu", goals: Seq
     """
     from torchrl.envs import DoubleToFloat, SerialEnv, TransformedEnv
 
-    if env_id not in BLOCKSTACK_IDS:
-        raise ValueError(f"{env_id!r} is not a block-stacking env; they are {', '.join(BLOCKSTACK_IDS)}")
+    if not task_of(env_id).goal_conditioned:
+        raise ValueError(f"{env_id!r} is not a block-stacking env; they are {', '.join(stacking_tasks())}")
     register_blockstack_envs()
     if goals is not None and len(goals) != int(num_envs):
         raise ValueError(f"goals must give one goal per env ({num_envs}), got {len(goals)}")

@@ -23,9 +23,10 @@ def make_gym_env(env_id: str, num_envs: int = 1, device: str | torch.device = "c
     import gymnasium as gym
     from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv
 
-    from ..blockstack import BLOCKSTACK_IDS, make_blockstack_env
+    from ..blockstack import make_blockstack_env
+    from ..registry import task_of
 
-    if env_id in BLOCKSTACK_IDS:  # dict observations: batched by TorchRL (see make_blockstack_env)
+    if task_of(env_id).goal_conditioned:  # dict observations: batched by TorchRL (see make_blockstack_env)
         return make_blockstack_env(env_id, num_envs=num_envs, device=device, **kwargs)
     venv = gym.make_vec(
         env_id,

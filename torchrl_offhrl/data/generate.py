@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from ..registry import ENV_IDS, LEVELS, resolve_env
+from ..registry import ENV_IDS, LEVELS, resolve_env, task_of
 from ..rollouts import evaluate_policy
 from ..scores import normalized_score
 from ..utils import cache_dir, one_thread, remove_stale_tmp
@@ -71,7 +71,6 @@ STEPS_PER_SECOND: dict[str, dict[str, float]] = {
     "blockstack3": {"random": 280.0, "policy": 280.0},
 }
 #: short names of the block-stacking envs (their datasets come from :mod:`torchrl_offhrl.data.stacking`)
-STACKING_ENVS = ("blockstack2", "blockstack3")
 
 _NAME = re.compile(
     r"^(?P<env>[a-z0-9_]+?)-(?P<level>random|medium-expert|medium|expert)(?:-(?P<size>\d+[km]?))?$",
@@ -324,7 +323,7 @@ def dataset_path(name: str, num_transitions: int | None = None, seed: int = 0, n
     """
     _, short, level, n = _resolve_size(name, num_transitions)
     envs = "" if num_envs == 8 else f"-envs{num_envs}"
-    tag = f"-script{SCRIPT_VERSION}" if short in STACKING_ENVS else _policy_tag(short, level)
+    tag = f"-script{SCRIPT_VERSION}" if task_of(short).goal_conditioned else _policy_tag(short, level)
     return cache_dir() / "datasets" / f"{short}-{level}-{n}-seed{seed}{envs}{tag}.hdf5"
 
 
@@ -352,7 +351,7 @@ def estimate_seconds(env: str, level: str, num_transitions: int, ref_episodes: i
     short = resolve_env(env)[1]
     rates = STEPS_PER_SECOND.get(short, STEPS_PER_SECOND["hopper"])
     parts = 2 if level == "medium-expert" else 1
-    if short in STACKING_ENVS:  # no reference evaluations
+    if task_of(short).goal_conditioned:  # no reference evaluations
         return parts * num_transitions / rates["policy"]
     seconds = parts * num_transitions / rates["random" if level == "random" else "policy"]
     if ref_episodes > 0:
@@ -409,7 +408,7 @@ def named_dataset(
         except DatasetError as err:  # the cache can always be rebuilt: say so, and generate the file again
             warnings.warn(f"the cached dataset {path} is corrupt ({err}); deleting it and generating it again", stacklevel=2)
             path.unlink()
-    if short in STACKING_ENVS:  # scripted behaviour: no shipped policy needed
+    if task_of(short).goal_conditioned:  # scripted behaviour: no shipped policy needed
         if level not in (*SCRIPT_LEVELS, "medium-expert"):
             raise ValueError(f"{name!r}: the block-stacking datasets come in the levels {[*SCRIPT_LEVELS, 'medium-expert']}")
         if level == "medium-expert":  # from the cached parts, generated first when absent

@@ -160,13 +160,14 @@ def collect_stacking(env_id: str, num_transitions: int, random_prob: float = 0.0
     from tensordict import TensorDict
     from tqdm.auto import tqdm
 
-    from ..blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
+    from ..blockstack import DEFAULT_HORIZON, register_blockstack_envs
+    from ..registry import stacking_tasks, task_of
     from .dataset import OfflineDataset
 
-    if env_id not in BLOCKSTACK_IDS:
-        raise ValueError(f"collect_stacking: {env_id!r} is not a block-stacking env ({', '.join(BLOCKSTACK_IDS)})")
+    if not task_of(env_id).goal_conditioned:
+        raise ValueError(f"collect_stacking: {env_id!r} is not a block-stacking env ({', '.join(stacking_tasks())})")
     register_blockstack_envs()
-    n_blocks = BLOCKSTACK_IDS[env_id]
+    n_blocks = task_of(env_id).n_blocks
     horizon = int(horizon or DEFAULT_HORIZON)
     # Gymnasium's vector env, reset by hand at the start of each round (every episode ends at the horizon together):
     # no per-step TensorDict bookkeeping, which cost as much as the MuJoCo step itself
@@ -283,10 +284,11 @@ def scripted_success(env_id: str, episodes: int = 10, horizon: int | None = None
     """
     import gymnasium as gym
 
-    from ..blockstack import BLOCKSTACK_IDS, DEFAULT_HORIZON, register_blockstack_envs
+    from ..blockstack import DEFAULT_HORIZON, register_blockstack_envs
+    from ..registry import task_of
 
     register_blockstack_envs()
-    n_blocks = BLOCKSTACK_IDS[env_id]
+    n_blocks = task_of(env_id).n_blocks
     env = gym.make(env_id, max_episode_steps=int(horizon or DEFAULT_HORIZON), **env_kwargs)
     controller = ScriptedStacker(n_blocks, random_prob, noise_std, generator=torch.Generator().manual_seed(seed))
     out = {}

@@ -1,7 +1,7 @@
 """Environments: the pessimistic model env, the latent action transform, terminations, the transfer tasks, block stacking."""
 from .calibration import CalibrationReport, calibrate_threshold, dataset_discrepancy
 from .goal_model import BlockStackModelEnv, SubGoalTracker
-from .latent import AffineActionMap, LatentActionTransform
+from .latent import DEFAULT_LATENT_BOUND, AffineActionMap, LatentActionTransform
 from .pessimistic import PessimisticModelEnv
 from .tasks import TASKS, make_task_env, task_kwargs
 from .termination import TERMINATION_FNS, hopper_termination, never_terminates, termination_fn_for
@@ -9,6 +9,7 @@ from .termination import TERMINATION_FNS, hopper_termination, never_terminates, 
 __all__ = [
     "BlockStackModelEnv",
     "AffineActionMap",
+    "DEFAULT_LATENT_BOUND",
     "CalibrationReport",
     "LatentActionTransform",
     "PessimisticModelEnv",

@@ -8,7 +8,10 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded
 from torchrl.envs.transforms import Compose, Transform
 
-__all__ = ["AffineActionMap", "LatentActionTransform"]
+__all__ = ["DEFAULT_LATENT_BOUND", "AffineActionMap", "LatentActionTransform"]
+
+#: the latent box's half-width where none is given (``model_env.latent_bound``): the CVAE prior N(0, 1) within 2 std
+DEFAULT_LATENT_BOUND = 2.0
 
 
 class AffineActionMap(torch.nn.Module):
@@ -105,7 +108,7 @@ class LatentActionTransform(Transform):
     def __init__(
         self,
         decoder: torch.nn.Module,
-        latent_bound: float = 2.0,
+        latent_bound: float = DEFAULT_LATENT_BOUND,
         clip: bool = True,
         latent_key: str = "latent_action",
         action_key: str = "action",

@@ -13,11 +13,12 @@ from pathlib import Path
 
 from ..data import OfflineDataset, load_dataset
 from ..data.generate import named_dataset
+from ..envs.latent import DEFAULT_LATENT_BOUND
 from ..registry import LEVELS
 from ..utils import to_plain
 
 __all__ = [
-    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "model_config", "model_env_config",
+    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "model_config", "model_env_config",
     "pessimism_for", "resolve_dataset", "transfer_config", "transfer_label",
 ]
 
@@ -79,6 +80,11 @@ def resolve_dataset(cfg: Mapping) -> OfflineDataset:
     return named_dataset(
         f"{env_name}-{level}", num_transitions=cfg.get("num_transitions"), seed=cfg.get("dataset_seed", 0), num_envs=cfg.get("dataset_num_envs", 8),
     )
+
+
+def latent_bound(cfg: Mapping) -> float:
+    """The latent box's half-width of a run (``model_env.latent_bound``; :data:`~torchrl_offhrl.envs.DEFAULT_LATENT_BOUND` if unset)."""
+    return float((cfg.get("model_env") or {}).get("latent_bound", DEFAULT_LATENT_BOUND))
 
 
 def model_config(cfg: Mapping) -> dict:

@@ -12,12 +12,12 @@ from pathlib import Path
 import torch
 
 from ..agents import make_agent
-from ..blockstack import BLOCKSTACK_IDS
+from ..registry import task_of
 from ..models import ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
-from .config import acts_in_latent_space, transfer_config
+from .config import acts_in_latent_space, latent_bound, transfer_config
 from .pipeline import make_real_env
 
 __all__ = ["Evaluator", "GoalEvaluator", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
@@ -60,7 +60,7 @@ class Evaluator:
 
     def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
         rets, td = evaluate_policy(
-            self.env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True,
+            self.env, agent.eval_policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True,
         )
         mean = float(rets.mean())
         forward = self.task in (None, "forward")
@@ -96,7 +96,7 @@ class Evaluator:
             return {}
         n = self.model_env.batch_size.numel()
         with torch.random.fork_rng():
-            model_rets, td = evaluate_policy(self.model_env, agent.policy, n, max_steps=self.max_steps, deterministic=True, seed=self.seed,
+            model_rets, td = evaluate_policy(self.model_env, agent.eval_policy, n, max_steps=self.max_steps, deterministic=True, seed=self.seed,
                                              return_rollout=True)
         m = float(model_rets.mean())
         out = {"model_return_mean": m, "model_return_std": float(model_rets.std()), "model_real_gap": m - real_mean}
@@ -147,7 +147,7 @@ class GoalEvaluator(Evaluator):
     def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
         from ..blockstack.goals import success_by_goal
 
-        _, td = evaluate_policy(self.env, agent.policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True)
+        _, td = evaluate_policy(self.env, agent.eval_policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True)
         reward = td["next", "reward"].reshape(self.episodes, -1)
         alive = first_episode_mask(td["next", "done"].reshape(self.episodes, -1))
         goal = td["desired_goal"][:, 0].argmax(-1)
@@ -211,12 +211,12 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
         if not cvae_path.is_file():
             raise FileNotFoundError(f"the run's CVAE {cvae_path} is not in the model cache any more; rerun `offhrl fit` with the run's config")
         cvae = ConditionalVAE.load(cvae_path)
-    bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
+    bound = latent_bound(cfg)
     env = make_real_env(env_id, cvae, num_envs=num_envs, latent_bound=bound, task=task, discard_decoder=discard)
     algo = dict(cfg["algo"])
     if isinstance(algo.get("reward_scale"), str):  # a name resolved from the data at training time (e.g. IQL's return_range)
         algo["reward_scale"] = float(cfg.get("resolved_reward_scale") or 1.0)
-    goal_key = "sub_goal" if env_id in BLOCKSTACK_IDS else None  # as the loop built it
+    goal_key = "sub_goal" if task_of(env_id).goal_conditioned else None  # as the loop built it
     agent = make_agent(algo["name"], env, algo, action_key="latent_action" if latent else "action", goal_key=goal_key)
     agent.attach(env)
     if policy not in ("last", "selected"):
@@ -244,9 +244,9 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
     run = Path(run_dir)
     cfg, env, agent, state, cvae = load_run_agent(run, num_envs=episodes, policy=policy)
     env_id = cfg["env"]["env_id"]
-    bound = cfg.get("model_env", {}).get("latent_bound", 2.0)
+    bound = latent_bound(cfg)
     task, discard = acting_task(cfg, state)
-    rets, td = evaluate_policy(env, agent.policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed,
+    rets, td = evaluate_policy(env, agent.eval_policy, episodes, max_steps=int(cfg["eval"]["max_steps"]), deterministic=deterministic, seed=seed,
                                return_rollout=True)
     env.close()
     res = {
@@ -261,7 +261,7 @@ def evaluate_run(run_dir, episodes: int = 10, seed: int = 12345, frames_dir=None
         "normalized_d4rl": normalized_score(env_id, float(rets.mean())) if task == "forward" else None,  # D4RL's scale is the forward task's
         "returns": [round(float(r), 2) for r in rets],
     }
-    if env_id in BLOCKSTACK_IDS:  # goals drawn at each reset: the success of each goal's episodes (NaN: none drawn)
+    if task_of(env_id).goal_conditioned:  # goals drawn at each reset: the success of each goal's episodes (NaN: none drawn)
         from ..blockstack.goals import success_by_goal
 
         alive = first_episode_mask(td["next", "done"].reshape(episodes, -1))
@@ -289,7 +289,7 @@ def render_episode(env_id, cvae, bound, agent, out: Path, max_steps: int, seed: 
         frames = [base.render()]
         mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
         with torch.no_grad(), set_exploration_type(mode):
-            env.rollout(max_steps, agent.policy, callback=lambda *_: frames.append(base.render()))
+            env.rollout(max_steps, agent.eval_policy, callback=lambda *_: frames.append(base.render()))
         for t, frame in enumerate(frames):
             frame = frame[0] if isinstance(frame, (tuple, list)) else frame
             plt.imsave(out / f"frame_{t:04d}.png", frame)

@@ -18,8 +18,8 @@ from torchrl.envs import Compose, TransformedEnv
 
 from ..agents import action_box
 from ..data import OfflineDataset
-from ..blockstack import BLOCKSTACK_IDS
-from ..envs import AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
+from ..registry import task_of
+from ..envs import DEFAULT_LATENT_BOUND, AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, to_plain
 
@@ -202,7 +202,7 @@ def make_model_env(
     env_cfg = cfg["env"]
     if threshold is None:
         threshold = env_cfg.get("threshold")
-    stacking = data.env_id in BLOCKSTACK_IDS  # goal-conditioned: the tasks' goals and rewards on the predicted states
+    stacking = task_of(data.env_id).goal_conditioned  # goal-conditioned: the tasks' goals and rewards on the predicted states
     base = (BlockStackModelEnv if stacking else PessimisticModelEnv)(
         ensemble,
         data,
@@ -225,13 +225,13 @@ def make_model_env(
         raise ValueError("latent=True needs a fitted ConditionalVAE.")
     # the transform as the env's own transform (not in a Compose): the decoded
     # action is then kept in every stepping style, hand-written loops included
-    latent_t = LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", 2.0), goal_key=cvae.goal_key)
+    latent_t = LatentActionTransform(cvae.decoder, latent_bound=env_cfg.get("latent_bound", DEFAULT_LATENT_BOUND), goal_key=cvae.goal_key)
     if stacking:  # the decoder's goal: the option's sub-goal, tracked along the goal's abstract demonstration
         return TransformedEnv(base, Compose(SubGoalTracker(), latent_t))
     return TransformedEnv(base, latent_t)
 
 
-def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = 2.0, device="cpu",
+def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = DEFAULT_LATENT_BOUND, device="cpu",
                   task: str = "forward", discard_decoder: bool = False, **gym_kwargs):
     """The real Gymnasium env (batched, float32) of ``task`` (:data:`~torchrl_offhrl.envs.TASKS`), through the decoder when ``cvae`` is given.
 
@@ -241,7 +241,7 @@ def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int
     (``cvae`` is then not used).
     """
     env = make_task_env(env_id, task, num_envs=num_envs, device=device, **gym_kwargs)
-    if env_id in BLOCKSTACK_IDS:
+    if task_of(env_id).goal_conditioned:
         env.append_transform(SubGoalTracker())
     if discard_decoder:
         _, low, high = action_box(env, "action")

@@ -1,6 +1,8 @@
-"""Plots and multi-seed aggregation of recipe runs.
+"""Multi-seed tables of recipe runs: scores, IQM with bootstrap CIs, the paper's table, a run's summary.
 
-Each run directory written by :func:`~torchrl_offhrl.recipes.train.train`
+Plots live in :mod:`~torchrl_offhrl.recipes.plots`, loading and archiving
+run directories in :mod:`~torchrl_offhrl.recipes.runs` (their names are
+re-exported here). Each run directory written by :func:`~torchrl_offhrl.recipes.train.train`
 holds ``config.json``, ``evals.json`` (one record per evaluation) and
 ``summary.json``. :func:`aggregate` groups runs by (algorithm, env, dataset,
 ablation), and writes one table (Markdown + CSV: final normalised score,
@@ -19,148 +21,15 @@ import torch
 
 from ..scores import normalized_score
 from ..stats import iqm_ci, paired_change, plot_performance_profiles
-from ..utils import atomic_write
 from .config import transfer_config, transfer_label
+from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_training_metrics, plot_transfer, pyplot
+from .runs import archive_run, archive_runs, expand_run_dirs, load_run, logged_tail_mean, read_scalar_logs, record_step, run_unit
 
 __all__ = [
     "TABLE_COLUMNS", "TRANSFER_MARKS", "UNIT_LABELS", "aggregate", "archive_run", "archive_runs", "fmt_iqm", "fmt_number", "fmt_per_seed", "group_key", "format_summary", "group_stats", "load_run", "logged_tail_mean", "paper_table",
     "plot_curve", "plot_goal_success", "plot_training_metrics",
     "plot_transfer", "read_scalar_logs", "run_scores", "run_summary", "run_unit", "transfer_stats",
 ]
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-#: how the x-axis of a run's curves is labelled, by the unit of its budget (``summary["unit"]``)
-UNIT_LABELS = {"frames": "model-env frames", "updates": "gradient steps on the dataset",
-               "transfer": "frames (model env offline, then real env online)"}
-
-
-def _step(record: dict) -> int:
-    """Where an evaluation record sits on its run's x-axis: ``step`` (frames, or updates for dataset agents); older records: frames."""
-    return record.get("step", record["frames"])
-
-
-def run_unit(run: dict) -> str:
-    """The unit of a loaded run's budget: ``"frames"`` or ``"updates"`` (older runs: frames)."""
-    return ((run.get("summary") or {}).get("unit") or (run.get("config") or {}).get("unit") or "frames")
-
-
-def _curve_stats(runs: Sequence[Sequence[dict]], key: str):
-    """Mean and std over runs at the evaluation points every run has."""
-    common = sorted(set.intersection(*[{_step(r) for r in recs} for recs in runs])) if runs else []
-    if not common:
-        return [], torch.zeros(0), torch.zeros(0)
-    vals = torch.tensor([[next(r[key] for r in recs if _step(r) == f) for f in common] for recs in runs], dtype=torch.float64)
-    std = vals.std(0) if vals.shape[0] > 1 else torch.zeros(vals.shape[1], dtype=torch.float64)
-    return common, vals.mean(0), std
-
-
-def _band(ax, runs: Sequence[Sequence[dict]], key: str, label: str | None, x_offset: int = 0, color=None):
-    """Plot the mean over runs, shaded ± one std (one run: ± the std over its evaluation episodes); returns ``(steps, colour)``."""
-    steps, mean, std = _curve_stats(runs, key)
-    if len(runs) == 1 and key == "return_mean":
-        std = torch.tensor([r.get("return_std", 0.0) for r in runs[0] if _step(r) in steps], dtype=torch.float64)
-    x = [f + x_offset for f in steps]
-    line, = ax.plot(x, mean, marker="o", ms=3, color=color, label=label)
-    ax.fill_between(x, mean - std, mean + std, alpha=0.25, color=line.get_color())
-    return steps, line.get_color()
-
-
-def _finish(ax, path, own: bool, xlabel: str, ylabel: str, title: str):
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
-    if own:
-        plt = _plt()
-        ax.figure.tight_layout()
-        ax.figure.savefig(path, dpi=110)
-        plt.close(ax.figure)
-    return path
-
-
-def plot_curve(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", behaviour: float | None = None, key: str = "return_mean", ax=None,
-               xlabel: str = UNIT_LABELS["frames"]):
-    """Learning curve(s): the mean over runs, shaded ± one std over runs.
-
-    With a single run, the band is the std over its evaluation episodes.
-    """
-    own = ax is None
-    if own:
-        _, ax = _plt().subplots(figsize=(6, 4))
-    _band(ax, runs, key, f"{label} (n={len(runs)})" if label else None)
-    if behaviour is not None:
-        ax.axhline(behaviour, color="gray", ls="--", label="behaviour (dataset)")
-    return _finish(ax, path, own, xlabel, "real-env return" if key == "return_mean" else key, title)
-
-
-def plot_goal_success(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", xlabel: str = UNIT_LABELS["frames"], axes=None,
-                      key: str = "success_per_goal"):
-    """Per-goal success curves of goal-conditioned runs (the paper's Fig. 4): one panel per goal, mean over runs, shaded ± one std.
-
-    ``key`` is the records' per-goal list (``success_per_goal``: horizon 25;
-    ``success_per_goal_h50``: horizon 50). Pass ``axes`` (one per goal) to
-    draw several algorithms on the same panels; the figure is then saved by
-    the caller (``path`` is ignored).
-    """
-    runs = [[r for r in recs if key in r] for recs in runs]
-    if not runs or not all(runs):
-        return None
-    n = len(runs[0][0][key])
-    own = axes is None
-    if own:
-        fig, axes = _plt().subplots(1, n, figsize=(3.2 * n, 3.2), sharey=True, squeeze=False)
-        axes = axes[0]
-    for k, ax in enumerate(axes):
-        per_goal = [[{**r, "_success": r[key][k]} for r in recs] for recs in runs]
-        _band(ax, per_goal, "_success", f"{label} (n={len(runs)})" if label and k == 0 else None)
-        ax.set_title(f"goal {k}", fontsize=9)
-        ax.set_ylim(-0.02, 1.02)
-        ax.set_xlabel(xlabel, fontsize=8)
-    axes[0].set_ylabel("success rate")
-    if own:
-        axes[0].legend(loc="best", fontsize=8)
-        fig = axes[0].figure
-        fig.suptitle(title, fontsize=9)
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        _plt().close(fig)
-    return path
-
-
-def plot_transfer(runs: Sequence[Sequence[dict]], path, label: str = "", title: str = "", key: str = "return_mean", ax=None, x_offset: int = 0,
-                  xlabel: str = UNIT_LABELS["transfer"]):
-    """Learning curves of transfer runs: the offline phase (old task) then the online phase (new task), one x-axis of frames.
-
-    Each phase is drawn as its own segment (mean over runs, shaded ± one std;
-    one run: ± the std over its evaluation episodes), in one colour, so the
-    drop at the switch shows: both tasks are evaluated there. A dotted line
-    marks the switch. ``x_offset`` shifts runs without an offline phase
-    (trained from scratch) to start at another run's switch.
-    """
-    own = ax is None
-    if own:
-        _, ax = _plt().subplots(figsize=(6, 4))
-    color, switch = None, None
-    for phase in ("offline", "online"):
-        recs = [[r for r in rs if r.get("phase") == phase] for rs in runs]
-        if not recs or not all(recs):
-            continue
-        first = color is None
-        steps, color = _band(ax, recs, key, (f"{label} (n={len(runs)})" if label else None) if first else None, x_offset, color)
-        if phase == "online" and steps and x_offset == 0:
-            switch = steps[0]
-    if switch:
-        ax.axvline(switch, color="k", ls=":", lw=1)
-    return _finish(ax, path, own, xlabel, "real-env return on the current task" if key == "return_mean" else key, title)
 
 
 #: online frames after the switch at which :func:`transfer_stats` reports the return on the new task
@@ -193,8 +62,8 @@ def transfer_stats(rs: Sequence[dict], marks: Sequence[int] = TRANSFER_MARKS) ->
         offline = [e for e in r["evals"] if e.get("phase") == "offline"]
         if not online:
             continue
-        sw = _step(online[0])
-        xs = torch.tensor([_step(e) - sw for e in online], dtype=torch.float64)
+        sw = record_step(online[0])
+        xs = torch.tensor([record_step(e) - sw for e in online], dtype=torch.float64)
         ys = torch.tensor([e["return_mean"] for e in online], dtype=torch.float64)
         row = {
             "switch": sw, "online_frames": int(xs[-1]), "offline_final": offline[-1]["return_mean"] if offline else None,
@@ -207,28 +76,6 @@ def transfer_stats(rs: Sequence[dict], marks: Sequence[int] = TRANSFER_MARKS) ->
     keys = ["offline_final", "at_switch", *[f"at_{k}" for k in marks], "final", "best", "area"]
     return {"seeds": len(per_run), "online_frames": min((p["online_frames"] for p in per_run), default=0),
             **{k: stat([p[k] for p in per_run]) for k in keys}}
-
-
-def load_run(run_dir) -> dict:
-    """``{"dir", "config", "evals", "summary"}`` of a run directory (summary may be missing for unfinished runs)."""
-    d = Path(run_dir)
-    evals_path = d / "evals.json"
-    if not evals_path.is_file():
-        raise FileNotFoundError(f"{d} has no evals.json: not a run directory written by offline_train")
-    cfg = _read_json(d / "config.json") if (d / "config.json").is_file() else {}
-    summary = _read_json(d / "summary.json") if (d / "summary.json").is_file() else None
-    evals = _read_json(evals_path)
-    if not isinstance(evals, list) or not evals:
-        raise ValueError(f"{evals_path} holds no evaluation records ({evals!r}): the run has not evaluated yet; "
-                         "let it run to its first evaluation, or leave it out")
-    return {"dir": str(d), "config": cfg, "evals": evals, "summary": summary}
-
-
-def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON ({err}): the file is damaged; rerun or resume the run to write it again") from None
 
 
 def group_key(run: dict) -> tuple:
@@ -256,14 +103,14 @@ def run_scores(run: dict, last_n: int = 5) -> dict:
     (``summary["selected"]``, chosen without the real env), else None.
     """
     evals = run["evals"]
-    trained = [e for e in evals if _step(e) > 0 and _score(e) is not None]
+    trained = [e for e in evals if record_step(e) > 0 and _score(e) is not None]
     tail = trained[-last_n:]
     summary = run.get("summary") or {}
     return {
         "seed": (run.get("config") or {}).get("seed"),
         "final": _score(evals[-1]),
         "best": max(_score(e) for e in trained) if trained else None,
-        "start": _score(evals[0]) if _step(evals[0]) == 0 else None,
+        "start": _score(evals[0]) if record_step(evals[0]) == 0 else None,
         # a run known only by a few evaluations (``partial``: start, best, final) has no last five to average
         "last5": sum(_score(e) for e in tail) / len(tail) if tail and not run.get("partial") else None,
         "selected": _score(summary.get("selected")),
@@ -306,7 +153,7 @@ def group_stats(rs: Sequence[dict]) -> dict:
     pairs = [(p["final"], p["start"]) for p in per if None not in (p["final"], p["start"])]
     change = paired_change([a for a, _ in pairs], [b for _, b in pairs]) if pairs else None
     return {
-        "seeds": len(rs), "budget": f"{min(_step(r['evals'][-1]) for r in rs)} {unit}",
+        "seeds": len(rs), "budget": f"{min(record_step(r['evals'][-1]) for r in rs)} {unit}",
         "return_mean": float(finals.mean()), "return_std": float(finals.std()) if len(rs) > 1 else 0.0,
         "score_mean": float(sc.mean()) if sc.numel() else None,
         "score_std": float(sc.std()) if sc.numel() > 1 else 0.0,
@@ -341,48 +188,16 @@ def fmt_per_seed(per: Sequence[dict], key: str = "final") -> str:
     return ", ".join(f"s{'?' if p['seed'] is None else p['seed']}: {fmt_number(p[key])}" for p in rows)
 
 
-def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:
-    """Copy what the reports read of a finished run into ``dest`` (a folder small enough to commit); returns ``dest``.
-
-    A run directory holds checkpoints, models and logs (megabytes) and lives
-    under ``outputs/``, which is not kept between machines; the archive keeps
-    ``config.json``, ``evals.json`` and ``summary.json`` as they are, plus
-    ``diagnostics.json``: the mean of the last 5 logged values of every
-    training scalar (``{"train_tail_means": {key: value}}``, the numbers
-    :func:`logged_tail_mean` gives), and the files named in ``extra`` that the
-    run has (e.g. ``option_usage.pt``). :func:`load_run` reads the archive
-    like the run directory it came from.
-    """
-    src, dest = Path(run_dir), Path(dest)
-    if not (src / "summary.json").is_file():
-        raise FileNotFoundError(f"{src} has no summary.json: the run has not finished; archive it once it has")
-    load_run(src)  # fails with the reason if the run's files are damaged, before anything is written
-    dest.mkdir(parents=True, exist_ok=True)
-    for name in ("config.json", "evals.json", "summary.json", *extra):
-        if (src / name).is_file():
-            with atomic_write(dest / name) as tmp:  # a temporary file of its own: two run loops may archive the same run at once
-                Path(tmp).write_bytes((src / name).read_bytes())
-    series = read_scalar_logs(src / "logs")
-    tails = {k.split("/", 1)[1]: sum(v[-5:]) / len(v[-5:]) for k, (_, v) in sorted(series.items()) if k.startswith("train/") and v}
-    with atomic_write(dest / "diagnostics.json") as tmp:
-        Path(tmp).write_text(json.dumps({"train_tail_means": tails}, indent=1) + "\n")
-    return dest
-
-
-def archive_runs(base, dest, extra: Sequence[str] = ()) -> list[Path]:
-    """:func:`archive_run` for every finished run (``summary.json`` written) named ``*-seed*`` under ``base``, to ``dest/<run>``."""
-    done = sorted(d for d in Path(base).glob("*-seed*") if (d / "summary.json").is_file())
-    return [archive_run(d, Path(dest) / d.name, extra=extra) for d in done]
-
-
 def _load_runs(run_dirs: Sequence, out_dir, who: str) -> tuple[list[dict], Path]:
     """The loaded runs (:func:`load_run`; a dict is taken as an already loaded run) and the output folder, created.
+
+    A folder of run directories (a sweep's) stands for the runs in it (:func:`expand_run_dirs`).
 
     A loaded run with ``"partial": True`` (a run known only by a few of its
     evaluations, e.g. rebuilt from a committed report after its directory was
     lost) counts in the tables but draws no curve.
     """
-    runs = [d if isinstance(d, dict) else load_run(d) for d in run_dirs]
+    runs = [d if isinstance(d, dict) else load_run(d) for d in expand_run_dirs(run_dirs)]
     if not runs:
         raise ValueError(f"{who}: no run directories given")
     out = Path(out_dir)
@@ -468,7 +283,7 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
     (out / "results.md").write_text(table + "\n")
     if all(r.get("partial") for r in runs):  # nothing to draw: runs known only by a few evaluations draw no curves
         return table
-    plt = _plt()
+    plt = pyplot()
     envs = sorted({k[1] for k in groups})
     panels = sorted({_panel(rs) for rs in groups.values()})  # one row of panels per x-axis: frames, gradient steps, transfer
     fig, axes = plt.subplots(len(panels), len(envs), figsize=(6 * len(envs), 4 * len(panels)), squeeze=False)
@@ -534,7 +349,7 @@ def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimi
         "unit": unit,
         "step": updates if unit == "updates" else frames,
         "final": records[-1],
-        "initial": records[0] if _step(records[0]) == 0 else None,
+        "initial": records[0] if record_step(records[0]) == 0 else None,
         "behaviour_return_mean": behaviour["mean"],
         "behaviour_return_std": behaviour["std"],
         "behaviour_episodes": behaviour["episodes"],
@@ -550,74 +365,6 @@ def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimi
         "run_dir": str(run_dir),
         "plots": [str(Path(run_dir) / "learning_curve.png")] + [str(Path(run_dir) / f) for f in evaluation_files if f.endswith(".png")],
     }
-
-
-def read_scalar_logs(log_dir, keys: Sequence[str] | None = None) -> dict[str, tuple[list[float], list[float]]]:
-    """A run's CSV logs (``log_dir/scalars/{train,eval}/*.csv``) as ``{"<group>/<key>": (frames, values)}``.
-
-    ``keys`` picks series by key or by ``group/key`` (default: every file);
-    empty files are left out, and so is everything when there are no CSV logs.
-    """
-    root = Path(log_dir) / "scalars"
-    series = {}
-    for f in sorted(root.glob("*/*.csv")) if root.is_dir() else []:
-        name = f"{f.parent.name}/{f.stem}"
-        if keys is not None and f.stem not in keys and name not in keys:
-            continue
-        rows = [line.split(",") for line in f.read_text().splitlines() if line]
-        if rows:
-            series[name] = ([float(r[0]) for r in rows], [float(r[1]) for r in rows])
-    return series
-
-
-def logged_tail_mean(run_dir, key: str, n: int = 5) -> float | None:
-    """Mean of the last ``n`` logged values of the training scalar ``key`` of a run (None when it was not logged)."""
-    series = read_scalar_logs(Path(run_dir) / "logs", [f"train/{key}"])
-    if not series:
-        return None
-    tail = series[f"train/{key}"][1][-n:]
-    return sum(tail) / len(tail)
-
-
-def plot_training_metrics(log_dir, path, keys: Sequence[str] | None = None, xlabel: str = "frames"):
-    """One panel per logged scalar of a run's CSV logs (``logs/scalars/{train,eval}/*.csv``), against the run's steps (``xlabel``).
-
-    Shows whether options are alive (termination rate, option duration, pi_O
-    and usage entropies, the termination advantage), whether the model is
-    exploited (``penalized_rate``, the model return next to the real one) and
-    the losses. ``keys`` picks panels by name (default: every file). Returns
-    the path, or None when there are no CSV logs (another logger backend).
-    A figure is a convenience: a failure to draw it warns and returns None.
-    """
-    import warnings
-
-    series = read_scalar_logs(log_dir, keys)
-    if not series:
-        return None
-    try:
-        plt = _plt()
-        evals = {k: v for k, v in series.items() if k.startswith("eval/") and "return_mean" in k}
-        panels = ([("eval/returns", evals)] if evals else []) + [(k, {k: v}) for k, v in series.items() if k not in evals]
-        cols = 4
-        rows_n = -(-len(panels) // cols)
-        fig, axes = plt.subplots(rows_n, cols, figsize=(4 * cols, 2.6 * rows_n), squeeze=False)
-        for ax, (title, group) in zip(axes.flat, panels):
-            for name, (x, y) in group.items():
-                ax.plot(x, y, lw=1, label=name.split("/", 1)[1])
-            ax.set_title(title, fontsize=9)
-            ax.tick_params(labelsize=7)
-            if len(group) > 1:
-                ax.legend(fontsize=7)
-        for ax in list(axes.flat)[len(panels):]:
-            ax.axis("off")
-        fig.supxlabel(xlabel, fontsize=9)
-        fig.tight_layout()
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-    except Exception as err:  # noqa: BLE001
-        warnings.warn(f"could not draw {path}: {err!r}", stacklevel=2)
-        return None
-    return Path(path)
 
 
 #: Table I's columns: run label -> column title, in the paper's order (ours on the P-MDP, then the peers)
@@ -743,7 +490,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         w.writeheader()
         for (env_id, dataset, c), st in sorted(stats.items()):
             w.writerow({"env": env_id, "dataset": dataset, "algo": c, **st, "per_seed": json.dumps(st["per_seed"])})
-    plt = _plt()  # performance profiles: one panel per dataset row, one curve per column (its runs' final scores)
+    plt = pyplot()  # performance profiles: one panel per dataset row, one curve per column (its runs' final scores)
     fig, axes = plt.subplots(1, len(datasets), figsize=(5.5 * len(datasets), 4), squeeze=False)
     for ax, (env_id, dataset) in zip(axes[0], datasets):
         curves = {TABLE_COLUMNS.get(c, c): [p["final"] for p in stats[(e, d, c)]["per_seed"] if p["final"] is not None]
@@ -754,7 +501,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     fig.tight_layout()
     fig.savefig(out / "performance_profile.png", dpi=100)
     plt.close(fig)
-    plt = _plt()
+    plt = pyplot()
     for env_id, dataset in datasets:
         keys = [k for k in sorted(groups) if k[:2] == (env_id, dataset)]
         if all(r.get("partial") for k in keys for r in groups[k]):

@@ -45,7 +45,7 @@ from typing import Any
 from ..utils import to_plain
 from .config import config_dir
 
-__all__ = ["TUNE_EXTRA_HINT", "finished_run", "load_search", "require_ray", "search_grid", "sweep", "tune_search"]
+__all__ = ["TUNE_EXTRA_HINT", "SearchInterrupted", "finished_run", "load_search", "require_ray", "search_grid", "sweep", "tune_search"]
 
 TUNE_EXTRA_HINT = "offhrl tune and offhrl sweep need Ray Tune: pip install 'torchrl-offhrl[tune]' (or pip install 'ray[tune]')"
 KINDS = ("models", "agent")
@@ -216,9 +216,18 @@ def _init_ray(address: str | None, num_cpus: int | None):
     if ray.is_initialized():
         return ray, False
     if address:  # a cluster: its nodes and resources
-        ray.init(address=address, log_to_driver=False)
-    else:  # this machine: one CPU per core, a small object store (trials exchange only metrics); workers inherit the environment
-        ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, object_store_memory=200 * 1024 * 1024, log_to_driver=False)
+        try:
+            ray.init(address=address, log_to_driver=False)
+        except (ConnectionError, RuntimeError) as err:
+            raise ConnectionError(
+                f"could not join the Ray cluster at {address!r} ({str(err).splitlines()[0][:200] if str(err) else type(err).__name__}). "
+                "Check that its head runs (`ray status` on it) and this machine reaches it; Ray >= 2.59 clusters started with "
+                "token authentication need the same RAY_AUTH_MODE=token and token here; a ray:// address needs `pip install "
+                "'ray[client]'` (in the [tune] extra)") from None
+    else:  # this machine: one CPU per core, a small object store (trials exchange only metrics); workers inherit the environment.
+        # address="local": a new local Ray even where a `ray start` head already runs (joining it would forbid num_cpus)
+        ray.init(address="local", num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, object_store_memory=200 * 1024 * 1024,
+                 log_to_driver=False)
     return ray, True
 
 
@@ -264,7 +273,22 @@ def _with_specs(fn, trials: list[dict]):
     return trainable
 
 
-def _rows(results, trials: list[dict], keys: Sequence[str]) -> list[dict]:
+class SearchInterrupted(RuntimeError):
+    """An interrupted search or sweep (Ctrl-C): some trials did not finish; the same command resumes it."""
+
+
+def _rows(results, trials: list[dict], keys: Sequence[str], name: str = "the search") -> list[dict]:
+    """One row per finished trial; raises :class:`SearchInterrupted` (before any table is written) if any trial did not finish.
+
+    A trial that never started (its config is None) or that stopped without
+    reporting or failing was cut by an interrupt: the tables of a finished
+    experiment are not overwritten with blank rows.
+    """
+    unfinished = [r for r in results if r.config is None or (r.error is None and not r.metrics)]
+    if unfinished or len(results) < len(trials):
+        done = len(results) - len(unfinished)
+        raise SearchInterrupted(f"{name}: interrupted with {done} of {len(trials)} trials finished; run the same command again "
+                                "to resume it (finished trials are not run again)")
     rows = []
     for r in results:
         idx = r.config["trial"]
@@ -299,8 +323,10 @@ def _write_table(rows: list[dict], out: Path, title: str) -> str:
 
 def tune_search(preset: str, overrides: Sequence[str] = (), *, name: str | None = None, out_root: str | None = None, address: str | None = None,
                 num_cpus: int | None = None, cpus_per_trial: int = 1, gpus_per_trial: float = 0.0, max_concurrent: int | None = None,
-                verbose: int = 1) -> dict:
+                verbose: int = 1, num_samples: int | None = None) -> dict:
     """Run the search ``preset`` (:func:`load_search`) on the config of ``overrides``; returns the best settings and the table.
+
+    ``num_samples`` replaces the preset's number of grid points drawn (``offhrl tune ... --num-samples N``).
 
     Writes ``results.csv`` / ``results.md`` (one row per trial: its settings
     and scores) and ``best.json`` into ``<out_root>/tune/<name>/`` (``out_root``:
@@ -308,6 +334,14 @@ def tune_search(preset: str, overrides: Sequence[str] = (), *, name: str | None 
     experiment (restorable) lives in the same folder.
     """
     spec = load_search(preset)
+    search_keys = [o for o in overrides if o.split("=", 1)[0].lstrip("+") in ("num_samples", "metric", "mode", "grid", "sample_seed")]
+    if search_keys:
+        raise ValueError(f"{search_keys}: overrides set the training config of every trial; the search's own settings are not in it "
+                         "(the number of trials: --num-samples N; the rest: in the search YAML)")
+    if num_samples is not None:
+        if int(num_samples) < 1:
+            raise ValueError(f"--num-samples must be >= 1, got {num_samples}")
+        spec["num_samples"] = int(num_samples)
     base = [*spec["overrides"], *overrides]
     cfg = _compose(base)  # a bad override fails here, before Ray starts
     name = name or f"{spec['name']}-{cfg['env']['name']}-{Path(str(cfg['dataset'])).stem}"
@@ -325,7 +359,7 @@ def tune_search(preset: str, overrides: Sequence[str] = (), *, name: str | None 
     t0 = time.time()
     results, trials = _run_trials(_with_specs(fn, trials), trials, name, root, cpus_per_trial, gpus_per_trial, address, num_cpus, max_concurrent,
                                   verbose)
-    rows = _rows(results, trials, keys)
+    rows = _rows(results, trials, keys, name)
     table = _write_table(rows, root / name, f"offhrl tune {spec['name']}: {len(rows)} trials ({time.time() - t0:.0f} s)")
     ok = [r for r in rows if r["error"] is None]
     if not ok:
@@ -349,7 +383,8 @@ def tune_search(preset: str, overrides: Sequence[str] = (), *, name: str | None 
     best["settings"] = chosen
     best["overrides"] = [_override(k, v) for k, v in chosen.items()]
     command = "offhrl fit" if spec["kind"] == "models" else "offhrl train"
-    best["command"] = shlex.join([*command.split(), *overrides, *spec["overrides"], *best["overrides"]])  # pasted into a shell as printed
+    # pasted into a shell as printed; the trials' own order (the preset's overrides, then the user's: the user's win), then the winner's
+    best["command"] = shlex.join([*command.split(), *spec["overrides"], *overrides, *best["overrides"]])
     (root / name / "best.json").write_text(json.dumps(best, indent=2, default=str))
     best["table"] = table
     best["out"] = str(root / name)
@@ -377,6 +412,6 @@ def sweep(algos: Sequence[str], envs: Sequence[str], datasets: Sequence[str], se
     t0 = time.time()
     results, trials = _run_trials(_with_specs(_train_trial, trials), trials, name, root, cpus_per_trial, gpus_per_trial, address, num_cpus,
                                   max_concurrent, verbose)
-    rows = _rows(results, trials, ["algo", "env", "dataset", "seed"])
+    rows = _rows(results, trials, ["algo", "env", "dataset", "seed"], name)
     table = _write_table(rows, root / name, f"offhrl sweep {name}: {len(rows)} runs ({time.time() - t0:.0f} s)")
     return {"out": str(root / name), "table": table, "rows": rows}

@@ -35,10 +35,10 @@ import torch
 from tensordict import TensorDict
 
 from ..agents import make_agent
-from ..blockstack import BLOCKSTACK_IDS
 from ..blockstack import goals as G
 from ..data.collect import package_versions
 from ..data.policies import POLICY_DIR
+from ..registry import task_of
 from ..utils import atomic_write, cache_dir, load_torch_file
 from .pipeline import make_real_env
 
@@ -85,7 +85,7 @@ def ship_uof_policy(run_dir, frames: int, name: str | None = None, dest=None, co
     pt = out / f"{name}.pt"
     rec = state.get("record") or {}
     card = {
-        "name": name, "kind": "uof", "env_id": env_id, "n_blocks": BLOCKSTACK_IDS[env_id], "level": f"uof-epoch{epoch}",
+        "name": name, "kind": "uof", "env_id": env_id, "n_blocks": task_of(env_id).n_blocks, "level": f"uof-epoch{epoch}",
         "algorithm": "UOF (DIOL high level + twin-critic DDPG with HER), trained online in the real env (torchrl_offhrl.agents.uof)",
         "algo": cfg["algo"], "frames": int(frames), "epochs": frames / EPOCH_FRAMES, "seed": cfg["seed"], "train_run": run.name,
         "eval": {k: rec.get(k) for k in ("success_per_goal", "success_per_goal_h50", "success_rate", "return_mean") if k in rec},

@@ -1,0 +1,238 @@
+"""The training loop every setting runs, and the phases it is handed.
+
+A run is a list of :class:`Phase` objects run in order by one
+:class:`TrainingLoop`: an offline run has one phase (batches from the model
+env, or minibatches of the dataset for the agents that learn from it), a
+transfer run two (offline, then online fine-tuning in the real env on the
+new task; or the online phase alone for its from-scratch baseline), an
+online run one (the real env). What differs between settings is in the
+phase (where its batches come from, its budget and evaluator, how it starts)
+and in the setting that builds the phases
+(:func:`~torchrl_offhrl.recipes.setting.build_setting`); the loop itself
+has no mode: it updates the agent on every batch, logs, and every ``every``
+steps evaluates, keeps the snapshots asked for, offers the policy to the
+offline policy selection and checkpoints.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from ..utils import atomic_write
+from .report import fmt_number
+
+__all__ = ["OfflinePhase", "OnlinePhase", "Phase", "TrainingLoop"]
+
+#: dataset agents (one gradient step per batch) log the mean of their metrics over this many updates
+LOG_EVERY_UPDATES = 100
+
+
+@dataclass
+class Phase:
+    """One stretch of training: where batches come from, its budget, its evaluation.
+
+    Args:
+        name: written into its evaluation records as ``phase`` (None: the
+            run's only phase, no ``phase`` key).
+        evaluator: an :class:`~torchrl_offhrl.recipes.evaluation.Evaluator`.
+        total: the phase's budget in the run's unit (frames or updates).
+        every: its evaluation period, in the same unit.
+        batches: ``(remaining, frames_done) -> iterable of batches``: a
+            TorchRL collector (shut down after the phase) or the dataset's
+            minibatches.
+        desc: the progress bar's label.
+        final_dir: where the last evaluation writes the agent's files.
+        batch_metrics: ``batch -> dict`` logged with each update (or None).
+        seed_env: the env whose seed is set to ``seed + frames`` when the phase (re)starts (or None).
+        seed: the run's seed.
+        selects: its evaluations are candidates of the offline policy selection.
+    """
+
+    name: str | None
+    evaluator: object
+    total: int
+    every: int
+    batches: Callable[[int, int], Iterable]
+    desc: str
+    final_dir: Path
+    batch_metrics: Callable | None = None
+    seed_env: object = None
+    seed: int = 0
+    selects: bool = True
+    #: the step the phase's budget and evaluations count from (set by :meth:`begin`)
+    start: int = field(default=0, init=False)
+
+    def begin(self, loop: TrainingLoop) -> int:
+        """Prepare the phase (first evaluations, seeds); returns the steps still to train."""
+        raise NotImplementedError
+
+
+@dataclass
+class OfflinePhase(Phase):
+    """The phase from step 0: the untrained agent is evaluated first (``at_start``); done when ``done_when`` records exist.
+
+    ``done_when``: a later phase's name; once a record of it exists (a
+    transfer run resumed in its online phase) this phase has nothing left.
+    A run with nothing left to train and no record yet is evaluated once
+    (its final files).
+    """
+
+    at_start: bool = True
+    done_when: str | None = None
+
+    def begin(self, loop: TrainingLoop) -> int:
+        run = loop.run
+        done = self.done_when is not None and any(r.get("phase") == self.done_when for r in run.records)
+        remaining = 0 if done else max(self.total - run.step, 0)
+        if self.seed_env is not None:
+            self.seed_env.set_seed(self.seed + run.frames)
+        if remaining > 0 and not run.records and self.at_start:
+            # the untrained agent: the start of the learning curve (with the CVAE: about the decoder's mean action)
+            run.records.append(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
+            run.checkpoint(loop.agent)
+        elif remaining == 0 and not run.records:
+            run.records.append(loop.evaluate(self.evaluator, save_to=self.final_dir, phase=self.name, selects=self.selects))
+            run.checkpoint(loop.agent)
+        return remaining
+
+
+@dataclass
+class OnlinePhase(Phase):
+    """A phase that starts where the previous one ended (its *switch*): the agent is evaluated there, on the new task.
+
+    ``new_task``: call ``agent.new_task()`` at the switch (after an offline
+    phase; not for a run that starts online). A resumed run finds its switch
+    in the records.
+    """
+
+    new_task: bool = True
+
+    def begin(self, loop: TrainingLoop) -> int:
+        run = loop.run
+        switch = next((r["frames"] for r in run.records if r.get("phase") == self.name), None)
+        if switch is None:  # the switch: the agent as it starts on the new task (after the offline phase's last evaluation, on the old task)
+            switch = run.frames
+            if self.new_task:
+                loop.agent.new_task()
+            run.records.append(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
+            run.checkpoint(loop.agent)
+        self.start = switch
+        remaining = max(switch + self.total - run.frames, 0)
+        if remaining > 0 and self.seed_env is not None:
+            self.seed_env.set_seed(self.seed + run.frames)
+        return remaining
+
+
+class TrainingLoop:
+    """Update ``agent`` on every batch of each phase; evaluate, log, snapshot and checkpoint every ``phase.every`` steps.
+
+    Args:
+        run: the :class:`~torchrl_offhrl.recipes.rundir.RunDirectory` (its
+            counters, records, selector and checkpoints).
+        agent: the agent (:class:`~torchrl_offhrl.agents.Agent`).
+        logger: a TorchRL logger, or None.
+        title: the evaluation plots' title.
+        snapshots: steps at which the agent's state is kept for good (``snapshot-<step>.pt``).
+        t_start: the run's start time (records' ``wall_s``).
+        progress: show progress bars.
+
+    ``timing["update_time_s"]``: the time spent in ``agent.update``.
+    """
+
+    def __init__(self, run, agent, *, logger=None, title: str = "", snapshots=(), t_start: float | None = None, progress: bool = True,
+                 env_label: str = ""):
+        self.run, self.agent, self.logger, self.title = run, agent, logger, title
+        self.snapshots = {int(x) for x in snapshots}
+        self.t_start = time.time() if t_start is None else t_start
+        self.progress = progress
+        self.env_label = env_label
+        self.timing = {"update_time_s": 0.0}
+
+    def evaluate(self, evaluator, save_to=None, phase: str | None = None, selects: bool = True) -> dict:
+        """One evaluation record of the agent as it is now (and, with ``selects``, offered to the run's policy selection)."""
+        run = self.run
+        rec = {"frames": run.frames, "updates": run.updates, "step": run.step, "wall_s": round(time.time() - self.t_start, 1)}
+        if phase is not None:
+            rec["phase"] = phase
+        rec.update(evaluator(self.agent, save_to=save_to, title=self.title))
+        if selects:
+            run.selector.consider(rec, self.agent, run.step)
+        return rec
+
+    def run_phase(self, phase: Phase) -> None:
+        """:meth:`Phase.begin`, then train on its batches until its budget is spent."""
+        remaining = phase.begin(self)
+        if remaining <= 0:
+            return
+        source = phase.batches(remaining, self.run.frames)
+        try:
+            self._train(phase, source)
+        finally:
+            if hasattr(source, "shutdown"):
+                source.shutdown()
+
+    def _train(self, phase: Phase, source) -> None:
+        from tqdm.auto import tqdm
+
+        run, agent, logger = self.run, self.agent, self.logger
+        unit = run.unit
+        per_update = unit == "updates"  # dataset agents: one gradient step per batch, logged as means over LOG_EVERY_UPDATES
+        start, budget, every = phase.start, phase.total, phase.every
+        end = start + budget
+        bar = tqdm(total=budget, initial=min(run.step - start, budget), desc=phase.desc, disable=not self.progress, unit=unit[:-1])
+        next_eval = start + ((run.step - start) // every + 1) * every
+        pending, pending_n = {}, 0
+        for batch in source:
+            t0 = time.time()
+            agent.set_progress((run.step - start) / budget)  # before this batch counts: schedules (e.g. anneal_lr) follow the phase's budget
+            before = run.step
+            run.frames += batch.numel()
+            metrics = agent.update(batch)
+            run.updates += int(metrics.pop("updates"))
+            self.timing["update_time_s"] += time.time() - t0
+            if phase.batch_metrics is not None:
+                metrics.update(phase.batch_metrics(batch))
+            for k, v in metrics.items():  # (sum, count) per key: some metrics come with some updates only (e.g. a delayed actor)
+                total_k, n_k = pending.get(k, (0.0, 0))
+                pending[k] = (total_k + v, n_k + 1)
+            pending_n += 1
+            if logger is not None and (not per_update or pending_n >= LOG_EVERY_UPDATES or run.step >= end):
+                for k, (v, n) in pending.items():  # dataset agents: the mean over LOG_EVERY_UPDATES updates (their 0-dim tensors, read now)
+                    logger.log_scalar(k, float(v) / n, step=run.step)
+            if not per_update or pending_n >= LOG_EVERY_UPDATES:
+                pending, pending_n = {}, 0
+            bar.update(run.step - before)
+            if run.step >= next_eval or run.step >= end:
+                rec = self.evaluate(phase.evaluator, save_to=phase.final_dir if run.step >= end else None, phase=phase.name, selects=phase.selects)
+                run.records.append(rec)
+                self._report(rec, bar, unit)
+                self._snapshot(rec)
+                run.checkpoint(agent)
+                next_eval = start + ((run.step - start) // every + 1) * every
+                if run.step >= end:
+                    break
+        bar.close()
+
+    def _report(self, rec: dict, bar, unit: str) -> None:
+        if self.logger is not None:
+            for k in ("return_mean", "normalized_d4rl", "model_return_mean", "model_real_gap", "success_rate"):
+                if rec.get(k) is not None:
+                    self.logger.log_scalar(f"eval/{k}", rec[k], step=self.run.step)
+        score = "" if rec["normalized_d4rl"] is None else f" (D4RL-normalised {rec['normalized_d4rl']:.1f})"
+        if "success_per_goal" in rec:
+            score = f", success per goal {' '.join(f'{x:.2f}' for x in rec['success_per_goal'])}"
+        bar.set_postfix(ret=f"{rec['return_mean']:.0f}", score=fmt_number(rec["normalized_d4rl"]))
+        where = self.env_label + (f" ({rec['task']} task)" if "task" in rec else "")
+        bar.write(f"[{self.run.step} {unit}] real {where} return {rec['return_mean']:.1f} ± {rec['return_std']:.1f}{score}")
+
+    def _snapshot(self, rec: dict) -> None:
+        run = self.run
+        for snap in sorted(x for x in self.snapshots if x <= run.step and not (run.path / f"snapshot-{x}.pt").is_file()):
+            # a state kept for good (e.g. UOF's 20-epoch policy), at the first evaluation at or past it, before the checkpoint
+            # moves on (a run killed in between takes it again on resume)
+            with atomic_write(run.path / f"snapshot-{snap}.pt") as tmp:
+                torch.save({"agent": self.agent.state_dict(), "frames": run.frames, "updates": run.updates, "step": run.step, "record": rec}, tmp)
