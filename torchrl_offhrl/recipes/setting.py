@@ -26,6 +26,7 @@ from .config import acts_in_latent_space, latent_bound, learns_from_dataset, mod
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
 from .pipeline import fit_or_load_models, make_model_env, make_real_env
+from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 
 __all__ = ["Setting", "build_setting"]
@@ -60,6 +61,42 @@ class Setting:
         for e in self.closers:
             if e is not None:
                 e.close()
+
+    def check_snapshots(self, snapshots: set[int]) -> None:
+        """``train.snapshot_frames`` must fall on evaluations, and (one-phase runs) within the budget."""
+        cfg, unit = self.cfg, self.unit
+        every = int(cfg["eval"][f"every_{unit}"])
+        if any(x % every for x in snapshots):
+            raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
+                             f"eval.every_{unit} ({every})")
+        if any(x > int(cfg["train"][f"total_{unit}"]) for x in snapshots) and self.tcfg is None:
+            raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={cfg['train'][f'total_{unit}']}")
+
+    @property
+    def xlabel(self) -> str:
+        """The x-axis of the run's curves and logs."""
+        return UNIT_LABELS["transfer" if self.tcfg else self.unit]
+
+    def plot_curves(self, records: list[dict], folder: Path, behaviour_mean: float | None) -> None:
+        """The run's learning curve (``learning_curve.png``: both phases of a transfer run) and, on a goal-conditioned task, ``success.png``."""
+        algo = self.cfg["algo"]["name"]
+        title = f"{algo} on {self.cfg['env']['env_id']} ({self.cfg['dataset']})"
+        if self.stacking:
+            plot_goal_success([records], folder / "success.png", label=algo, title=title, xlabel=UNIT_LABELS[self.unit])
+        if self.tcfg is None:
+            plot_curve([records], folder / "learning_curve.png", label=algo, title=title, behaviour=behaviour_mean, xlabel=UNIT_LABELS[self.unit])
+        else:
+            plot_transfer([records], folder / "learning_curve.png", label=algo, title=f"{title}, then {self.tcfg['task']} online")
+
+    def summary_extras(self, records: list[dict]) -> dict:
+        """What the setting adds to a run's summary: the data's per-goal success (block stacking), the switch (transfer)."""
+        out = {}
+        if self.stacking and self.data.metadata.get("goal_success"):  # the behaviour data's own per-goal success (its collection's horizon)
+            out["behaviour_success_per_goal"] = [self.data.metadata["goal_success"].get(str(k)) for k in range(self.n_goals)]
+        if self.tcfg is not None:
+            out["transfer"] = {**self.tcfg, "switch_frame": self.phases[-1].start}
+            out["offline_final"] = next((r for r in reversed(records) if r.get("phase") == "offline"), None)
+        return out
 
 
 def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = True) -> Setting:

@@ -40,7 +40,7 @@ import torch
 from ..utils import atomic_write, to_plain
 from .config import config_fingerprint, default_run_dir
 from .loop import TrainingLoop
-from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_training_metrics, plot_transfer
+from .plots import plot_training_metrics
 from .report import run_summary
 from .rundir import RunDirectory
 from .schema import validate_config
@@ -73,7 +73,7 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
 
 def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict:
     s = build_setting(cfg, run.path, t_start, progress)  # data, models, agent, envs, evaluators, phases
-    agent, unit, tcfg = s.agent, s.unit, s.tcfg
+    agent, unit = s.agent, s.unit
 
     # resume, log, train every phase, evaluate, checkpoint
     run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
@@ -88,12 +88,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
                                    "model_dir": s.model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
     logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
     snapshots = {int(x) for x in cfg["train"].get("snapshot_frames") or []}
-    every = int(cfg["eval"][f"every_{unit}"])
-    if any(x % every for x in snapshots):
-        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
-                         f"eval.every_{unit} ({every})")
-    if any(x > int(cfg["train"][f"total_{unit}"]) for x in snapshots) and tcfg is None:
-        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={cfg['train'][f'total_{unit}']}")
+    s.check_snapshots(snapshots)
     loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=snapshots, t_start=t_start, progress=progress, env_label=s.env_label)
     frames_at_start, updates_at_start = run.frames, run.updates
     t_train = time.time()
@@ -111,17 +106,10 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     elapsed, train_time = time.time() - t_train, loop.timing["update_time_s"]
 
     # the report
-    data, algo = s.data, cfg["algo"]
-    behaviour = data.return_stats()  # episodes cut short by the collection budget left out
-    curve_title = f"{algo['name']} on {cfg['env']['env_id']} ({cfg['dataset']})"
-    if s.stacking:
-        plot_goal_success([run.records], run.path / "success.png", label=algo["name"], title=curve_title, xlabel=UNIT_LABELS[unit])
-    if tcfg is None:
-        plot_curve([run.records], run.path / "learning_curve.png", label=algo["name"], title=curve_title, behaviour=behaviour["mean"], xlabel=UNIT_LABELS[unit])
-    else:
-        plot_transfer([run.records], run.path / "learning_curve.png", label=algo["name"], title=f"{curve_title}, then {tcfg['task']} online")
+    behaviour = s.data.return_stats()  # episodes cut short by the collection budget left out
+    s.plot_curves(run.records, run.path, behaviour["mean"])
     summary = run_summary(
-        cfg, data, behaviour, run.records, ref=s.ref, pessimism=s.pessimism, threshold=s.threshold, frames=run.frames, updates=run.updates,
+        cfg, s.data, behaviour, run.records, ref=s.ref, pessimism=s.pessimism, threshold=s.threshold, frames=run.frames, updates=run.updates,
         frames_per_s=(run.frames - frames_at_start) / elapsed if elapsed > 0 and run.frames > frames_at_start else None,
         updates_per_s=((run.updates - updates_at_start) / train_time) if train_time > 0 else None,
         timing={"update_time_s": train_time, "data_s": s.t_data, "models_s": s.t_models, "total_s": time.time() - t_start},
@@ -131,14 +119,10 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
         # a finished run called again (a results script rerun): nothing trained in this call, so its throughput and
         # timings stay those the run measured, instead of this call's few seconds of loading
         summary.update({k: previous_summary[k] for k in TIMING_KEYS if k in previous_summary})
-    if s.stacking and data.metadata.get("goal_success"):  # the behaviour data's own per-goal success (its collection's horizon)
-        summary["behaviour_success_per_goal"] = [data.metadata["goal_success"].get(str(k)) for k in range(s.n_goals)]
     if selected is not None:
         summary["selected"] = {**run.records[selected["index"]], "criterion": run.selector.criterion, "offline_score": selected["score"]}
-    if tcfg is not None:
-        summary["transfer"] = {**tcfg, "switch_frame": s.phases[-1].start}
-        summary["offline_final"] = next((r for r in reversed(run.records) if r.get("phase") == "offline"), None)
+    summary.update(s.summary_extras(run.records))
     run.write_json("summary.json", summary)
-    plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=UNIT_LABELS["transfer" if tcfg else unit])
+    plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=s.xlabel)
     s.close()
     return summary
