@@ -652,3 +652,16 @@ def test_dataset_agent_probe_rolls_out_what_the_evaluation_scores(hopper_file, c
             assert "Q(s, pi(s)) on 50 " in out and " data states: " in out
         else:
             assert "(no critic: BC)" in out and "data states" not in out
+
+
+def test_moc_settings_added_this_session_keep_older_runs_resumable():
+    """algo.loss and algo.policy_ema came after MOC runs existed: at null (what those runs did) a checkpoint written
+    without the keys still resumes; a loss or an average set is another run."""
+    from torchrl_offhrl.recipes.config import config_fingerprint
+
+    now = to_plain(compose("offline_train", ["algo=moc"]))
+    assert now["algo"]["loss"] is None and now["algo"]["policy_ema"] is None
+    older = {**now, "algo": {k: v for k, v in now["algo"].items() if k not in ("loss", "policy_ema")}}
+    assert config_fingerprint(older) == config_fingerprint(now)
+    for extra in ("algo.policy_ema=0.1", "algo.loss=torchrl_offhrl.objectives.OptionCriticLoss"):
+        assert config_fingerprint(to_plain(compose("offline_train", ["algo=moc", extra]))) != config_fingerprint(now), extra

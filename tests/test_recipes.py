@@ -525,3 +525,20 @@ def test_policy_selector_resumes_and_refuses_another_criterion():
         PolicySelector("real_env")
     start = PolicySelector("model_lcb", include_start=True)
     assert start.consider({"model_discounted_min_member": 1.0}, a, step=0)
+
+
+def test_sampled_evaluation_is_reported_beside_the_deterministic_one_and_changes_nothing(hopper_file, cache, tmp_path):
+    """eval.sampled=true adds the sampled policy's return on the same start states to every record; the deterministic
+    records, and so the training, are exactly those of the same run without it."""
+    plain = train(_cfg("moc", hopper_file, tmp_path / "a", ["eval.at_start=true"]), progress=False)
+    both = train(_cfg("moc", hopper_file, tmp_path / "b", ["eval.at_start=true", "eval.sampled=true"]), progress=False)
+    ra = json.loads((Path(plain["run_dir"]) / "evals.json").read_text())
+    rb = json.loads((Path(both["run_dir"]) / "evals.json").read_text())
+    assert len(ra) == len(rb) == 3
+    for a, b in zip(ra, rb):
+        assert "return_mean_sampled" not in a
+        assert {k: v for k, v in b.items() if not k.endswith("_sampled") and k != "wall_s"} == {k: v for k, v in a.items() if k != "wall_s"}
+        assert b["normalized_d4rl_sampled"] == pytest.approx(100 * (b["return_mean_sampled"] + 20.272305) / (3234.3 + 20.272305))
+        assert b["return_std_sampled"] >= 0
+    # the sampled policy is another policy: on these runs its returns differ from the deterministic ones somewhere
+    assert any(b["return_mean_sampled"] != b["return_mean"] for b in rb)

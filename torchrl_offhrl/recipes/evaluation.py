@@ -40,6 +40,11 @@ class Evaluator:
             ``model_real_gap`` (model minus real mean return; an agent that
             exploits model errors shows a large positive gap). The global RNG
             is restored afterwards, so training is not changed by it.
+        sampled: also evaluate the *sampled* policy (actions and options
+            drawn, ``eval.sampled``) on the same start states:
+            ``return_mean_sampled`` / ``return_std_sampled`` /
+            ``normalized_d4rl_sampled``. It draws from its own RNG stream,
+            so training is not changed by it.
         task: the task the env rewards (transfer runs: ``"forward"`` or
             ``"backward"``, written into each record), or None (an offline
             run: no ``task`` key). D4RL's normalisation is defined for the
@@ -52,11 +57,12 @@ class Evaluator:
     """
 
     def __init__(self, env, env_id: str, episodes: int, max_steps: int, seed: int, ref=None, model_env=None, task: str | None = None,
-                 gamma: float = 0.99):
+                 gamma: float = 0.99, sampled: bool = False):
         self.env, self.env_id, self.episodes, self.max_steps, self.seed, self.ref = env, env_id, episodes, max_steps, seed, ref
         self.model_env = model_env
         self.task = task
         self.gamma = float(gamma)
+        self.sampled = bool(sampled)
 
     def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
         rets, td = evaluate_policy(
@@ -71,6 +77,11 @@ class Evaluator:
             "normalized_d4rl": normalized_score(self.env_id, mean) if forward else None,
             "normalized_dataset": normalized_score(self.env_id, mean, ref=self.ref) if self.ref and forward else None,
         })
+        if self.sampled:  # the stochastic policy on the same start states (evaluate_policy forks the RNG for its draws)
+            srets = evaluate_policy(self.env, agent.eval_policy, self.episodes, max_steps=self.max_steps, deterministic=False, seed=self.seed)
+            smean = float(srets.mean())
+            rec.update({"return_mean_sampled": smean, "return_std_sampled": float(srets.std()),
+                        "normalized_d4rl_sampled": normalized_score(self.env_id, smean) if forward else None})
         rec.update(self.model_metrics(agent, mean))
         alive = first_episode_mask(td["next", "done"].reshape(self.episodes, -1))
         rec.update(agent.evaluation_metrics(td, alive))

@@ -97,6 +97,7 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "eval.every_updates": _int(1),
     "eval.episodes": _int(1),
     "eval.model_episodes": _int(1, optional=True),
+    "eval.sampled": ("true or false", lambda v: isinstance(v, bool)),
     "selection.criterion": _choice(*CRITERIA),
     "selection.include_start": ("true or false", lambda v: isinstance(v, bool)),
     "eval.max_steps": _int(1),
@@ -127,6 +128,7 @@ ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "critic_lr": _num(0, lo_open=True),
     "tau": _num(0, 1, lo_open=True),
     "expectile": _num(0, 1, lo_open=True, hi_open=True),
+    "policy_ema": ("null or a number in (0, 1]", lambda v: v is None or (_is_num(v) and 0 < v <= 1)),
     "reward_scale": ("a positive number, 'auto' or 'return_range'", lambda v: v in ("auto", "return_range") or (_is_num(v) and v > 0)),
     "anneal_lr": ("true or false", lambda v: isinstance(v, bool)),
 }

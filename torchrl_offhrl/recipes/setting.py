@@ -223,7 +223,8 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
                                   seed=eval_seed, model_env=model_eval_env)
     elif eval_env is not None:
         evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=eval_seed, ref=ref, model_env=model_eval_env,
-                              task=None if tcfg is None else "forward", gamma=float(algo.get("gamma", 0.99)))
+                              task=None if tcfg is None else "forward", gamma=float(algo.get("gamma", 0.99)),
+                              sampled=bool(cfg["eval"].get("sampled", False)))
     if tcfg is not None:
         with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
             if online_env is None:
