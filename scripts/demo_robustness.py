@@ -155,7 +155,7 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
 
 
 def table(variants: list[str]) -> str:
-    from torchrl_offhrl.stats import iqm_ci
+    from torchrl_offhrl.stats import iqm_ci, mean_std
 
     lines = ["# The demo on many dataset seeds", "",
              "Made by `python scripts/demo_robustness.py table` from the runs archived in `docs/results/demo_robustness_runs/` by `python scripts/demo_robustness.py run VARIANT --dataset-seeds ...`.",
@@ -183,18 +183,13 @@ def table(variants: list[str]) -> str:
                 opt = "n/a" if r["option_kl"] is None else f"{r['option_kl']:.2f} / {r['option_starts']:.1f}"
                 lines.append(f"| {label((r['dataset_seed'], r['agent_seed']))} | {r['behaviour']:.1f} | {r['untrained']:.1f} | {r['selected']:.1f} ({r['selected_frames']}) | "
                              f"{r['last']:.1f} | {r['best']:.1f} | {r['last5']:.1f} | {'yes' if win else 'no'} | {'yes' if hit else 'no'} | {opt} |")
-            agg = []
+            agg, msd = [], []  # per column: IQM [95% CI] and mean ± std over the runs
             for k in ("behaviour", "untrained", "selected", "last", "best", "last5"):
-                m, lo, hi = iqm_ci([r[k] for r in rs])
+                values = [r[k] for r in rs]
+                (m, lo, hi), (mean, sd, _) = iqm_ci(values), mean_std(values)
                 agg.append(f"{m:.1f} [{lo:.1f}, {hi:.1f}]")
-            lines.append(f"| IQM [95% CI] | {agg[0]} | {agg[1]} | {agg[2]} | {agg[3]} | {agg[4]} | {agg[5]} | {wins}/{len(rs)} | "
-                         f"{hits}/{len(rs)} | |")
-            msd = []
-            for k in ("behaviour", "untrained", "selected", "last", "best", "last5"):
-                x = [r[k] for r in rs]
-                m = sum(x) / len(x)
-                sd = (sum((v - m) ** 2 for v in x) / (len(x) - 1)) ** 0.5 if len(x) > 1 else 0.0
-                msd.append(f"{m:.1f} ± {sd:.1f}")
+                msd.append(f"{mean:.1f} ± {sd:.1f}")
+            lines.append(f"| IQM [95% CI] | {' | '.join(agg)} | {wins}/{len(rs)} | {hits}/{len(rs)} | |")
             lines.append("| mean ± std | " + " | ".join(msd) + " | | | |")
             lines.append("")
             crit = criteria_rows([run for run in runs if pick({"dataset_seed": run[0][0]})])

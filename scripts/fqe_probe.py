@@ -23,6 +23,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_offhrl.envs import LatentActionTransform
 from torchrl_offhrl.objectives.fqe import fitted_q_evaluation
 from torchrl_offhrl.recipes.config import auto_reward_scale, resolve_dataset
 from torchrl_offhrl.recipes.evaluation import load_run_agent
@@ -31,14 +32,15 @@ from torchrl_offhrl.utils import load_torch_file
 
 @torch.no_grad()
 def policy_actions(agent, cvae, bound: float, obs: torch.Tensor, chunk: int = 20000) -> torch.Tensor:
-    """The agent's deterministic real action at each state (an option policy picks its option afresh at each)."""
+    """The agent's deterministic real action at each state (an option policy picks its option afresh at each), decoded
+    as the run's envs decode it (:class:`~torchrl_offhrl.envs.LatentActionTransform`: clipped to the box, then the decoder)."""
+    decode = LatentActionTransform(cvae.decoder, latent_bound=bound) if cvae is not None else None
     out = []
     for o in obs.split(chunk):
         td = TensorDict({"observation": o, "is_init": torch.ones(o.shape[0], 1, dtype=torch.bool)}, batch_size=[o.shape[0]])
         with set_exploration_type(ExplorationType.DETERMINISTIC):
-            agent.policy(td)
-        z = td[agent.action_key]
-        out.append(cvae.decoder(o, z.clamp(-bound, bound), None) if cvae is not None else z)
+            agent.eval_policy(td)
+        out.append(decode.inv(td)["action"] if decode is not None else td[agent.action_key])
     return torch.cat(out)
 
 

@@ -542,3 +542,13 @@ def test_sampled_evaluation_is_reported_beside_the_deterministic_one_and_changes
         assert b["return_std_sampled"] >= 0
     # the sampled policy is another policy: on these runs its returns differ from the deterministic ones somewhere
     assert any(b["return_mean_sampled"] != b["return_mean"] for b in rb)
+
+
+def test_bad_snapshot_frames_are_named_before_any_data_work(tmp_path):
+    """train.snapshot_frames off the evaluation grid or past the budget: a ValueError before the dataset is even read
+    (here it does not exist), and no run directory is left behind."""
+    missing = tmp_path / "nowhere.hdf5"
+    for snaps, match in (("[100]", r"each must be a multiple of eval.every_frames \(128\)"), ("[512]", r"past the budget train.total_frames=256")):
+        with pytest.raises(ValueError, match=match):
+            train(_cfg("moc", missing, tmp_path / "out", [f"train.snapshot_frames={snaps}"]), progress=False)
+    assert not any((tmp_path / "out").glob("*/checkpoint.pt"))

@@ -16,32 +16,6 @@ from dataclasses import dataclass
 
 __all__ = ["ENV_IDS", "LEVELS", "TASKS", "Task", "resolve_env", "stacking_tasks", "task_of"]
 
-#: Short dataset names of the envs and their Gymnasium ids.
-ENV_IDS: dict[str, str] = {"hopper": "Hopper-v5", "halfcheetah": "HalfCheetah-v5", "blockstack2": "BlockStack2-v0", "blockstack3": "BlockStack3-v0"}
-#: Dataset levels of D4RL's protocol.
-LEVELS = ("random", "medium", "expert", "medium-expert")
-
-
-def resolve_env(env_id_or_short: str) -> tuple[str, str]:
-    """``(env_id, short)`` for a short name (``"hopper"``) or a full Gymnasium id (``"Hopper-v5"``).
-
-    Examples:
-        >>> resolve_env("hopper")
-        ('Hopper-v5', 'hopper')
-        >>> resolve_env("HalfCheetah-v5")
-        ('HalfCheetah-v5', 'halfcheetah')
-    """
-    key = env_id_or_short.lower()
-    if key in ENV_IDS:
-        return ENV_IDS[key], key
-    m = re.match(r"^(?:.*/)?([A-Za-z0-9_]+)-v\d+$", env_id_or_short)
-    if m:
-        return env_id_or_short, m.group(1).lower()
-    raise ValueError(
-        f"{env_id_or_short!r}: not a known short name {sorted(ENV_IDS)} nor a Gymnasium id "
-        f"like 'Hopper-v5'."
-    )
-
 
 @dataclass(frozen=True)
 class Task:
@@ -65,12 +39,39 @@ class Task:
 
 
 #: Every task the project ships, by Gymnasium id.
-TASKS: dict[str, Task] = {
-    "Hopper-v5": Task("Hopper-v5", "hopper"),
-    "HalfCheetah-v5": Task("HalfCheetah-v5", "halfcheetah"),
-    "BlockStack2-v0": Task("BlockStack2-v0", "blockstack2", "stacking", 2),
-    "BlockStack3-v0": Task("BlockStack3-v0", "blockstack3", "stacking", 3),
-}
+TASKS: dict[str, Task] = {t.env_id: t for t in (
+    Task("Hopper-v5", "hopper"),
+    Task("HalfCheetah-v5", "halfcheetah"),
+    Task("BlockStack2-v0", "blockstack2", "stacking", 2),
+    Task("BlockStack3-v0", "blockstack3", "stacking", 3),
+)}
+
+
+#: Short dataset names of the envs and their Gymnasium ids (the registry's tasks).
+ENV_IDS: dict[str, str] = {t.short: env_id for env_id, t in TASKS.items()}
+#: Dataset levels of D4RL's protocol.
+LEVELS = ("random", "medium", "expert", "medium-expert")
+
+
+def resolve_env(env_id_or_short: str) -> tuple[str, str]:
+    """``(env_id, short)`` for a short name (``"hopper"``) or a full Gymnasium id (``"Hopper-v5"``).
+
+    Examples:
+        >>> resolve_env("hopper")
+        ('Hopper-v5', 'hopper')
+        >>> resolve_env("HalfCheetah-v5")
+        ('HalfCheetah-v5', 'halfcheetah')
+    """
+    key = env_id_or_short.lower()
+    if key in ENV_IDS:
+        return ENV_IDS[key], key
+    m = re.match(r"^(?:.*/)?([A-Za-z0-9_]+)-v\d+$", env_id_or_short)
+    if m:
+        return env_id_or_short, m.group(1).lower()
+    raise ValueError(
+        f"{env_id_or_short!r}: not a known short name {sorted(ENV_IDS)} nor a Gymnasium id "
+        f"like 'Hopper-v5'."
+    )
 
 
 def task_of(env: str | None) -> Task:

@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["bootstrap_ci", "iqm", "iqm_ci", "mean_ci", "paired_change", "performance_profile", "plot_performance_profiles", "summarize"]
+__all__ = ["bootstrap_ci", "iqm", "iqm_ci", "mean_ci", "mean_std", "paired_change", "performance_profile", "plot_performance_profiles", "summarize"]
 
 #: bootstrap replicates: rliable's default for its interval estimates is 50,000; 10,000 keeps a 95% percentile
 #: interval's ends within ~1% of the data's spread and costs milliseconds
@@ -102,6 +102,21 @@ def iqm_ci(scores, reps: int = DEFAULT_REPS, ci: float = 0.95, seed: int = 0) ->
     """``(IQM, lower, upper)``."""
     lo, hi = bootstrap_ci(scores, "iqm", reps, ci, seed)
     return iqm(scores), lo, hi
+
+
+def mean_std(values: Sequence[float | None]) -> tuple[float | None, float | None, int]:
+    """``(mean, sample std, n)`` of the values that are not None: ``(None, None, 0)`` without any, std 0 for one value.
+
+    Examples:
+        >>> mean_std([1.0, None, 3.0])
+        (2.0, 1.4142135623730951, 2)
+        >>> mean_std([5.0]), mean_std([None])
+        ((5.0, 0.0, 1), (None, None, 0))
+    """
+    vals = np.array([v for v in values if v is not None], dtype=np.float64)
+    if vals.size == 0:
+        return None, None, 0
+    return float(vals.mean()), float(vals.std(ddof=1)) if vals.size > 1 else 0.0, int(vals.size)
 
 
 def mean_ci(scores, reps: int = DEFAULT_REPS, ci: float = 0.95, seed: int = 0) -> tuple[float, float, float]:

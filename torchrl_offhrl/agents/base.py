@@ -197,7 +197,8 @@ class Agent:
     def eval_policy(self) -> nn.Module:
         """The policy evaluations, offline policy selection and ``offhrl evaluate`` act with: :attr:`policy`, unless the agent
         keeps another for that (e.g. MOC's ``policy_ema``: a Polyak average of the policy's weights)."""
-        return self.__dict__.get("averaged_policy") or self.policy
+        averaged = self.__dict__.get("averaged_policy")
+        return self.policy if averaged is None else averaged
 
     def evaluation_metrics(self, rollout: TensorDictBase, alive: torch.Tensor) -> dict[str, Any]:
         """Extra JSON-able numbers of a real-env evaluation (``rollout`` is ``[E, T]``, ``alive`` marks each env's first episode)."""

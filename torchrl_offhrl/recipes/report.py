@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from ..scores import normalized_score
-from ..stats import iqm_ci, paired_change, plot_performance_profiles
+from ..stats import iqm_ci, mean_std, paired_change, plot_performance_profiles
 from .config import transfer_config, transfer_label
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_training_metrics, plot_transfer, pyplot
 from .runs import archive_run, archive_runs, expand_run_dirs, load_run, logged_tail_mean, read_scalar_logs, record_step, run_unit
@@ -49,13 +49,6 @@ def transfer_stats(rs: Sequence[dict], marks: Sequence[int] = TRANSFER_MARKS) ->
     offline evaluation's return on the old task (None from scratch). Each
     entry is ``(mean, std, n)`` over the runs that have it.
     """
-    def stat(vals):
-        vals = [v for v in vals if v is not None]
-        if not vals:
-            return (None, None, 0)
-        t = torch.tensor(vals, dtype=torch.float64)
-        return (float(t.mean()), float(t.std()) if len(vals) > 1 else 0.0, len(vals))
-
     per_run = []
     for r in rs:
         online = [e for e in r["evals"] if e.get("phase") == "online"]
@@ -75,7 +68,7 @@ def transfer_stats(rs: Sequence[dict], marks: Sequence[int] = TRANSFER_MARKS) ->
         per_run.append(row)
     keys = ["offline_final", "at_switch", *[f"at_{k}" for k in marks], "final", "best", "area"]
     return {"seeds": len(per_run), "online_frames": min((p["online_frames"] for p in per_run), default=0),
-            **{k: stat([p[k] for p in per_run]) for k in keys}}
+            **{k: mean_std([p[k] for p in per_run]) for k in keys}}
 
 
 def group_key(run: dict) -> tuple:

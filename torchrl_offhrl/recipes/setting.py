@@ -13,6 +13,7 @@ list, plus what the report needs.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,8 +21,8 @@ import torch
 from torchrl.envs import RewardScaling, RewardSum
 
 from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
-from ..registry import task_of
 from ..blockstack import goals as G
+from ..registry import task_of
 from .config import acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_config, resolve_dataset, resolve_reward_scale, transfer_config
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
@@ -37,6 +38,7 @@ class Setting:
     """A run's parts (:func:`build_setting`): the loop runs ``phases`` with ``agent``; the report reads the rest."""
 
     cfg: dict
+    snapshots: set[int]         # the steps whose agent state is kept for good (train.snapshot_frames)
     data: object
     agent: object
     phases: list[Phase]
@@ -61,16 +63,6 @@ class Setting:
         for e in self.closers:
             if e is not None:
                 e.close()
-
-    def check_snapshots(self, snapshots: set[int]) -> None:
-        """``train.snapshot_frames`` must fall on evaluations, and (one-phase runs) within the budget."""
-        cfg, unit = self.cfg, self.unit
-        every = int(cfg["eval"][f"every_{unit}"])
-        if any(x % every for x in snapshots):
-            raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
-                             f"eval.every_{unit} ({every})")
-        if any(x > int(cfg["train"][f"total_{unit}"]) for x in snapshots) and self.tcfg is None:
-            raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={cfg['train'][f'total_{unit}']}")
 
     @property
     def xlabel(self) -> str:
@@ -97,6 +89,18 @@ class Setting:
             out["transfer"] = {**self.tcfg, "switch_frame": self.phases[-1].start}
             out["offline_final"] = next((r for r in reversed(records) if r.get("phase") == "offline"), None)
         return out
+
+
+def snapshot_steps(cfg: Mapping, unit: str, tcfg: dict | None) -> set[int]:
+    """``train.snapshot_frames`` as a set, checked: each falls on an evaluation and (one-phase runs) within the budget."""
+    snapshots = {int(x) for x in cfg["train"].get("snapshot_frames") or []}
+    every = int(cfg["eval"][f"every_{unit}"])
+    if any(x % every for x in snapshots):
+        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
+                         f"eval.every_{unit} ({every})")
+    if any(x > int(cfg["train"][f"total_{unit}"]) for x in snapshots) and tcfg is None:
+        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={cfg['train'][f'total_{unit}']}")
+    return snapshots
 
 
 def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = True) -> Setting:
@@ -132,6 +136,7 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
         raise ValueError(f"train.online=true trains in the real env in real actions, with no models or CVAE: the ablations "
                          f"{[k for k, v in cfg['ablation'].items() if v]} do not apply to it; leave them false")
     offline = tcfg is None or not tcfg["from_scratch"]  # from scratch: the online phase only (the transfer setting's baseline)
+    snapshots = snapshot_steps(cfg, unit, tcfg)  # a bad value named before any data or model work
     latent = acts_in_latent_space(cfg) and not online
     keep_decoder = latent and tcfg is not None and tcfg["decoder"] == "keep"
 
@@ -263,7 +268,7 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
     # offline policy selection: the policy a run returns is chosen from its evaluations without the real env; it needs the
     # model env's evaluation, so dataset agents, online and transfer runs, and block stacking return their last policy
     return Setting(
-        cfg=cfg, data=data, agent=agent, phases=phases, unit=unit, title=title, env_label=env_cfg["env_id"],
+        cfg=cfg, snapshots=snapshots, data=data, agent=agent, phases=phases, unit=unit, title=title, env_label=env_cfg["env_id"],
         selectable=model_eval_env is not None and tcfg is None and not stacking, tcfg=tcfg, stacking=stacking, n_goals=n_goals,
         pessimism=pess, threshold=threshold, reward_scale=pcfg["env"].get("reward_scale", 1.0), model_info=model_info, ref=ref,
         t_data=t_data, t_models=t_models, device=device,

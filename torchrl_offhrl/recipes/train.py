@@ -87,9 +87,7 @@ def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict
     run.write_json("config.json", {**cfg, "resolved_pessimism": s.pessimism, "threshold": s.threshold, "resolved_reward_scale": s.reward_scale,
                                    "model_dir": s.model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
     logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
-    snapshots = {int(x) for x in cfg["train"].get("snapshot_frames") or []}
-    s.check_snapshots(snapshots)
-    loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=snapshots, t_start=t_start, progress=progress, env_label=s.env_label)
+    loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=s.snapshots, t_start=t_start, progress=progress, env_label=s.env_label)
     frames_at_start, updates_at_start = run.frames, run.updates
     t_train = time.time()
     for phase in s.phases:

@@ -334,7 +334,7 @@ def tune_search(preset: str, overrides: Sequence[str] = (), *, name: str | None 
     experiment (restorable) lives in the same folder.
     """
     spec = load_search(preset)
-    search_keys = [o for o in overrides if o.split("=", 1)[0].lstrip("+") in ("num_samples", "metric", "mode", "grid", "sample_seed")]
+    search_keys = [o for o in overrides if o.split("=", 1)[0].lstrip("+") in spec]  # a key of the search itself, not of the config
     if search_keys:
         raise ValueError(f"{search_keys}: overrides set the training config of every trial; the search's own settings are not in it "
                          "(the number of trials: --num-samples N; the rest: in the search YAML)")
