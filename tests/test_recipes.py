@@ -11,9 +11,10 @@ import torch
 
 from torchrl_offhrl.recipes import rundir
 from torchrl_offhrl.recipes import setting as setting_mod  # where the run builds its agent and models
-from torchrl_offhrl.recipes.config import pessimism_for
+from torchrl_offhrl.recipes.config import compose, pessimism_for
 from torchrl_offhrl.recipes.report import aggregate
 from torchrl_offhrl.recipes.train import train
+from torchrl_offhrl.utils import to_plain
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -552,3 +553,31 @@ def test_bad_snapshot_frames_are_named_before_any_data_work(tmp_path):
         with pytest.raises(ValueError, match=match):
             train(_cfg("moc", missing, tmp_path / "out", [f"train.snapshot_frames={snaps}"]), progress=False)
     assert not any((tmp_path / "out").glob("*/checkpoint.pt"))
+
+
+def test_each_config_is_exactly_one_setting():
+    from torchrl_offhrl.recipes.setting import DatasetSetting, ModelEnvSetting, OnlineSetting, TransferSetting, setting_of
+
+    def kind(*overrides):
+        return type(setting_of(to_plain(compose("offline_train", list(overrides)))))
+
+    assert kind("algo=moc") is ModelEnvSetting
+    assert kind("algo=ppo", "ablation.no_cvae=true") is ModelEnvSetting
+    assert kind("algo=uof", "env=blockstack2") is ModelEnvSetting  # block stacking: the same setting, its own evaluator
+    assert kind("algo=iql") is DatasetSetting and kind("algo=bc") is DatasetSetting
+    assert kind("algo=ppo", "train.online=true") is OnlineSetting
+    assert kind("algo=moc", "transfer.task=backward") is TransferSetting
+    assert kind("algo=ppo", "transfer.task=backward", "transfer.from_scratch=true") is TransferSetting
+    # what no setting defines is refused, with what to do
+    for bad, match in ((("algo=iql", "transfer.task=backward"), "leave transfer.task null"),
+                       (("algo=ppo", "train.online=true", "transfer.task=backward"), "leave train.online false"),
+                       (("algo=moc", "env=blockstack2"), "not goal-conditioned"),
+                       (("algo=uof",), "block-stacking tasks only"),
+                       (("algo=iql", "ablation.no_cvae=true"), "leave them false")):
+        with pytest.raises(ValueError, match=match):
+            kind(*bad)
+    # the models are fitted only where the setting uses them
+    cfg = to_plain(compose("offline_train", ["algo=ppo", "transfer.task=backward", "transfer.from_scratch=true"]))
+    assert not TransferSetting.needs_models(cfg)
+    cfg["transfer"]["decoder"] = "keep"
+    assert TransferSetting.needs_models(cfg) and ModelEnvSetting.needs_models(cfg) and not DatasetSetting.needs_models(cfg)

@@ -1,14 +1,18 @@
 """What a training run is made of, built from its config: the data, the models, the agent, the envs and the phases.
 
-:func:`build_setting` is where the settings differ (the loop in
-:mod:`~torchrl_offhrl.recipes.loop` does not): offline on the composed model
-env, agents that learn from the dataset itself, online training in the real
-env, the transfer setting (offline, then online on a new task) and the
-goal-conditioned block-stacking tasks (their per-goal evaluator). It checks
-that the config's combination is one of them, loads or generates the data,
-fits or loads the models, builds the agent and the envs it acts in, and
-returns a :class:`Setting`: the agent and its :class:`~torchrl_offhrl.recipes.loop.Phase`
-list, plus what the report needs.
+A run is one of four *settings*, each a class here with its own ``build``:
+:class:`ModelEnvSetting` (the paper's: on the composed model env, the
+block-stacking tasks included), :class:`DatasetSetting` (agents that learn
+from the dataset itself), :class:`OnlineSetting` (the real env from scratch)
+and :class:`TransferSetting` (offline, then online on a new task; or its
+online-only baseline). :func:`build_setting` checks the config's combination
+(:func:`setting_of`), loads what every setting starts from (:class:`Parts`:
+the data and, where the setting uses them, the models) and hands it to the
+setting, which builds the agent, its envs and evaluators and returns a
+:class:`Setting`: the agent and its :class:`~torchrl_offhrl.recipes.loop.Phase`
+list, plus what the report needs. The loop (:mod:`~torchrl_offhrl.recipes.loop`)
+does not know which setting it runs; a new setting is a new class in
+:data:`SETTINGS`.
 """
 from __future__ import annotations
 
@@ -30,7 +34,7 @@ from .pipeline import fit_or_load_models, make_model_env, make_real_env
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 
-__all__ = ["Setting", "build_setting"]
+__all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "setting_of"]
 
 
 @dataclass
@@ -103,174 +107,302 @@ def snapshot_steps(cfg: Mapping, unit: str, tcfg: dict | None) -> set[int]:
     return snapshots
 
 
+def _check_combination(cfg: dict) -> None:
+    """Refuse the config combinations no setting defines, each with what to do."""
+    algo, env_id = cfg["algo"]["name"], cfg["env"]["env_id"]
+    from_dataset, tcfg, online = learns_from_dataset(cfg), transfer_config(cfg), bool(cfg["train"].get("online", False))
+    ablations = [k for k, v in cfg.get("ablation", {}).items() if v]
+    stacking = task_of(env_id).goal_conditioned
+    if from_dataset and ablations:
+        raise ValueError(f"algo={algo} learns from the dataset itself, with no model env or CVAE: the ablations "
+                         f"{ablations} do not apply to it; leave them false")
+    if from_dataset and tcfg is not None:
+        raise ValueError(f"algo={algo} learns from the dataset itself; the transfer setting fine-tunes online an agent trained "
+                         "on the model env (moc, ppo, sac, ...): leave transfer.task null")
+    if stacking and not goal_conditioned(algo):
+        raise ValueError(f"algo={algo} is not goal-conditioned; on {env_id} use one of {sorted(n for n in AGENTS if goal_conditioned(n))}")
+    if not stacking and requires_goal(algo):
+        raise ValueError(f"algo={algo} acts on the goal-conditioned block-stacking tasks only (env=blockstack2|blockstack3), not {env_id}")
+    if stacking and tcfg is not None:
+        raise ValueError(f"the transfer setting is defined for the locomotion tasks (run backwards), not {env_id}: leave transfer.task null")
+    if online and (from_dataset or tcfg is not None):
+        raise ValueError(f"train.online=true trains an agent that collects (moc, ppo, sac, uof, ...) in the real env from scratch; "
+                         f"{'algo=' + algo + ' learns from the dataset itself' if from_dataset else 'the transfer setting has its own online phase'}: "
+                         "leave train.online false")
+    if online and ablations:
+        raise ValueError(f"train.online=true trains in the real env in real actions, with no models or CVAE: the ablations "
+                         f"{ablations} do not apply to it; leave them false")
+
+
+@dataclass
+class Parts:
+    """What every setting starts from (:func:`build_setting`): the config, the task, the data, the models it uses, timings."""
+
+    cfg: dict
+    run_path: Path
+    device: torch.device
+    stacking: bool              # a goal-conditioned block-stacking task (task_of(env_id).goal_conditioned)
+    data: object
+    n_goals: int
+    level: str | None
+    pcfg: dict                  # model_config(cfg); its "env" is filled by the setting
+    ensemble: object
+    cvae: object
+    model_info: dict
+    t_data: float
+    t_models: float
+    snapshots: set[int]
+
+    @property
+    def env_id(self) -> str:
+        return self.cfg["env"]["env_id"]
+
+    @property
+    def episodes(self) -> int:
+        return int(self.cfg["eval"]["episodes"])
+
+    @property
+    def ref(self) -> tuple | None:
+        ref = (self.data.metadata.get("ref_min_return"), self.data.metadata.get("ref_max_return"))
+        return ref if None not in ref else None
+
+    @property
+    def eval_seed(self) -> int:
+        return int(self.cfg["seed"]) * 1000 + 7
+
+    def make_agent(self, env, algo: dict | None = None, latent: bool = True):
+        """The config's agent, built for ``env``'s specs, acting in latent actions (``latent``) or real ones."""
+        stats = self.data.stats()
+        return make_agent((algo or self.cfg["algo"])["name"], env, algo or self.cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
+                          action_key="latent_action" if latent else "action", device=self.device, goal_key="sub_goal" if self.stacking else None)
+
+    def eval_real_env(self, cvae):
+        """The real env of the evaluations, through ``cvae``'s decoder (or in real actions): per goal ``episodes`` copies on a stacking task."""
+        bound = latent_bound(self.cfg)
+        if not self.stacking:
+            return make_real_env(self.env_id, cvae, num_envs=self.episodes, latent_bound=bound)
+        goals = [k for k in range(self.n_goals) for _ in range(self.episodes)]
+        return make_real_env(self.env_id, cvae, num_envs=len(goals), latent_bound=bound, goals=goals, max_episode_steps=int(self.cfg["eval"]["max_steps"]))
+
+    def add_reward_transforms(self, env):
+        """Returns in the logs (``RewardSum``) and the reward scale the agent learns with; logged and evaluated returns stay unscaled."""
+        env.append_transform(RewardSum())
+        if self.pcfg["env"].get("reward_scale", 1.0) != 1.0:
+            env.append_transform(RewardScaling(loc=0.0, scale=float(self.pcfg["env"]["reward_scale"])))
+        return env
+
+    def evaluator(self, eval_env, model_eval_env=None, task: str | None = None, algo: dict | None = None):
+        """The evaluation of ``eval_env``: per goal on a stacking task (:class:`GoalEvaluator`), else returns (:class:`Evaluator`)."""
+        cfg = self.cfg
+        if self.stacking:
+            return GoalEvaluator(eval_env, self.env_id, self.episodes, self.n_goals, int(self.pcfg["env"].get("horizon", 25)),
+                                 int(cfg["eval"]["max_steps"]), seed=self.eval_seed, model_env=model_eval_env)
+        return Evaluator(eval_env, self.env_id, self.episodes, int(cfg["eval"]["max_steps"]), seed=self.eval_seed, ref=self.ref, model_env=model_eval_env,
+                         task=task, gamma=float((algo or cfg["algo"]).get("gamma", 0.99)), sampled=bool(cfg["eval"].get("sampled", False)))
+
+    def offline_phase(self, evaluator, batches, unit: str, batch_metrics, seed_env, online: bool = False, transfer: bool = False) -> OfflinePhase:
+        """The phase from step 0 (the run's only one, or a transfer run's offline phase, ``"offline"``)."""
+        cfg = self.cfg
+        return OfflinePhase(
+            name="offline" if transfer else None, evaluator=evaluator, total=int(cfg["train"][f"total_{unit}"]),
+            every=int(cfg["eval"][f"every_{unit}"]), batches=batches,
+            desc=f"{cfg['algo']['name']} on {cfg['env']['name']}" + (" (online)" if online else f"-{self.level}"),
+            final_dir=Path(self.run_path) / "offline" if transfer else Path(self.run_path),  # a transfer run's last files are its online phase's
+            batch_metrics=batch_metrics, seed_env=seed_env, seed=int(cfg["seed"]), at_start=bool(cfg["eval"].get("at_start", True)),
+            done_when="online" if transfer else None,
+        )
+
+    def setting(self, agent, phases: list[Phase], unit: str = "frames", selectable: bool = False, tcfg: dict | None = None,
+                pessimism: dict | None = None, threshold: float | None = None, closers: tuple = ()) -> Setting:
+        """The :class:`Setting` of these parts, with what the setting built."""
+        return Setting(
+            cfg=self.cfg, snapshots=self.snapshots, data=self.data, agent=agent, phases=phases, unit=unit,
+            title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, tcfg=tcfg, stacking=self.stacking,
+            n_goals=self.n_goals, pessimism=pessimism, threshold=threshold, reward_scale=self.pcfg["env"].get("reward_scale", 1.0),
+            model_info=self.model_info, ref=self.ref, t_data=self.t_data, t_models=self.t_models, device=self.device, closers=list(closers),
+        )
+
+
+class ModelEnvSetting:
+    """The paper's setting: the agent trains on ``TransformedEnv(PessimisticModelEnv, LatentActionTransform)`` (real actions
+    with ``ablation.no_cvae``), evaluated in the real env and in the model; its returned policy is chosen offline
+    (``selection.criterion``). The block-stacking tasks too: goals and rewards on the predicted states, per-goal evaluation."""
+
+    unit = "frames"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return True  # what is left when no other setting applies
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        return True
+
+    @staticmethod
+    def model_part(p: Parts, transfer: bool = False):
+        """``(agent, phase, eval_env, pessimism, threshold, selectable)``: the model env's agent and its offline phase."""
+        cfg, latent = p.cfg, acts_in_latent_space(p.cfg)
+        cvae = p.cvae if latent else None
+        p.pcfg["env"], pess = model_env_config(cfg, p.level, p.data)
+        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=int(cfg["collector"]["num_envs"]), latent=latent)
+        threshold = env.base_env.threshold
+        agent = p.make_agent(env, latent=latent)
+        p.add_reward_transforms(agent.attach(env))
+        eval_env = agent.attach(p.eval_real_env(cvae))  # after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
+        model_eval_env = None
+        if cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
+            # the real env's start states, whatever training uses; every member rolls out the same number of episodes (the LCB over members)
+            model_eval_env = agent.attach(make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=int(cfg["eval"].get("model_episodes") or p.episodes),
+                                                         latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic"))
+        evaluator = p.evaluator(eval_env, model_eval_env, task="forward" if transfer else None)
+        phase = p.offline_phase(evaluator, lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
+                                "frames", model_env_metrics, env, transfer=transfer)
+        # offline policy selection needs the model env's evaluation; block stacking returns its last policy
+        return agent, phase, eval_env, pess, threshold, model_eval_env is not None and not p.stacking
+
+    def build(self, p: Parts) -> Setting:
+        agent, phase, eval_env, pess, threshold, selectable = self.model_part(p)
+        return p.setting(agent, [phase], selectable=selectable, pessimism=pess, threshold=threshold, closers=(eval_env,))
+
+
+class DatasetSetting:
+    """Model-free offline agents (``data_source = "dataset"``: IQL, CQL, TD3+BC, BC): minibatches of the dataset, real
+    actions, budget and evaluation period in gradient steps; no models, no model env; the last policy is returned."""
+
+    unit = "updates"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return learns_from_dataset(cfg)
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        return False
+
+    def build(self, p: Parts) -> Setting:
+        algo = p.cfg["algo"]
+        p.pcfg["env"] = {}
+        if "reward_scale" in agent_defaults(algo["name"]):  # the rewards it learns from: a number, or a name resolved from the data
+            algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), p.data, float(algo.get("gamma", 0.99)))}
+            p.pcfg["env"]["reward_scale"] = algo["reward_scale"]
+        eval_env = p.eval_real_env(None)  # the env whose specs the agent is built for
+        agent = p.make_agent(eval_env, algo, latent=acts_in_latent_space(p.cfg))
+        agent.attach(eval_env)
+        # the sampling continues from the run's restored RNG state
+        phase = p.offline_phase(p.evaluator(eval_env, algo=algo), lambda remaining, frames_done: dataset_batches(p.data, agent, remaining, device=p.device),
+                                self.unit, None, None)
+        return p.setting(agent, [phase], unit=self.unit, closers=(eval_env,))
+
+
+class OnlineSetting:
+    """``train.online``: the agent trains in the real env from scratch, in real actions (no models, no CVAE); the dataset
+    gives only the input statistics and the reward scale. The paper's route to its block-stacking data."""
+
+    unit = "frames"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return bool(cfg["train"].get("online", False))
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        return False
+
+    def build(self, p: Parts) -> Setting:
+        cfg = p.cfg
+        settings, _ = model_env_config(cfg, p.level, p.data)  # the reward scale the agent learns with (resolved as on the model env) and the horizon
+        p.pcfg["env"] = {k: settings[k] for k in ("reward_scale", "horizon") if k in settings}
+        if p.stacking:  # goals drawn by the env at each reset
+            p.pcfg["env"].setdefault("horizon", 25)
+        env = make_real_env(p.env_id, None, num_envs=int(cfg["collector"]["num_envs"]),
+                            **({"max_episode_steps": int(p.pcfg["env"]["horizon"])} if p.stacking else {}))
+        agent = p.make_agent(env, latent=False)
+        p.add_reward_transforms(agent.attach(env))
+        eval_env = agent.attach(p.eval_real_env(None))
+        phase = p.offline_phase(p.evaluator(eval_env), lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
+                                "frames", online_metrics, env, online=True)
+        return p.setting(agent, [phase], closers=(eval_env,))
+
+
+class TransferSetting:
+    """The paper's second setting (``transfer.task``): the model env's offline phase, then online fine-tuning in the real
+    env on a new task, one x-axis of frames; ``transfer.from_scratch``: the online phase alone (the baseline)."""
+
+    unit = "frames"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return transfer_config(cfg) is not None
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        tcfg = transfer_config(cfg)  # from scratch without the decoder: no model
+        return not tcfg["from_scratch"] or (acts_in_latent_space(cfg) and tcfg["decoder"] == "keep")
+
+    def build(self, p: Parts) -> Setting:
+        cfg, tcfg = p.cfg, transfer_config(p.cfg)
+        latent = acts_in_latent_space(cfg)
+        keep_decoder = latent and tcfg["decoder"] == "keep"
+
+        def real_env(num_envs: int):  # the real env of the online phase, on the new task, in the action space the agent acts in
+            return make_real_env(p.env_id, p.cvae if keep_decoder else None, num_envs=num_envs, latent_bound=latent_bound(cfg), task=tcfg["task"],
+                                 discard_decoder=latent and not keep_decoder)
+
+        phases, eval_env, pess, threshold = [], None, None, None
+        if not tcfg["from_scratch"]:
+            agent, phase, eval_env, pess, threshold, _ = ModelEnvSetting.model_part(p, transfer=True)
+            phases.append(phase)
+            with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
+                online_env = p.add_reward_transforms(agent.attach(real_env(int(tcfg["num_envs"]))))
+                online_eval_env = agent.attach(real_env(p.episodes))
+        else:  # the agent is built for the real env it trains in; no P-MDP
+            p.pcfg["env"], _ = model_env_config(cfg, p.level, p.data)  # the reward scale it learns with
+            online_env = real_env(int(tcfg["num_envs"]))
+            agent = p.make_agent(online_env, latent=latent)
+            p.add_reward_transforms(agent.attach(online_env))
+            with torch.random.fork_rng():
+                online_eval_env = agent.attach(real_env(p.episodes))
+        online_evaluator = Evaluator(online_eval_env, p.env_id, p.episodes, int(cfg["eval"]["max_steps"]), seed=p.eval_seed, ref=p.ref, task=tcfg["task"])
+        # random actions only for a run from scratch: after the offline phase frames_done > 0, and the agent acts from the start
+        phases.append(OnlinePhase(
+            name="online", evaluator=online_evaluator, total=int(tcfg["online_frames"]), every=int(tcfg["eval_every_frames"]),
+            batches=lambda remaining, frames_done: env_collector(online_env, agent, remaining, frames_done=frames_done, device=p.device),
+            desc=f"{cfg['algo']['name']} on {cfg['env']['name']} ({tcfg['task']}, online)", final_dir=Path(p.run_path),
+            batch_metrics=online_metrics, seed_env=online_env, seed=int(cfg["seed"]), selects=False, new_task=not tcfg["from_scratch"],
+        ))
+        return p.setting(agent, phases, tcfg=tcfg, pessimism=pess, threshold=threshold, closers=(eval_env, online_eval_env, online_env))
+
+
+#: the settings a run can be, the first whose ``applies(cfg)`` holds is built (the model env's is the default)
+SETTINGS = (DatasetSetting(), TransferSetting(), OnlineSetting(), ModelEnvSetting())
+
+
+def setting_of(cfg: dict):
+    """The setting of a config (after refusing the combinations none defines)."""
+    _check_combination(cfg)
+    return next(s for s in SETTINGS if s.applies(cfg))
+
+
 def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = True) -> Setting:
     """The :class:`Setting` of a validated config: data, models, agent, envs, evaluators and phases; files of the last
     evaluation go to ``run_path``. ``t_start``: the run's start (the data and model timings)."""
-    algo, env_cfg = cfg["algo"], cfg["env"]
+    kind = setting_of(cfg)
     torch.manual_seed(cfg["seed"])
-    device = torch.device(cfg.get("device", "cpu"))
-    from_dataset = learns_from_dataset(cfg)  # model-free offline: no models, no model env
-    unit = "updates" if from_dataset else "frames"  # what the budget and the evaluation period count
-    if from_dataset and any(cfg.get("ablation", {}).values()):
-        raise ValueError(f"algo={algo['name']} learns from the dataset itself, with no model env or CVAE: the ablations "
-                         f"{[k for k, v in cfg['ablation'].items() if v]} do not apply to it; leave them false")
-    tcfg = transfer_config(cfg)  # None: offline training only
-    if from_dataset and tcfg is not None:
-        raise ValueError(f"algo={algo['name']} learns from the dataset itself; the transfer setting fine-tunes online an agent trained "
-                         "on the model env (moc, ppo, sac, ...): leave transfer.task null")
-    stacking = task_of(env_cfg["env_id"]).goal_conditioned  # goal-conditioned: per-goal success, agents conditioned on the sub-goal
-    if stacking and not goal_conditioned(algo["name"]):
-        raise ValueError(f"algo={algo['name']} is not goal-conditioned; on {env_cfg['env_id']} use one of "
-                         f"{sorted(n for n in AGENTS if goal_conditioned(n))}")
-    if not stacking and requires_goal(algo["name"]):
-        raise ValueError(f"algo={algo['name']} acts on the goal-conditioned block-stacking tasks only (env=blockstack2|blockstack3), "
-                         f"not {env_cfg['env_id']}")
-    if stacking and tcfg is not None:
-        raise ValueError(f"the transfer setting is defined for the locomotion tasks (run backwards), not {env_cfg['env_id']}: leave transfer.task null")
-    online = bool(cfg["train"].get("online", False))  # the agent trains in the real env from scratch: no models, real actions
-    if online and (from_dataset or tcfg is not None):
-        raise ValueError(f"train.online=true trains an agent that collects (moc, ppo, sac, uof, ...) in the real env from scratch; "
-                         f"{'algo=' + algo['name'] + ' learns from the dataset itself' if from_dataset else 'the transfer setting has its own online phase'}: "
-                         "leave train.online false")
-    if online and any(cfg.get("ablation", {}).values()):
-        raise ValueError(f"train.online=true trains in the real env in real actions, with no models or CVAE: the ablations "
-                         f"{[k for k, v in cfg['ablation'].items() if v]} do not apply to it; leave them false")
-    offline = tcfg is None or not tcfg["from_scratch"]  # from scratch: the online phase only (the transfer setting's baseline)
-    snapshots = snapshot_steps(cfg, unit, tcfg)  # a bad value named before any data or model work
-    latent = acts_in_latent_space(cfg) and not online
-    keep_decoder = latent and tcfg is not None and tcfg["decoder"] == "keep"
-
-    # 1. data and models: one dataset for every training seed (its own seed is dataset_seed)
-    data = resolve_dataset(cfg)
+    snapshots = snapshot_steps(cfg, kind.unit, transfer_config(cfg))  # a bad value named before any data or model work
+    data = resolve_dataset(cfg)  # one dataset for every training seed (its own seed is dataset_seed)
+    stacking = task_of(cfg["env"]["env_id"]).goal_conditioned
     n_goals = G.n_goals(G.check_blocks(G.blocks_for_obs_dim(data.observation_dim))) if stacking else 0
-    level = data.metadata.get("level")
     t_data = time.time() - t_start
     pcfg = model_config(cfg)
-    if from_dataset or online or not (offline or keep_decoder):  # a from-scratch run without the decoder needs no model
-        ensemble = cvae = None
-        model_info = {"model_dir": None}
-    else:
+    ensemble = cvae = None
+    model_info = {"model_dir": None}
+    if kind.needs_models(cfg):
         ensemble, cvae, model_info = fit_or_load_models(pcfg, data, progress=progress)
     t_models = time.time() - t_start - t_data
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg["torch_threads"]))
     torch.manual_seed(cfg["seed"])  # the agent's initial weights do not depend on whether the models were fitted or loaded
-
-    # 2. the composed model env (no CVAE: the agent acts in real actions); none for an agent that learns from the dataset
-    episodes = int(cfg["eval"]["episodes"])
-    stats = data.stats()
-    env = model_eval_env = eval_env = online_env = None
-    bound = latent_bound(cfg)
-
-    def eval_real_env(with_cvae):  # the evaluation env: per goal `episodes` copies on a goal-conditioned task
-        if not stacking:
-            return make_real_env(env_cfg["env_id"], with_cvae, num_envs=episodes, latent_bound=bound)
-        goals = [k for k in range(n_goals) for _ in range(episodes)]
-        return make_real_env(env_cfg["env_id"], with_cvae, num_envs=len(goals), latent_bound=bound, goals=goals,
-                             max_episode_steps=int(cfg["eval"]["max_steps"]))
-
-    def real_env(num_envs: int, task: str):  # the real env of the online phase, in the action space the agent acts in
-        return make_real_env(env_cfg["env_id"], cvae if keep_decoder else None, num_envs=num_envs, latent_bound=bound, task=task,
-                             discard_decoder=latent and not keep_decoder)
-
-    def add_reward_transforms(e):
-        e.append_transform(RewardSum())  # ("next", "episode_reward"): returns in the logs
-        if pcfg["env"].get("reward_scale", 1.0) != 1.0:  # what the agent learns from; logged and evaluated returns stay unscaled
-            e.append_transform(RewardScaling(loc=0.0, scale=float(pcfg["env"]["reward_scale"])))
-
-    pess = threshold = None
-    if from_dataset:
-        pcfg["env"] = {}
-        if "reward_scale" in agent_defaults(algo["name"]):  # the rewards it learns from: a number, or a name resolved from the data
-            algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), data, float(algo.get("gamma", 0.99)))}
-            pcfg["env"]["reward_scale"] = algo["reward_scale"]
-        eval_env = eval_real_env(None)  # the env whose specs the agent is built for
-    elif online:  # the real env in real actions, as many copies as collector.num_envs; goals drawn by the env at each reset
-        settings, _ = model_env_config(cfg, level, data)  # the reward scale the agent learns with (resolved as on the model env) and the horizon
-        pcfg["env"] = {k: settings[k] for k in ("reward_scale", "horizon") if k in settings}
-        if stacking:
-            pcfg["env"].setdefault("horizon", 25)
-        env = make_real_env(env_cfg["env_id"], None, num_envs=int(cfg["collector"]["num_envs"]),
-                            **({"max_episode_steps": int(pcfg["env"]["horizon"])} if stacking else {}))
-    else:
-        pcfg["env"], pess = model_env_config(cfg, level, data)
-        if offline:
-            env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=int(cfg["collector"]["num_envs"]), latent=latent)
-            threshold = env.base_env.threshold
-        else:  # from scratch: the agent is built for the real env it trains in; no P-MDP
-            pess = None
-            online_env = real_env(int(tcfg["num_envs"]), tcfg["task"])
-
-    # 3. the agent, and the envs it acts in
-    agent = make_agent(
-        algo["name"], next(e for e in (env, online_env, eval_env) if e is not None), algo, obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
-        action_key="latent_action" if latent else "action", device=device, goal_key="sub_goal" if stacking else None,
-    )
-    for e in (env, online_env):
-        if e is not None:
-            agent.attach(e)
-            add_reward_transforms(e)
-    if eval_env is None and offline:  # built after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
-        eval_env = eval_real_env(cvae if latent else None)
-    if eval_env is not None:
-        agent.attach(eval_env)
-    if env is not None and not online and cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
-        # the real env's start states, whatever training uses; every member rolls out the same number of episodes (the LCB over members)
-        model_eval_env = make_model_env(pcfg, ensemble, cvae if latent else None, data, batch_size=int(cfg["eval"].get("model_episodes") or episodes),
-                                         latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic")
-        agent.attach(model_eval_env)
-    ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
-    ref = ref if None not in ref else None
-    eval_seed = int(cfg["seed"]) * 1000 + 7
-    evaluator = online_evaluator = None
-    if eval_env is not None and stacking:
-        evaluator = GoalEvaluator(eval_env, env_cfg["env_id"], episodes, n_goals, int(pcfg["env"].get("horizon", 25)), int(cfg["eval"]["max_steps"]),
-                                  seed=eval_seed, model_env=model_eval_env)
-    elif eval_env is not None:
-        evaluator = Evaluator(eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=eval_seed, ref=ref, model_env=model_eval_env,
-                              task=None if tcfg is None else "forward", gamma=float(algo.get("gamma", 0.99)),
-                              sampled=bool(cfg["eval"].get("sampled", False)))
-    if tcfg is not None:
-        with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
-            if online_env is None:
-                online_env = agent.attach(real_env(int(tcfg["num_envs"]), tcfg["task"]))
-                add_reward_transforms(online_env)
-            online_eval_env = agent.attach(real_env(episodes, tcfg["task"]))
-        online_evaluator = Evaluator(online_eval_env, env_cfg["env_id"], episodes, int(cfg["eval"]["max_steps"]), seed=eval_seed, ref=ref,
-                                     task=tcfg["task"])
-    title = f"{env_cfg['env_id']}, {cfg['dataset']}"
-
-    phases: list[Phase] = []
-    if offline:  # the offline phase: on the model env, or on the dataset
-        if from_dataset:  # the sampling continues from the run's restored RNG state
-            def batches(remaining, frames_done):
-                return dataset_batches(data, agent, remaining, device=device)
-        else:
-            def batches(remaining, frames_done, env=env):
-                return env_collector(env, agent, remaining, frames_done=frames_done, device=device)
-        phases.append(OfflinePhase(
-            name=None if tcfg is None else "offline", evaluator=evaluator, total=int(cfg["train"][f"total_{unit}"]),
-            every=int(cfg["eval"][f"every_{unit}"]), batches=batches,
-            desc=f"{algo['name']} on {env_cfg['name']}" + (" (online)" if online else f"-{level}"),
-            final_dir=Path(run_path) if tcfg is None else Path(run_path) / "offline",  # a transfer run's last files are its online phase's
-            batch_metrics=None if from_dataset else online_metrics if online else model_env_metrics,
-            seed_env=env, seed=int(cfg["seed"]), at_start=bool(cfg["eval"].get("at_start", True)),
-            done_when=None if tcfg is None else "online",
-        ))
-    if tcfg is not None:  # the online phase: fine-tuning in the real env, on the new task
-        # random actions only for a run from scratch: after the offline phase frames_done > 0, and the agent acts from the start
-        phases.append(OnlinePhase(
-            name="online", evaluator=online_evaluator, total=int(tcfg["online_frames"]), every=int(tcfg["eval_every_frames"]),
-            batches=lambda remaining, frames_done: env_collector(online_env, agent, remaining, frames_done=frames_done, device=device),
-            desc=f"{algo['name']} on {env_cfg['name']} ({tcfg['task']}, online)", final_dir=Path(run_path),
-            batch_metrics=online_metrics, seed_env=online_env, seed=int(cfg["seed"]), selects=False, new_task=offline,
-        ))
-    # offline policy selection: the policy a run returns is chosen from its evaluations without the real env; it needs the
-    # model env's evaluation, so dataset agents, online and transfer runs, and block stacking return their last policy
-    return Setting(
-        cfg=cfg, snapshots=snapshots, data=data, agent=agent, phases=phases, unit=unit, title=title, env_label=env_cfg["env_id"],
-        selectable=model_eval_env is not None and tcfg is None and not stacking, tcfg=tcfg, stacking=stacking, n_goals=n_goals,
-        pessimism=pess, threshold=threshold, reward_scale=pcfg["env"].get("reward_scale", 1.0), model_info=model_info, ref=ref,
-        t_data=t_data, t_models=t_models, device=device,
-        closers=[eval_env, online_evaluator.env if online_evaluator else None, online_env],
-    )
+    parts = Parts(cfg=cfg, run_path=Path(run_path), device=torch.device(cfg.get("device", "cpu")), stacking=stacking, data=data, n_goals=n_goals,
+                  level=data.metadata.get("level"), pcfg=pcfg, ensemble=ensemble, cvae=cvae, model_info=model_info, t_data=t_data, t_models=t_models,
+                  snapshots=snapshots)
+    return kind.build(parts)
