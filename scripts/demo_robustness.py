@@ -49,6 +49,10 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
             ["algo.policy_ema=0.1"]),
     "pess_q99": ("the shipped demo with the P-MDP threshold at the 99% quantile of the data's discrepancies, not 1.08 x their max",
                  ["model_env.pessimism={quantile: 0.99, penalty: 20.0}"]),
+    "mopo2": ("the shipped demo with MOPO's soft pessimism: every model step pays 2 x the members' discrepancy",
+              ["model_env.reward_penalty=2.0"]),
+    "mopo5": ("the shipped demo with MOPO's soft pessimism: every model step pays 5 x the members' discrepancy",
+              ["model_env.reward_penalty=5.0"]),
 }
 
 

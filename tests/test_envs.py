@@ -49,6 +49,28 @@ def test_out_of_distribution_actions_end_with_penalty(make_env):
         assert (out_in["reward"][ok] > -7.0).all() and not out_in["terminated"][ok].any()
 
 
+def test_reward_penalty_subtracts_lambda_times_discrepancy(make_env, fitted_ensemble):
+    # the same start states, members and actions with and without the soft penalty: rewards differ by exactly
+    # reward_penalty x the step's discrepancy (MOPO's r - lambda u), hand-computed from the ensemble's own prediction
+    g = torch.Generator().manual_seed(3)
+    act = (torch.rand(64, 2, generator=g) * 2 - 1) * 0.8
+    plain, soft = make_env(batch_size=[64], threshold=float("inf")), make_env(batch_size=[64], threshold=float("inf"), reward_penalty=2.5)
+    td0, td1 = plain.reset(), soft.reset()
+    assert torch.equal(td0["observation"], td1["observation"]) and torch.equal(td0["model_member"], td1["model_member"])
+    out0 = plain.step(td0.set("action", act))["next"]
+    out1 = soft.step(td1.set("action", act))["next"]
+    pred = fitted_ensemble.predict(td0["observation"], act)
+    disc = fitted_ensemble.discrepancy_of(pred["delta"], "variance")
+    assert disc.min() > 0
+    torch.testing.assert_close(out0["reward"] - out1["reward"], 2.5 * disc.unsqueeze(-1))
+    torch.testing.assert_close(out1["discrepancy"], disc.unsqueeze(-1))
+    # a pessimistic termination still pays exactly -penalty, not -penalty - lambda u
+    hard = make_env(batch_size=[64], threshold=-1.0, penalty=3.0, reward_penalty=2.5)
+    assert (hard.step(hard.reset().set("action", act))["next", "reward"] == -3.0).all()
+    with pytest.raises(ValueError, match="reward_penalty must be >= 0"):
+        make_env(reward_penalty=-1.0)
+
+
 def test_explicit_threshold_extremes(make_env):
     env = make_env(batch_size=[16], threshold=-1.0, penalty=3.0)  # every step violates
     td = env.rollout(1)

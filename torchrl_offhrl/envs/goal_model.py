@@ -56,6 +56,9 @@ class BlockStackModelEnv(PessimisticModelEnv):
             raise ValueError(f"goal_probs must be {self.n_goals} non-negative numbers with a positive sum, got {goal_probs!r}")
         self._goal_probs = (probs / probs.sum()).double()
         kwargs.setdefault("termination_fn", None)  # the tasks never terminate: the horizon ends them
+        if kwargs.get("reward_penalty"):
+            raise ValueError("reward_penalty is not supported on the block-stacking tasks: their rewards are the goals' (0 / -1), "
+                             "recomputed after the model's step; use the threshold's termination (model_env.pessimism)")
         super().__init__(ensemble, data, penalty=penalty, quantile=quantile, horizon=horizon, **kwargs)
 
     def _make_specs(self, data) -> None:

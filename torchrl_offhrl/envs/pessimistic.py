@@ -46,6 +46,11 @@ class PessimisticModelEnv(EnvBase):
             their maximum when ``fraction`` is given.
         penalty (float): the reward on a pessimistic termination is
             ``-penalty`` (paper: 20 to 50).
+        reward_penalty (float): MOPO's soft pessimism (Yu et al., 2020): every
+            step that is not terminated pessimistically pays
+            ``reward_penalty * discrepancy`` out of its reward (default 0: the
+            paper's P-MDP, which only ends episodes above the threshold).
+            Measured on the demo in ``docs/results/demo_robustness_notes.md``.
         discrepancy (str): ``"variance"`` (the paper) or ``"max_pairwise"``
             (MOReL).
         quantile / fraction: calibration, see ``threshold``.
@@ -99,6 +104,7 @@ class PessimisticModelEnv(EnvBase):
         data,
         threshold: float | None = None,
         penalty: float = 20.0,
+        reward_penalty: float = 0.0,
         discrepancy: str = "variance",
         quantile: float | None = 0.99,
         fraction: float | None = None,
@@ -131,9 +137,12 @@ class PessimisticModelEnv(EnvBase):
             raise ValueError("the ensemble predicts no reward: build it with learn_reward=True or a reward_fn.")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}.")
+        if not reward_penalty >= 0:
+            raise ValueError(f"reward_penalty must be >= 0 (a cost per unit of discrepancy), got {reward_penalty}.")
         self.ensemble = ensemble.to(self.device).eval()
         self.discrepancy_kind = discrepancy
         self.penalty = float(penalty)
+        self.reward_penalty = float(reward_penalty)
         self.horizon = int(horizon)
         self.member_mode = member_mode
         self.member_draw = member_draw
@@ -262,6 +271,8 @@ class PessimisticModelEnv(EnvBase):
         )
         penalized = unknown | (disc > self.threshold)
         next_obs = torch.where(unknown.unsqueeze(-1), obs, next_obs)
+        if self.reward_penalty:
+            reward = reward - self.reward_penalty * disc
         reward = torch.where(penalized, torch.full_like(reward, -self.penalty), reward)
         terminated = penalized.clone()
         if self.termination_fn is not None:

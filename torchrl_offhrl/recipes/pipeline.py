@@ -208,6 +208,7 @@ def make_model_env(
         data,
         threshold=threshold,
         penalty=env_cfg.get("penalty", 20.0),
+        reward_penalty=env_cfg.get("reward_penalty", 0.0),
         discrepancy=env_cfg.get("discrepancy", "variance"),
         quantile=env_cfg.get("quantile", 0.99),
         fraction=env_cfg.get("fraction"),

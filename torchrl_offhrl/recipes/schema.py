@@ -86,6 +86,7 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "model_env.member_mode": _choice("episode", "step", "mean"),
     "model_env.reset_states": _choice("initial", "any"),
     "model_env.latent_bound": _num(0, lo_open=True),
+    "model_env.reward_penalty": _num(0),
     "model_env.reward_scale": ("a positive number or 'auto'", lambda v: v == "auto" or (_is_num(v) and v > 0)),
     "collector.num_envs": _int(1),
     "torch_threads": _int(1, optional=True),
