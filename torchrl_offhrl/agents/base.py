@@ -19,7 +19,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 __all__ = [
-    "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "compile_setting", "deterministic_actor", "gaussian_actor", "make_capturable", "q_network", "scalar_metrics", "sum_losses",
+    "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "backward", "compile_setting", "deterministic_actor", "gaussian_actor", "make_capturable", "q_network", "scalar_metrics", "sum_losses",
 ]
 
 
@@ -29,8 +29,20 @@ def sum_losses(out: Mapping) -> torch.Tensor:
 
 
 def scalar_metrics(out) -> TensorDictBase:
-    """The one-element entries of a loss's output TensorDict, detached and 0-dim (what :meth:`DatasetAgent.step` returns)."""
-    return out.select(*(k for k, v in out.items() if isinstance(v, torch.Tensor) and v.numel() == 1)).detach().apply(lambda v: v.reshape(()))
+    """The one-element entries of a loss's output TensorDict, detached and 0-dim (what :meth:`DatasetAgent.step` returns).
+
+    Under :class:`~torchrl_offhrl.agents.seeds.SeedBatch` the output has a
+    leading seed dimension (``batch_size [N]``): one element per seed, kept as ``[N]``.
+    """
+    shape = out.batch_size
+    return out.select(*(k for k, v in out.items() if isinstance(v, torch.Tensor) and v.numel() == shape.numel())).detach().apply(
+        lambda v: v.reshape(shape))
+
+
+def backward(loss: torch.Tensor) -> None:
+    """``loss.backward()``; a per-seed loss (``[N]``, :class:`~torchrl_offhrl.agents.seeds.SeedBatch`) is summed first, so that each
+    seed's gradient is its own loss's (the seeds share no tensor). A scalar loss is unchanged."""
+    (loss if loss.dim() == 0 else loss.sum()).backward()
 
 
 class MetricMeans:

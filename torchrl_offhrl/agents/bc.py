@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 from torchrl.objectives import BCLoss
 
-from .base import DatasetAgent, adam, compile_setting, deterministic_actor, gaussian_actor, scalar_metrics
+from .base import DatasetAgent, adam, backward, compile_setting, deterministic_actor, gaussian_actor, scalar_metrics
 from .registry import register_agent
 
 __all__ = ["BCAgent"]
@@ -70,6 +70,6 @@ class BCAgent(DatasetAgent):
     def step(self, batch, variant=None):
         out = self.loss_fn()(batch)
         self.optimizer.zero_grad()
-        out["loss_bc"].backward()
+        backward(out["loss_bc"])
         self.optimizer.step()
         return scalar_metrics(out)

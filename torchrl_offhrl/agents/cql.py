@@ -6,7 +6,7 @@ from collections.abc import Sequence
 import torch
 from torchrl.objectives import CQLLoss, SoftUpdate, group_optimizers
 
-from .base import DatasetAgent, adam, compile_setting, gaussian_actor, q_network, scalar_metrics
+from .base import DatasetAgent, adam, backward, compile_setting, gaussian_actor, q_network, scalar_metrics
 from .registry import register_agent
 
 __all__ = ["CQLAgent"]
@@ -99,9 +99,9 @@ class CQLAgent(DatasetAgent):
         if out.get("loss_alpha_prime", None) is not None:
             total = total + out["loss_alpha_prime"]
         self.optimizer.zero_grad()
-        total.backward()
+        backward(total)
         self.optimizer.step()
         self.target_updater.step()
         metrics = scalar_metrics(out)
-        metrics["bc_phase"] = torch.full((), float(bc_phase), device=total.device)
+        metrics["bc_phase"] = torch.full(metrics.batch_size, float(bc_phase), device=total.device)  # [N] under a SeedBatch
         return metrics

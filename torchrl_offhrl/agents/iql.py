@@ -7,7 +7,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import IQLLoss, SoftUpdate, group_optimizers
 
 from ..nets import NormalizedMLP
-from .base import DatasetAgent, adam, compile_setting, gaussian_actor, q_network, scalar_metrics, sum_losses
+from .base import DatasetAgent, adam, backward, compile_setting, gaussian_actor, q_network, scalar_metrics, sum_losses
 from .registry import register_agent
 
 __all__ = ["IQLAgent"]
@@ -79,7 +79,7 @@ class IQLAgent(DatasetAgent):
     def step(self, batch, variant=None):
         out = self.loss_fn()(batch)
         self.optimizer.zero_grad()
-        sum_losses(out).backward()
+        backward(sum_losses(out))
         self.optimizer.step()
         self.target_updater.step()
         return scalar_metrics(out)

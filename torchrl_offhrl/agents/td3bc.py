@@ -6,7 +6,7 @@ from collections.abc import Sequence
 from tensordict import TensorDict
 from torchrl.objectives import SoftUpdate, TD3BCLoss
 
-from .base import DatasetAgent, adam, compile_setting, deterministic_actor, q_network
+from .base import DatasetAgent, adam, backward, compile_setting, deterministic_actor, q_network
 from .registry import register_agent
 
 __all__ = ["TD3BCAgent"]
@@ -79,13 +79,13 @@ class TD3BCAgent(DatasetAgent):
     def step(self, batch, with_actor: bool):
         q_loss, _ = self.loss_fn("qvalue_loss")(batch)
         self.optimizer.zero_grad()
-        q_loss.backward()
+        backward(q_loss)
         self.optimizer.step()
         out = TensorDict(loss_qvalue=q_loss.detach())
         if with_actor:
             actor_loss, meta = self.loss_fn("actor_loss")(batch)
             self.actor_optimizer.zero_grad()
-            actor_loss.backward()
+            backward(actor_loss)
             self.actor_optimizer.step()
             self.target_updater.step()
             out.update(dict(loss_actor=actor_loss.detach(), bc_loss=meta["bc_loss"].detach(), lmbd=meta["lmbd"].detach()))
