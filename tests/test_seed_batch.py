@@ -115,3 +115,44 @@ def test_seed_batch_sampling_streams_and_refusals(env):
         SeedBatch([build(env, "bc", 4), make_agent("bc", env, {"hidden_sizes": [8], "batch_size": B}, action_key="action")])
     with pytest.raises(NotImplementedError, match="vmap forbids"):
         SeedBatch([build(env, "cql", 4), build(env, "cql", 5)])
+
+
+def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cache, tmp_path):
+    # `offhrl train --seeds 4 5` against two separate `offhrl train seed=S`: the same evaluation records and weights per seed,
+    # each in its own run directory; then a longer budget resumes both from their checkpoints, batched again
+    import json
+    from pathlib import Path
+
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.seed_runs import seed_configs, train_seeds
+    from torchrl_offhrl.recipes.train import train
+
+    def cfg(out, *extra):
+        return compose("offline_train", ["algo=iql", f"dataset={hopper_file}", f"out_root={out}", "algo.hidden_sizes=[32,32]", "algo.batch_size=32",
+                                         "train.total_updates=60", "eval.every_updates=30", "eval.episodes=2", "eval.max_steps=30", *extra])
+
+    separate = [train(cfg(tmp_path / "sep", f"seed={s}"), progress=False) for s in (4, 5)]
+    batched = train_seeds(cfg(tmp_path / "bat"), [4, 5], progress=False)
+    for a, b in zip(separate, batched):
+        assert Path(a["run_dir"]).name == Path(b["run_dir"]).name  # the same default name: algo, env, data, seed
+        ra = json.loads((Path(a["run_dir"]) / "evals.json").read_text())
+        rb = json.loads((Path(b["run_dir"]) / "evals.json").read_text())
+        assert [r["updates"] for r in ra] == [r["updates"] for r in rb] == [0, 30, 60]
+        for x, y in zip(ra, rb):
+            assert y["return_mean"] == pytest.approx(x["return_mean"], rel=1e-3, abs=1e-2)
+        wa = torch.load(Path(a["run_dir"]) / "checkpoint.pt", weights_only=True)["agent"]["loss"]
+        wb = torch.load(Path(b["run_dir"]) / "checkpoint.pt", weights_only=True)["agent"]["loss"]
+        for k, v in wa.items():
+            if torch.is_tensor(v) and v.is_floating_point():
+                torch.testing.assert_close(wb[k], v, rtol=1e-4, atol=1e-5)
+    r4 = json.loads((Path(batched[0]["run_dir"]) / "evals.json").read_text())
+    r5 = json.loads((Path(batched[1]["run_dir"]) / "evals.json").read_text())
+    assert r4[-1]["return_mean"] != r5[-1]["return_mean"]  # two seeds, two agents
+    more = train_seeds(cfg(tmp_path / "bat", "train.total_updates=90"), [4, 5], progress=False)
+    assert [s["updates"] for s in more] == [90, 90]
+    assert [r["updates"] for r in json.loads((Path(more[0]["run_dir"]) / "evals.json").read_text())] == [0, 30, 60, 90]
+    assert [c["run_dir"] for c in seed_configs({"seed": 0, "run_dir": "x", "seeds": [1]}, [4, 5])] == ["x/seed4", "x/seed5"]
+    with pytest.raises(ValueError, match="distinct"):
+        seed_configs({}, [4, 4])
+    with pytest.raises(NotImplementedError, match="one seed per run"):
+        train_seeds(compose("offline_train", ["algo=moc", f"dataset={hopper_file}"]), [4, 5])

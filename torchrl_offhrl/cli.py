@@ -127,7 +127,14 @@ def cmd_train(args) -> int:
     from .recipes.report import format_summary
     from .recipes.train import train
 
-    print("\n" + format_summary(train(compose("offline_train", args.overrides, "train"))))
+    cfg = compose("offline_train", args.overrides, "train")
+    if args.seeds:  # one run per seed, their updates batched (the dataset agents)
+        from .recipes.seed_runs import train_seeds
+
+        for summary in train_seeds(cfg, args.seeds):
+            print("\n" + format_summary(summary))
+        return 0
+    print("\n" + format_summary(train(cfg)))
     return 0
 
 
@@ -250,6 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Same as examples/offline_train.py: e.g. `offhrl train algo=moc env=hopper dataset=medium seed=1`. "
                        "Rerunning the same command resumes from the run's checkpoint.")
     s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml")
+    s.add_argument("--seeds", nargs="+", type=int, help="train one run per seed with their updates batched as one computation "
+                   "(agents that learn from the dataset: bc, td3bc, iql), e.g. --seeds 4 5 6 7 8")
     s.set_defaults(func=cmd_train)
 
     s = sub.add_parser("evaluate", help="evaluate a run's checkpoint in the real env (normalised score, optional frames)")

@@ -127,6 +127,16 @@ class OnlinePhase(Phase):
         return remaining
 
 
+@dataclass
+class _PhaseProgress:
+    """Where a phase's training stands between batches (:meth:`TrainingLoop.start`, :meth:`TrainingLoop.account`)."""
+
+    bar: object
+    next_eval: int
+    pending: dict = field(default_factory=dict)
+    pending_n: int = 0
+
+
 class TrainingLoop:
     """Update ``agent`` on every batch of each phase; evaluate, log, snapshot and checkpoint every ``phase.every`` steps.
 
@@ -176,46 +186,63 @@ class TrainingLoop:
                 source.shutdown()
 
     def _train(self, phase: Phase, source) -> None:
+        st = self.start(phase)
+        try:
+            for batch in source:
+                t0 = time.time()
+                self.agent.set_progress((self.run.step - phase.start) / phase.total)  # before this batch counts: schedules (e.g. anneal_lr) follow the phase's budget
+                metrics = self.agent.update(batch)
+                self.timing["update_time_s"] += time.time() - t0
+                if self.account(st, phase, batch, metrics):
+                    break
+        finally:
+            st.bar.close()
+
+    def start(self, phase: Phase) -> _PhaseProgress:
+        """The bookkeeping of a phase about to train (its progress bar, next evaluation, pending logs): for :meth:`account`."""
         from tqdm.auto import tqdm
 
-        run, agent, logger = self.run, self.agent, self.logger
+        run = self.run
+        bar = tqdm(total=phase.total, initial=min(run.step - phase.start, phase.total), desc=phase.desc, disable=not self.progress, unit=run.unit[:-1])
+        return _PhaseProgress(bar=bar, next_eval=phase.start + ((run.step - phase.start) // phase.every + 1) * phase.every)
+
+    def evaluation_due(self, st: _PhaseProgress, phase: Phase, steps: int = 1) -> bool:
+        """Whether the next batch (``steps`` more steps) ends at an evaluation (a batched driver syncs its agents first)."""
+        return self.run.step + steps >= min(st.next_eval, phase.start + phase.total)
+
+    def account(self, st: _PhaseProgress, phase: Phase, batch, metrics: dict) -> bool:
+        """Count an update the agent took on ``batch`` (``metrics``: what it returned): counters, logs, progress, and at an
+        evaluation step the evaluation, snapshots and checkpoint. True when the phase's budget is spent."""
+        run, logger = self.run, self.logger
         unit = run.unit
         per_update = unit == "updates"  # dataset agents: one gradient step per batch, logged as means over LOG_EVERY_UPDATES
-        start, budget, every = phase.start, phase.total, phase.every
-        end = start + budget
-        bar = tqdm(total=budget, initial=min(run.step - start, budget), desc=phase.desc, disable=not self.progress, unit=unit[:-1])
-        next_eval = start + ((run.step - start) // every + 1) * every
-        pending, pending_n = {}, 0
-        for batch in source:
-            t0 = time.time()
-            agent.set_progress((run.step - start) / budget)  # before this batch counts: schedules (e.g. anneal_lr) follow the phase's budget
-            before = run.step
-            run.frames += batch.numel()
-            metrics = agent.update(batch)
-            run.updates += int(metrics.pop("updates"))
-            self.timing["update_time_s"] += time.time() - t0
-            if phase.batch_metrics is not None:
-                metrics.update(phase.batch_metrics(batch))
-            for k, v in metrics.items():  # (sum, count) per key: some metrics come with some updates only (e.g. a delayed actor)
-                total_k, n_k = pending.get(k, (0.0, 0))
-                pending[k] = (total_k + v, n_k + 1)
-            pending_n += 1
-            if logger is not None and (not per_update or pending_n >= LOG_EVERY_UPDATES or run.step >= end):
-                for k, (v, n) in pending.items():  # dataset agents: the mean over LOG_EVERY_UPDATES updates (their 0-dim tensors, read now)
-                    logger.log_scalar(k, float(v) / n, step=run.step)
-            if not per_update or pending_n >= LOG_EVERY_UPDATES:
-                pending, pending_n = {}, 0
-            bar.update(run.step - before)
-            if run.step >= next_eval or run.step >= end:
-                rec = self.evaluate(phase.evaluator, save_to=phase.final_dir if run.step >= end else None, phase=phase.name, selects=phase.selects)
-                run.records.append(rec)
-                self._report(rec, bar, unit)
-                self._snapshot(rec)
-                run.checkpoint(agent)
-                next_eval = start + ((run.step - start) // every + 1) * every
-                if run.step >= end:
-                    break
-        bar.close()
+        end = phase.start + phase.total
+        before = run.step
+        run.frames += batch.numel()
+        metrics = dict(metrics)
+        run.updates += int(metrics.pop("updates"))
+        if phase.batch_metrics is not None:
+            metrics.update(phase.batch_metrics(batch))
+        for k, v in metrics.items():  # (sum, count) per key: some metrics come with some updates only (e.g. a delayed actor)
+            total_k, n_k = st.pending.get(k, (0.0, 0))
+            st.pending[k] = (total_k + v, n_k + 1)
+        st.pending_n += 1
+        if logger is not None and (not per_update or st.pending_n >= LOG_EVERY_UPDATES or run.step >= end):
+            for k, (v, n) in st.pending.items():  # dataset agents: the mean over LOG_EVERY_UPDATES updates (their 0-dim tensors, read now)
+                logger.log_scalar(k, float(v) / n, step=run.step)
+        if not per_update or st.pending_n >= LOG_EVERY_UPDATES:
+            st.pending, st.pending_n = {}, 0
+        st.bar.update(run.step - before)
+        if run.step >= st.next_eval or run.step >= end:
+            rec = self.evaluate(phase.evaluator, save_to=phase.final_dir if run.step >= end else None, phase=phase.name, selects=phase.selects)
+            run.records.append(rec)
+            self._report(rec, st.bar, unit)
+            self._snapshot(rec)
+            run.checkpoint(self.agent)
+            st.next_eval = phase.start + ((run.step - phase.start) // phase.every + 1) * phase.every
+            if run.step >= end:
+                return True
+        return False
 
     def _report(self, rec: dict, bar, unit: str) -> None:
         if self.logger is not None:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 
@@ -72,55 +73,76 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
 
 
 def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict:
-    s = build_setting(cfg, run.path, t_start, progress)  # data, models, agent, envs, evaluators, phases
-    agent, unit = s.agent, s.unit
+    r = _Run.prepare(cfg, run, t_start, progress)
+    for phase in r.setting.phases:
+        r.loop.run_phase(phase)
+    return r.finish()
 
-    # resume, log, train every phase, evaluate, checkpoint
-    run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
-    run.unit = unit
-    scfg = cfg.get("selection") or {}
-    run.selector = PolicySelector(scfg.get("criterion", "last") if s.selectable else "last", scfg.get("include_start", False))
-    previous_summary = None
-    if run.resume(agent, s.device) and (run.path / "summary.json").is_file():
-        previous_summary = json.loads((run.path / "summary.json").read_text())
-        (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
-    run.write_json("config.json", {**cfg, "resolved_pessimism": s.pessimism, "threshold": s.threshold, "resolved_reward_scale": s.reward_scale,
-                                   "model_dir": s.model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
-    logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
-    loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=s.snapshots, t_start=t_start, progress=progress, env_label=s.env_label)
-    frames_at_start, updates_at_start = run.frames, run.updates
-    t_train = time.time()
-    for phase in s.phases:
-        loop.run_phase(phase)
-    if not all((run.path / f).is_file() for f in agent.evaluation_files):
-        rec = {**run.records[-1], **s.phases[-1].evaluator(agent, save_to=run.path, title=s.title)}  # the same policy again, for its files
-        run.records[-1] = rec
-        run.checkpoint(agent)
-    selected = run.selector.selected
-    if selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
-        with atomic_write(run.path / "selected.pt") as tmp:
-            torch.save({"agent": selected["agent"], "step": selected["step"], "criterion": run.selector.criterion,
-                        "record": run.records[selected["index"]]}, tmp)
-    elapsed, train_time = time.time() - t_train, loop.timing["update_time_s"]
 
-    # the report
-    behaviour = s.data.return_stats()  # episodes cut short by the collection budget left out
-    s.plot_curves(run.records, run.path, behaviour["mean"])
-    summary = run_summary(
-        cfg, s.data, behaviour, run.records, ref=s.ref, pessimism=s.pessimism, threshold=s.threshold, frames=run.frames, updates=run.updates,
-        frames_per_s=(run.frames - frames_at_start) / elapsed if elapsed > 0 and run.frames > frames_at_start else None,
-        updates_per_s=((run.updates - updates_at_start) / train_time) if train_time > 0 else None,
-        timing={"update_time_s": train_time, "data_s": s.t_data, "models_s": s.t_models, "total_s": time.time() - t_start},
-        models=s.model_info["model_dir"], run_dir=run.path, evaluation_files=agent.evaluation_files, unit=unit,
-    )
-    if run.frames == frames_at_start and run.updates == updates_at_start and previous_summary is not None:
-        # a finished run called again (a results script rerun): nothing trained in this call, so its throughput and
-        # timings stay those the run measured, instead of this call's few seconds of loading
-        summary.update({k: previous_summary[k] for k in TIMING_KEYS if k in previous_summary})
-    if selected is not None:
-        summary["selected"] = {**run.records[selected["index"]], "criterion": run.selector.criterion, "offline_score": selected["score"]}
-    summary.update(s.summary_extras(run.records))
-    run.write_json("summary.json", summary)
-    plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=s.xlabel)
-    s.close()
-    return summary
+@dataclass
+class _Run:
+    """One run between its preparation (setting built, checkpoint resumed, logger open) and its report (:meth:`finish`)."""
+
+    cfg: dict
+    run: RunDirectory
+    setting: object
+    loop: TrainingLoop
+    t_start: float
+    t_train: float
+    frames_at_start: int
+    updates_at_start: int
+    previous_summary: dict | None
+
+    @classmethod
+    def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> _Run:
+        s = build_setting(cfg, run.path, t_start, progress)  # data, models, agent, envs, evaluators, phases
+        agent, unit = s.agent, s.unit
+        run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
+        run.unit = unit
+        scfg = cfg.get("selection") or {}
+        run.selector = PolicySelector(scfg.get("criterion", "last") if s.selectable else "last", scfg.get("include_start", False))
+        previous_summary = None
+        if run.resume(agent, s.device) and (run.path / "summary.json").is_file():
+            previous_summary = json.loads((run.path / "summary.json").read_text())
+            (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
+        run.write_json("config.json", {**cfg, "resolved_pessimism": s.pessimism, "threshold": s.threshold, "resolved_reward_scale": s.reward_scale,
+                                       "model_dir": s.model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
+        logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
+        loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=s.snapshots, t_start=t_start, progress=progress, env_label=s.env_label)
+        return cls(cfg, run, s, loop, t_start, time.time(), run.frames, run.updates, previous_summary)
+
+    def finish(self) -> dict:
+        """The returned policy (``selected.pt``), the curves and the summary (``summary.json``, also returned)."""
+        cfg, run, s, agent, unit = self.cfg, self.run, self.setting, self.setting.agent, self.setting.unit
+        if not all((run.path / f).is_file() for f in agent.evaluation_files):
+            rec = {**run.records[-1], **s.phases[-1].evaluator(agent, save_to=run.path, title=s.title)}  # the same policy again, for its files
+            run.records[-1] = rec
+            run.checkpoint(agent)
+        selected = run.selector.selected
+        if selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
+            with atomic_write(run.path / "selected.pt") as tmp:
+                torch.save({"agent": selected["agent"], "step": selected["step"], "criterion": run.selector.criterion,
+                            "record": run.records[selected["index"]]}, tmp)
+        elapsed, train_time = time.time() - self.t_train, self.loop.timing["update_time_s"]
+
+        # the report
+        behaviour = s.data.return_stats()  # episodes cut short by the collection budget left out
+        s.plot_curves(run.records, run.path, behaviour["mean"])
+        summary = run_summary(
+            cfg, s.data, behaviour, run.records, ref=s.ref, pessimism=s.pessimism, threshold=s.threshold, frames=run.frames, updates=run.updates,
+            frames_per_s=(run.frames - self.frames_at_start) / elapsed if elapsed > 0 and run.frames > self.frames_at_start else None,
+            updates_per_s=((run.updates - self.updates_at_start) / train_time) if train_time > 0 else None,
+            timing={"update_time_s": train_time, "data_s": s.t_data, "models_s": s.t_models, "total_s": time.time() - self.t_start},
+            models=s.model_info["model_dir"], run_dir=run.path, evaluation_files=agent.evaluation_files, unit=unit,
+        )
+        if run.frames == self.frames_at_start and run.updates == self.updates_at_start and self.previous_summary is not None:
+            # a finished run called again (a results script rerun): nothing trained in this call, so its throughput and
+            # timings stay those the run measured, instead of this call's few seconds of loading
+            summary.update({k: self.previous_summary[k] for k in TIMING_KEYS if k in self.previous_summary})
+        if selected is not None:
+            summary["selected"] = {**run.records[selected["index"]], "criterion": run.selector.criterion, "offline_score": selected["score"]}
+        summary.update(s.summary_extras(run.records))
+        run.write_json("summary.json", summary)
+        plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=s.xlabel)
+        s.close()
+        return summary
