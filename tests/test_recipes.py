@@ -581,3 +581,16 @@ def test_each_config_is_exactly_one_setting():
     assert not TransferSetting.needs_models(cfg)
     cfg["transfer"]["decoder"] = "keep"
     assert TransferSetting.needs_models(cfg) and ModelEnvSetting.needs_models(cfg) and not DatasetSetting.needs_models(cfg)
+
+
+def test_mopo_config_is_sac_on_penalised_short_rollouts(toy_data, fitted_ensemble):
+    from torchrl_offhrl.recipes.config import model_env_config
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    cfg = to_plain(compose("offline_train", ["algo=mopo", "model_env.reward_scale=1.0"]))
+    assert cfg["algo"]["name"] == "sac" and cfg["algo"]["label"] == "mopo" and cfg["ablation"] == {"no_cvae": True, "no_pessimism": True}
+    settings, pess = model_env_config(cfg, "medium")
+    env = make_model_env({"env": settings}, fitted_ensemble, None, toy_data, batch_size=8, latent=False).base_env
+    assert env.reward_penalty == 5.0 and env.horizon == 5 and env.threshold == float("inf") and env.penalty == 0.0
+    td = env.rollout(5, break_when_any_done=False)
+    assert not td["next", "penalized"].any() and td["next", "truncated"][:, -1].all()  # MOPO never ends an episode by disagreement
