@@ -104,6 +104,9 @@ def test_low_level_annotation_rewards_penalty_segments_and_done():
     assert td["next", "option_done"].squeeze(-1).tolist() == [[False, True, False], [False, False, False]]
     low_level_done(td)
     assert td[LOW_DONE].squeeze(-1).tolist() == [[False, True, False], [True, False, False]]
+    # SB3's HER (SAC + HER, terminal_on_success=False): the met sub-goal does not stop the bootstrap, the penalty still does
+    low_level_done(td, on_success=False)
+    assert td[LOW_DONE].squeeze(-1).tolist() == [[False, False, False], [True, False, False]]
 
 
 # ------------------------------------------------------------------------------------------ the option policy

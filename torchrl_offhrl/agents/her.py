@@ -87,11 +87,16 @@ def low_level_keys(td: TensorDictBase, action_key: str) -> list:
     return keys + ([("next", "penalized")] if ("next", "penalized") in td.keys(True) else [])
 
 
-def low_level_done(td: TensorDictBase) -> TensorDictBase:
-    """Write :data:`LOW_DONE` on a sampled (possibly relabelled) batch: the sub-goal met at s' (reward 0) or ``("next", "terminated")``."""
+def low_level_done(td: TensorDictBase, on_success: bool = True) -> TensorDictBase:
+    """Write :data:`LOW_DONE` on a sampled (possibly relabelled) batch: the sub-goal met at s' (reward 0) or ``("next", "terminated")``.
+
+    ``on_success=False``: only ``("next", "terminated")`` (the model env's
+    pessimistic terminations) stops the bootstrap; a met sub-goal does not
+    end anything (Stable-Baselines3's HER: goal envs end at their time limit only).
+    """
     r = td.get(LOW_REWARD)
     term = td.get(("next", "terminated"), None)
-    done = r == 0
+    done = (r == 0) if on_success else torch.zeros_like(r, dtype=torch.bool)
     if term is not None:
         done = done | term.reshape(done.shape).bool()
     td.set(LOW_DONE, done)

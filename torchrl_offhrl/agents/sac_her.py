@@ -12,6 +12,15 @@ rewards as UOF's low level (:mod:`~torchrl_offhrl.agents.her`): the reward
 is 0 where the sub-goal is met at s', else -1, and the episode's end for
 HER segments (``her_per_option=True`` relabels within option segments as
 UOF does).
+
+``terminal_on_success`` (True: this project's first version, as UOF's low
+level) stops the critic's bootstrap where the sub-goal is met; False: only
+the model env's pessimistic terminations do, as in Stable-Baselines3, whose
+goal envs end at their time limit only. With the bootstrap stopped at the
+goal, SAC's entropy bonus (``-alpha log pi`` in every target) can make each
+step worth more than the -1 reward costs, and reaching the goal, which ends
+that stream, the worst thing to do: measured in
+``docs/results/block_stacking.md``.
 """
 from __future__ import annotations
 
@@ -51,6 +60,7 @@ class SACHERAgent(SACAgent):
         alpha_init: float = 1.0,
         her_ratio: float = 0.8,
         her_per_option: bool = False,
+        terminal_on_success: bool = True,
         fused_adam: bool = True,
     ):
         if goal_key != "sub_goal":
@@ -66,6 +76,7 @@ class SACHERAgent(SACAgent):
         self.init_random_frames = int(init_random_frames)
         self.utd_ratio = float(utd_ratio)
         self.her_per_option = bool(her_per_option)
+        self.terminal_on_success = bool(terminal_on_success)
         self.replay_buffer = sub_goal_her_buffer(int(buffer_size), int(batch_size), her_ratio=her_ratio, device=device)
         self.frames = 0
 
@@ -73,4 +84,4 @@ class SACHERAgent(SACAgent):
         prepare_low_level(batch, per_option=self.her_per_option)
         flat = batch.reshape(-1)
         self.replay_buffer.extend(flat.select(*low_level_keys(flat, self.action_key)))
-        return self.gradient_steps(batch.numel(), lambda: low_level_done(self.replay_buffer.sample()))
+        return self.gradient_steps(batch.numel(), lambda: low_level_done(self.replay_buffer.sample(), on_success=self.terminal_on_success))
