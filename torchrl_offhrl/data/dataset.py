@@ -263,6 +263,13 @@ class OfflineDataset:
         rewards weighted by ``gamma ** t`` (``t`` the step within the episode)
         are summed backwards once and each episode's tail subtracted.
 
+        Why not TorchRL's ``Reward2GoTransform``: it is a replay-buffer
+        transform applied to sampled trajectories (``[..., T]`` batches with
+        their done flags), where this is a statistic of the whole flat dataset
+        at once (the reward scale, FQE's targets), episodes delimited by
+        ``terminated | truncated``; it would need the dataset split into
+        padded trajectories first.
+
         Examples:
             >>> import torch
             >>> from tensordict import TensorDict

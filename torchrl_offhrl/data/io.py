@@ -299,6 +299,15 @@ def _json_default(obj):
 
 # ------------------------------------------------------------------- Minari
 def _load_minari(dataset_id: str, dtype: torch.dtype) -> OfflineDataset:
+    """A locally stored Minari dataset as an :class:`OfflineDataset` (flat Box observations).
+
+    Why not TorchRL's ``MinariExperienceReplay``: it is a replay buffer that
+    converts a dataset into its own memory-mapped storage under its root
+    (downloading it unless ``load_from_local_minari`` is set), where the project needs the transitions as one flat
+    dataset with its metadata (env id, start states, episode ends) to fit
+    models on and to hash; reading the episodes with ``minari`` directly is
+    that, with nothing downloaded and the errors saying what to do.
+    """
     try:
         import minari
     except ImportError as err:  # pragma: no cover - depends on the install

@@ -34,6 +34,14 @@ class PessimisticModelEnv(EnvBase):
     own termination (e.g. Hopper's health check) applies on top, and
     episodes are truncated after ``horizon`` steps.
 
+    Why :class:`~torchrl.envs.EnvBase` and not TorchRL's
+    ``ModelBasedEnvBase``: that base steps one ``world_model`` module on the
+    tensordict and leaves termination, rewards and resets to the subclass,
+    while this env needs every member's prediction at once (the discrepancy),
+    one member per episode kept in the state, dataset start states and the
+    penalty; none of which ``ModelBasedEnvBase`` provides, so the base would
+    add a module call convention and nothing else.
+
     Args:
         ensemble (DynamicsEnsemble): a fitted ensemble (with a learned
             reward or a ``reward_fn``).
