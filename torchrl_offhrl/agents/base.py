@@ -7,6 +7,10 @@ batches with :attr:`Agent.policy`, calls :meth:`Agent.update` on each and
 checkpoints :meth:`Agent.state_dict` (and :attr:`Agent.replay_buffer`, if
 any). At each real-env evaluation it merges :meth:`Agent.evaluation_metrics`
 into the record; at the last one it calls :meth:`Agent.save_evaluation`.
+
+The networks the agents share are in :mod:`~torchrl_offhrl.agents.networks`,
+the optimiser and compilation helpers in :mod:`~torchrl_offhrl.agents.optim`
+(both re-exported here).
 """
 from __future__ import annotations
 
@@ -17,6 +21,9 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from torch import nn
+
+from .networks import action_box, deterministic_actor, gaussian_actor, q_network
+from .optim import COMPILE_MODES, adam, compile_setting, make_capturable
 
 __all__ = [
     "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "backward", "compile_setting", "deterministic_actor", "gaussian_actor", "make_capturable", "q_network", "scalar_metrics", "sum_losses",
@@ -74,42 +81,6 @@ class MetricMeans:
 
     def means(self) -> dict[str, float]:
         return {self.prefix + k: float(v) / max(self.count, 1) for k, v in self._sums.items()}
-
-
-def adam(params, lr: float, eps: float = 1e-8, fused: bool = True) -> torch.optim.Adam:
-    """Adam; ``fused`` (default) runs one fused kernel over every parameter instead of a Python loop of small ops.
-
-    The same update rule: on the agents' small networks torch's default
-    per-tensor Adam costs ~1 ms per step on CPU, the fused one ~0.1 ms
-    (``benchmarks/recipe_throughput.py``). ``fused=False`` is torch's default
-    implementation (results then match older runs bit for bit).
-    """
-    params = list(params)
-    return torch.optim.Adam(params, lr=lr, eps=eps, fused=True) if fused else torch.optim.Adam(params, lr=lr, eps=eps, foreach=False)
-
-
-def action_box(env, key: str) -> tuple[int, torch.Tensor, torch.Tensor]:
-    """``(dim, low, high)`` of the action ``key`` of ``env`` (one env's box when the env is batched)."""
-    spec = env.full_action_spec[key] if key in env.full_action_spec.keys(True, True) else env.action_spec
-    dim = spec.shape[-1]
-    low = spec.space.low.reshape(-1, dim)[0].float()
-    high = spec.space.high.reshape(-1, dim)[0].float()
-    return dim, low, high
-
-
-COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
-
-
-def compile_setting(value) -> bool | str:
-    """An algorithm config's ``compile`` value as :attr:`Agent.compile`: ``False``, or a ``torch.compile`` mode (``True``: ``"default"``)."""
-    if value is None or value is False:
-        return False
-    if value is True:
-        return "default"
-    if isinstance(value, str) and value in COMPILE_MODES:
-        return value
-    raise ValueError(f"compile must be true, false or a torch.compile mode ({', '.join(COMPILE_MODES)}), got {value!r}: "
-                     "e.g. algo.compile=true, or algo.compile=reduce-overhead for CUDA graphs on a GPU")
 
 
 class Agent:
@@ -321,61 +292,6 @@ class OnPolicyAgent(Agent):
         return {**metrics.means(), "updates": metrics.count}
 
 
-def _inputs(env, goal_key: str | None) -> tuple[list[str], int]:
-    """The actor's in-keys (``observation``, and the goal if any) and the goal's size (not normalised: an extra input)."""
-    if goal_key is None:
-        return ["observation"], 0
-    return ["observation", goal_key], env.observation_spec[goal_key].shape[-1]
-
-
-def gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, default_scale: float = 1.0, scale_lb: float = 0.1,
-                   goal_key: str | None = None):
-    """A tanh-Gaussian :class:`~torchrl.modules.ProbabilisticActor` on ``env``'s action box, state-dependent scale.
-
-    The scale is ``biased_softplus_<default_scale>`` of the network's output,
-    at least ``scale_lb`` (TorchRL's IQL / CQL sota scripts: 1.0 and 0.1).
-    With ``goal_key`` the actor also reads that goal (goal-conditioned tasks).
-    """
-    from tensordict.nn import NormalParamExtractor, TensorDictModule
-
-    from ..nets import NormalizedMLP, tanh_gaussian_actor
-
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    act_dim, low, high = action_box(env, action_key)
-    in_keys, goal_dim = _inputs(env, goal_key)
-    net = nn.Sequential(
-        NormalizedMLP(obs_dim, goal_dim, 2 * act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale),
-        NormalParamExtractor(scale_mapping=f"biased_softplus_{float(default_scale)}", scale_lb=float(scale_lb)),
-    )
-    return tanh_gaussian_actor(TensorDictModule(net, in_keys=in_keys, out_keys=["loc", "scale"]), low, high, action_key)
-
-
-def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, goal_key: str | None = None):
-    """A deterministic actor: an MLP squashed into ``env``'s action box by TorchRL's ``TanhModule`` (TD3+BC, BC); with ``goal_key``, also on that goal."""
-    from tensordict.nn import TensorDictModule, TensorDictSequential
-    from torchrl.modules import TanhModule
-
-    from ..nets import NormalizedMLP
-
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    act_dim, low, high = action_box(env, action_key)
-    in_keys, goal_dim = _inputs(env, goal_key)
-    net = TensorDictModule(NormalizedMLP(obs_dim, goal_dim, act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=in_keys, out_keys=["param"])
-    return TensorDictSequential(net, TanhModule(in_keys=["param"], out_keys=[action_key], low=low, high=high))
-
-
-def q_network(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None):
-    """``Q(observation, action)`` as a TorchRL ``ValueOperator`` writing ``state_action_value``."""
-    from torchrl.modules import ValueOperator
-
-    from ..nets import NormalizedMLP
-
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    act_dim, _, _ = action_box(env, action_key)
-    return ValueOperator(NormalizedMLP(obs_dim, act_dim, 1, list(hidden_sizes), "relu", obs_loc, obs_scale),
-                         in_keys=["observation", action_key], out_keys=["state_action_value"])
-
-
 class DatasetAgent(Agent):
     """Model-free offline agents: every update is gradient steps on minibatches drawn from the dataset itself.
 
@@ -480,13 +396,3 @@ class DatasetAgent(Agent):
             for group in opt.param_groups:
                 group["capturable"] = False
         self.__dict__.pop("_step_fns", None)
-
-
-def make_capturable(opt: torch.optim.Optimizer) -> None:
-    """Let ``opt`` (an Adam) be captured in a CUDA graph: ``capturable`` groups, step counts on the parameters' device."""
-    for group in opt.param_groups:
-        group["capturable"] = True
-        for p in group["params"]:
-            state = opt.state.get(p, {})
-            if torch.is_tensor(state.get("step")) and state["step"].device != p.device:
-                state["step"] = state["step"].to(p.device, torch.float32)

@@ -14,13 +14,14 @@ HER segments (``her_per_option=True`` relabels within option segments as
 UOF does).
 
 ``terminal_on_success`` (True: this project's first version, as UOF's low
-level) stops the critic's bootstrap where the sub-goal is met; False: only
-the model env's pessimistic terminations do, as in Stable-Baselines3, whose
-goal envs end at their time limit only. With the bootstrap stopped at the
+level) stops the critic's bootstrap where the sub-goal is met; False (the
+default): only the model env's pessimistic terminations do, as in
+Stable-Baselines3, whose goal envs end at their time limit only. With the bootstrap stopped at the
 goal, SAC's entropy bonus (``-alpha log pi`` in every target) can make each
 step worth more than the -1 reward costs, and reaching the goal, which ends
 that stream, the worst thing to do: measured in
-``docs/results/block_stacking.md``.
+``docs/results/blockstack/sac_her_notes.md`` (True: success 1.0 / 1.0 / 0
+fell to 0 / 0 / 0 within 4,800 frames; False: kept).
 """
 from __future__ import annotations
 
@@ -60,7 +61,7 @@ class SACHERAgent(SACAgent):
         alpha_init: float = 1.0,
         her_ratio: float = 0.8,
         her_per_option: bool = False,
-        terminal_on_success: bool = True,
+        terminal_on_success: bool = False,
         fused_adam: bool = True,
     ):
         if goal_key != "sub_goal":

@@ -68,7 +68,7 @@ class _Lane:
 
 def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> list[dict]:
     """Train one run per seed, the updates of all seeds batched (:class:`~torchrl_offhrl.agents.seeds.SeedBatch`); each run's summary."""
-    from .train import _Run  # the one-run steps, shared
+    from .train import PreparedRun  # the one-run steps, shared
 
     configs = seed_configs(cfg, seeds)
     for c in configs:
@@ -82,7 +82,7 @@ def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> li
             t_start = time.time()
             run = RunDirectory(c.get("run_dir") or default_run_dir(c), config_fingerprint(c))
             stack.enter_context(run.locked())
-            lane = _Lane(_Run.prepare(c, run, t_start, progress))
+            lane = _Lane(PreparedRun.prepare(c, run, t_start, progress))
             phases = lane.r.setting.phases
             if len(phases) != 1:
                 raise NotImplementedError("seeds=[...] runs settings of one phase")

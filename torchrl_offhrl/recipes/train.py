@@ -50,7 +50,7 @@ from .setting import build_setting
 
 TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
 
-__all__ = ["train"]
+__all__ = ["PreparedRun", "train"]
 
 
 def train(cfg: Mapping, progress: bool = True) -> dict:
@@ -73,14 +73,14 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
 
 
 def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict:
-    r = _Run.prepare(cfg, run, t_start, progress)
+    r = PreparedRun.prepare(cfg, run, t_start, progress)
     for phase in r.setting.phases:
         r.loop.run_phase(phase)
     return r.finish()
 
 
 @dataclass
-class _Run:
+class PreparedRun:
     """One run between its preparation (setting built, checkpoint resumed, logger open) and its report (:meth:`finish`)."""
 
     cfg: dict
@@ -94,7 +94,7 @@ class _Run:
     previous_summary: dict | None
 
     @classmethod
-    def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> _Run:
+    def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> PreparedRun:
         s = build_setting(cfg, run.path, t_start, progress)  # data, models, agent, envs, evaluators, phases
         agent, unit = s.agent, s.unit
         run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
