@@ -51,6 +51,8 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
                  ["model_env.pessimism={quantile: 0.99, penalty: 20.0}"]),
     "mopo2": ("the shipped demo with MOPO's soft pessimism: every model step pays 2 x the members' discrepancy",
               ["model_env.reward_penalty=2.0"]),
+    "bound15": ("the shipped demo with the latent box [-1.5, 1.5] instead of [-2, 2] (a looser trust region than bound1's)",
+                ["model_env.latent_bound=1.5"]),
     "h25": ("the shipped demo with model episodes of 25 steps instead of 100 (less compounding model error per rollout)",
             ["model_env.horizon=25"]),
     "mopo5": ("the shipped demo with MOPO's soft pessimism: every model step pays 5 x the members' discrepancy",
