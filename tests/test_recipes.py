@@ -594,3 +594,20 @@ def test_mopo_config_is_sac_on_penalised_short_rollouts(toy_data, fitted_ensembl
     assert env.reward_penalty == 5.0 and env.horizon == 5 and env.threshold == float("inf") and env.penalty == 0.0
     td = env.rollout(5, break_when_any_done=False)
     assert not td["next", "penalized"].any() and td["next", "truncated"][:, -1].all()  # MOPO never ends an episode by disagreement
+
+
+def test_on_record_sees_every_evaluation_after_its_checkpoint(hopper_file, cache, tmp_path):
+    seen = []
+
+    def on_record(rec):  # the record is already in the run's checkpoint when it is handed over (a stopped trial resumes from it)
+        state = torch.load(Path(rec_dir[0]) / "checkpoint.pt", weights_only=True)
+        seen.append((rec["frames"], state["frames"]))
+
+    cfg = _cfg("ppo", hopper_file, tmp_path, ["eval.at_start=true"])
+    from torchrl_offhrl.recipes.config import default_run_dir
+
+    rec_dir = [default_run_dir(to_plain(cfg))]
+    summary = train(cfg, progress=False, on_record=on_record)
+    evals = json.loads((Path(summary["run_dir"]) / "evals.json").read_text())
+    assert [f for f, _ in seen] == [e["frames"] for e in evals] == [0, 128, 256]
+    assert all(f == ckpt for f, ckpt in seen)

@@ -167,3 +167,41 @@ def test_an_interrupted_search_raises_before_writing_blank_rows():
     failed = R(config={"trial": 1}, metrics={}, error=ValueError("bad"))
     rows = _rows([done, failed, R(config={"trial": 2}, metrics={"final_normalized_d4rl": 1.0}, error=None)], trials, ["seed"])
     assert [(r["trial"], r["seed"], r["error"]) for r in rows] == [(0, 4, None), (1, 5, "ValueError"), (2, 6, None)]
+
+
+def test_scheduler_is_validated_and_trials_carry_their_settings(tmp_path):
+    from torchrl_offhrl.recipes.tune import _record_metrics, trial_index
+
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("kind: agent\nscheduler: asha\ngrid: {algo.lr: [0.1, 0.2]}\n")
+    assert load_search(str(ok))["scheduler"] == "asha"
+    assert load_search("moc")["scheduler"] is None  # the presets run every trial's budget
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("kind: agent\nscheduler: hyperband\ngrid: {algo.lr: [0.1]}\n")
+    with pytest.raises(ValueError, match="scheduler must be one of"):
+        load_search(str(bad))
+    models = tmp_path / "m.yaml"
+    models.write_text("kind: models\nscheduler: asha\ngrid: {ensemble.fit.lr: [0.1]}\n")
+    with pytest.raises(ValueError, match="has none"):
+        load_search(str(models))
+    # Ray's config of a trial: its index and its settings (an experiment started before the settings were added: the index alone)
+    assert trial_index({"trial": {"index": 3, "algo.lr": 0.1}}) == 3 and trial_index({"trial": 2}) == 2
+    rec = {"frames": 10, "step": 10, "return_mean": 5.0, "normalized_d4rl": None, "phase": "offline", "success_per_goal": [1.0], "flag": True}
+    assert _record_metrics(rec, "/r") == {"frames": 10, "step": 10, "return_mean": 5.0, "run_dir": "/r", "skipped": False}
+
+
+def test_asha_search_reports_every_evaluation_and_finishes(ray_session, hopper_file, tmp_path, monkeypatch):
+    from torchrl_offhrl.recipes.tune import tune_search
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    spec = tmp_path / "asha.yaml"
+    spec.write_text("kind: agent\nscheduler: asha\nmetric: return_mean\ngrid: {algo.lr: [0.001, 0.0001]}\n"
+                    "overrides: [algo=bc, train.total_updates=30, eval.every_updates=10, eval.episodes=2, eval.max_steps=20, "
+                    "algo.batch_size=16, 'algo.hidden_sizes=[8]']\n")
+    best = tune_search(str(spec), [f"dataset={hopper_file}"], name="a", out_root=str(tmp_path / "out"), verbose=0)
+    assert best["trials"] == 2 and isinstance(best["return_mean"], float)
+    for i in range(2):  # each trial is an ordinary run directory with its evaluations (0, 10, 20, 30 updates unless ASHA stopped it)
+        evals = json.loads((tmp_path / "out" / "tune" / "a" / "runs" / f"trial{i:03d}" / "evals.json").read_text())
+        assert [e["updates"] for e in evals][:2] == [0, 10]
+    progress = list((tmp_path / "out" / "tune" / "a").rglob("progress.csv"))
+    assert progress and max(len(p.read_text().strip().splitlines()) - 1 for p in progress) >= 3  # one Ray result per evaluation, not one per trial

@@ -94,9 +94,11 @@ class OfflinePhase(Phase):
             # the untrained agent: the start of the learning curve (with the CVAE: about the decoder's mean action)
             run.records.append(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
             run.checkpoint(loop.agent)
+            loop.report(run.records[-1])
         elif remaining == 0 and not run.records:
             run.records.append(loop.evaluate(self.evaluator, save_to=self.final_dir, phase=self.name, selects=self.selects))
             run.checkpoint(loop.agent)
+            loop.report(run.records[-1])
         return remaining
 
 
@@ -120,6 +122,7 @@ class OnlinePhase(Phase):
                 loop.agent.new_task()
             run.records.append(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
             run.checkpoint(loop.agent)
+            loop.report(run.records[-1])
         self.start = switch
         remaining = max(switch + self.total - run.frames, 0)
         if remaining > 0 and self.seed_env is not None:
@@ -149,13 +152,16 @@ class TrainingLoop:
         snapshots: steps at which the agent's state is kept for good (``snapshot-<step>.pt``).
         t_start: the run's start time (records' ``wall_s``).
         progress: show progress bars.
+        on_record: called with every evaluation record as it is made (e.g.
+            a Ray Tune trial reporting it, so that a scheduler can stop it early).
 
     ``timing["update_time_s"]``: the time spent in ``agent.update``.
     """
 
     def __init__(self, run, agent, *, logger=None, title: str = "", snapshots=(), t_start: float | None = None, progress: bool = True,
-                 env_label: str = ""):
+                 env_label: str = "", on_record=None):
         self.run, self.agent, self.logger, self.title = run, agent, logger, title
+        self.on_record = on_record
         self.snapshots = {int(x) for x in snapshots}
         self.t_start = time.time() if t_start is None else t_start
         self.progress = progress
@@ -172,6 +178,11 @@ class TrainingLoop:
         if selects:
             run.selector.consider(rec, self.agent, run.step)
         return rec
+
+    def report(self, rec: dict) -> None:
+        """Hand a kept record to ``on_record`` (after its checkpoint: a trial stopped there resumes from it)."""
+        if self.on_record is not None:
+            self.on_record(rec)
 
     def run_phase(self, phase: Phase) -> None:
         """:meth:`Phase.begin`, then train on its batches until its budget is spent."""
@@ -239,6 +250,7 @@ class TrainingLoop:
             self._report(rec, st.bar, unit)
             self._snapshot(rec)
             run.checkpoint(self.agent)
+            self.report(rec)
             st.next_eval = phase.start + ((run.step - phase.start) // phase.every + 1) * phase.every
             if run.step >= end:
                 return True

@@ -53,8 +53,11 @@ TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "mode
 __all__ = ["PreparedRun", "train"]
 
 
-def train(cfg: Mapping, progress: bool = True) -> dict:
+def train(cfg: Mapping, progress: bool = True, on_record=None) -> dict:
     """Run one recipe end to end; returns the summary also written to ``run_dir/summary.json``.
+
+    ``on_record``: called with each evaluation record as it is made (a Ray
+    Tune trial reports them: :mod:`~torchrl_offhrl.recipes.tune`).
 
     The run directory is locked for the whole run: a second ``train`` on the
     same directory (another process, or this one) is refused with
@@ -66,14 +69,14 @@ def train(cfg: Mapping, progress: bool = True) -> dict:
     run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
     with run.locked():  # refused here, a run leaves the directory alone: it belongs to the run holding the lock
         try:
-            return _train(cfg, run, t_start, progress)
+            return _train(cfg, run, t_start, progress, on_record)
         except BaseException:
             run.remove_if_empty()  # a run that failed before writing anything (say, on a bad dataset) leaves no folder
             raise
 
 
-def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> dict:
-    r = PreparedRun.prepare(cfg, run, t_start, progress)
+def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool, on_record=None) -> dict:
+    r = PreparedRun.prepare(cfg, run, t_start, progress, on_record)
     for phase in r.setting.phases:
         r.loop.run_phase(phase)
     return r.finish()
@@ -94,7 +97,7 @@ class PreparedRun:
     previous_summary: dict | None
 
     @classmethod
-    def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool) -> PreparedRun:
+    def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool, on_record=None) -> PreparedRun:
         s = build_setting(cfg, run.path, t_start, progress)  # data, models, agent, envs, evaluators, phases
         agent, unit = s.agent, s.unit
         run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
@@ -108,7 +111,8 @@ class PreparedRun:
         run.write_json("config.json", {**cfg, "resolved_pessimism": s.pessimism, "threshold": s.threshold, "resolved_reward_scale": s.reward_scale,
                                        "model_dir": s.model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
         logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
-        loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=s.snapshots, t_start=t_start, progress=progress, env_label=s.env_label)
+        loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=s.snapshots, t_start=t_start, progress=progress, env_label=s.env_label,
+                            on_record=on_record)
         return cls(cfg, run, s, loop, t_start, time.time(), run.frames, run.updates, previous_summary)
 
     def finish(self) -> dict:

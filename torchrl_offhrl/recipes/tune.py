@@ -49,6 +49,8 @@ __all__ = ["TUNE_EXTRA_HINT", "SearchInterrupted", "finished_run", "load_search"
 
 TUNE_EXTRA_HINT = "offhrl tune and offhrl sweep need Ray Tune: pip install 'torchrl-offhrl[tune]' (or pip install 'ray[tune]')"
 KINDS = ("models", "agent")
+#: Ray Tune schedulers a search may name (null: every trial runs its whole budget)
+SCHEDULERS = (None, "asha")
 
 
 def require_ray():
@@ -71,7 +73,9 @@ def load_search(name_or_path: str) -> dict:
     (key -> the grid key whose drawn value it takes), ``overrides`` (hydra
     overrides of ``configs/offline_train.yaml`` for every trial, before the
     command line's), and for ``agent`` searches ``metric`` / ``mode`` (a key
-    of the final evaluation record, ``max`` or ``min``).
+    of the final evaluation record, ``max`` or ``min``) and ``scheduler``
+    (null: every trial runs its budget; ``asha``: Ray Tune's ASHA stops the
+    trials behind at their evaluations, each reported as it is made).
     """
     from omegaconf import OmegaConf
 
@@ -93,8 +97,13 @@ def load_search(name_or_path: str) -> dict:
             problems.append(f"tie {k}: {src!r} is not a key of the grid")
     if spec.get("kind") == "agent" and spec.get("mode", "max") not in ("max", "min"):
         problems.append(f"mode must be max or min, got {spec.get('mode')!r}")
+    if spec.get("scheduler") not in SCHEDULERS:
+        problems.append(f"scheduler must be one of {SCHEDULERS}, got {spec.get('scheduler')!r}")
+    elif spec.get("scheduler") and spec.get("kind") != "agent":
+        problems.append(f"scheduler {spec['scheduler']!r} stops agent trials at their evaluations; a {spec.get('kind')!r} search has none")
     if problems:
         raise ValueError(f"{path}: " + "; ".join(problems))
+    spec.setdefault("scheduler", None)
     spec.setdefault("num_samples", None)
     spec.setdefault("sample_seed", 0)
     spec.setdefault("tie", {})
@@ -177,7 +186,15 @@ def _train_trial(config: dict) -> None:
     if done is not None:  # a finished run directory is not trained again
         tune.report(_metrics(done, skipped=True))
         return
-    tune.report(_metrics(train(cfg, progress=False), skipped=False))
+    # every evaluation reported as it is made (a scheduler such as ASHA may stop the trial there), then the summary
+    tune.report(_metrics(train(cfg, progress=False, on_record=lambda rec: tune.report(_record_metrics(rec, run_dir))), skipped=False))
+
+
+def _record_metrics(rec: Mapping, run_dir) -> dict:
+    """What a trial reports at each evaluation: the record's numbers, its step and run directory."""
+    out = {k: v for k, v in rec.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    out.update({"run_dir": str(run_dir), "skipped": False})
+    return out
 
 
 def finished_run(run_dir, cfg: Mapping) -> dict | None:
@@ -232,7 +249,8 @@ def _init_ray(address: str | None, num_cpus: int | None):
 
 
 def _run_trials(trainable, trials: list[dict], name: str, storage: Path, cpus_per_trial: int, gpus_per_trial: float, address: str | None,
-                num_cpus: int | None, max_concurrent: int | None, verbose: int):
+                num_cpus: int | None, max_concurrent: int | None, verbose: int, scheduler: str | None = None, metric: str | None = None,
+                mode: str = "max"):
     """Run ``trials`` (one dict each) as Ray Tune trials of experiment ``name`` under ``storage``; restore it if it was interrupted."""
     ray, started = _init_ray(address, num_cpus)
     from ray import tune
@@ -253,10 +271,16 @@ def _run_trials(trainable, trials: list[dict], name: str, storage: Path, cpus_pe
         else:
             exp.mkdir(parents=True, exist_ok=True)
             spec_file.write_text(json.dumps(trials, indent=1, default=str))
+            sched = None
+            if scheduler == "asha":  # stops the trials behind at their evaluations (grace: the first one after the untrained)
+                from ray.tune.schedulers import ASHAScheduler
+
+                sched = ASHAScheduler(metric=metric, mode=mode, grace_period=2, max_t=10_000)
             tuner = tune.Tuner(
                 wrapped,
-                param_space={"trial": tune.grid_search(list(range(len(trials))))},
-                tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent),
+                # each trial's settings in Ray's config too (its tables and loggers show them), beside its index
+                param_space={"trial": tune.grid_search([{"index": i, **{k: v for k, v in t["params"].items()}} for i, t in enumerate(trials)])},
+                tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, scheduler=sched),
                 run_config=tune.RunConfig(name=name, storage_path=str(storage), verbose=verbose),
             )
         return tuner.fit(), trials
@@ -267,10 +291,16 @@ def _run_trials(trainable, trials: list[dict], name: str, storage: Path, cpus_pe
 
 def _with_specs(fn, trials: list[dict]):
     def trainable(config):
-        return fn(trials[config["trial"]])
+        return fn(trials[trial_index(config)])
 
     trainable.__name__ = fn.__name__.strip("_")
     return trainable
+
+
+def trial_index(config: Mapping) -> int:
+    """A trial's index in its experiment's trial list, from its Ray config (``{"index": i, ...settings}``; an int before the settings were added)."""
+    t = config["trial"]
+    return int(t["index"]) if isinstance(t, Mapping) else int(t)
 
 
 class SearchInterrupted(RuntimeError):
@@ -291,7 +321,7 @@ def _rows(results, trials: list[dict], keys: Sequence[str], name: str = "the sea
                                 "to resume it (finished trials are not run again)")
     rows = []
     for r in results:
-        idx = r.config["trial"]
+        idx = trial_index(r.config)
         m = dict(r.metrics or {})
         rows.append({"trial": idx, **{k: trials[idx]["params"].get(k) for k in keys}, **{k: v for k, v in m.items() if not k.startswith(("time", "timestamp",
                      "date", "hostname", "node_ip", "pid", "training_iteration", "iterations_since", "trial_id", "done", "config", "checkpoint_dir_name",
@@ -358,7 +388,7 @@ def tune_search(preset: str, overrides: Sequence[str] = (), *, name: str | None 
     fn = _models_trial if spec["kind"] == "models" else _train_trial
     t0 = time.time()
     results, trials = _run_trials(_with_specs(fn, trials), trials, name, root, cpus_per_trial, gpus_per_trial, address, num_cpus, max_concurrent,
-                                  verbose)
+                                  verbose, scheduler=spec["scheduler"], metric=spec["metric"], mode=spec["mode"])
     rows = _rows(results, trials, keys, name)
     table = _write_table(rows, root / name, f"offhrl tune {spec['name']}: {len(rows)} trials ({time.time() - t0:.0f} s)")
     ok = [r for r in rows if r["error"] is None]
