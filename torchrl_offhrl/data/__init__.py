@@ -1,8 +1,8 @@
 """Offline data: loading, writing, normalisation statistics, splits, collection, generation."""
 from .collect import collect_dataset, make_gym_env
 from .dataset import DatasetError, NormalizationStats, OfflineDataset, make_toy_dataset
-from .generate import SampledPolicy, export_minari, generate_dataset, named_dataset
-from .io import load_dataset, save_dataset
+from .generate import SampledPolicy, generate_dataset, named_dataset
+from .io import export_minari, load_dataset, save_dataset
 from .policies import PolicyNotFoundError, list_policies, load_policy, ship_policy
 
 __all__ = [
