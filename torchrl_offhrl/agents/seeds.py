@@ -49,8 +49,13 @@ _NOT_VMAPPABLE = {"CQLLoss": "reads its parameters' .data inside the loss (log_a
                              "sampled actions), which torch.vmap forbids"}
 
 
-def _leaves(loss) -> tuple[TensorDict, list[tuple]]:
-    """The loss's tensors (``TensorDict.from_module``) and their key paths, each tensor once (a network shared by two
+def _flat_params(opt: torch.optim.Optimizer) -> list:
+    """The tensors an optimiser steps, in its groups' order (how a worker's and an agent's optimisers are matched)."""
+    return [p for g in opt.param_groups for p in g["params"]]
+
+
+def _leaves(loss) -> list[tuple]:
+    """The key paths of the loss's tensors (``TensorDict.from_module``), each tensor once (a network shared by two
     parts of a loss, e.g. a value estimator, appears under several keys)."""
     td = TensorDict.from_module(loss, as_module=False)
     seen, keys = set(), []
@@ -59,7 +64,7 @@ def _leaves(loss) -> tuple[TensorDict, list[tuple]]:
         if id(t) not in seen:
             seen.add(id(t))
             keys.append(k)
-    return td, keys
+    return keys
 
 
 def _with_seed_dim(td: TensorDict, n: int, loss) -> TensorDict:
@@ -129,7 +134,7 @@ class SeedBatch:
         if len(self.generators) != self.n:
             raise ValueError(f"SeedBatch: one generator per agent ({self.n}), got {len(self.generators)}")
         self.worker = copy.deepcopy(agents[0])
-        _, self._keys = _leaves(self.worker.loss)
+        self._keys = _leaves(self.worker.loss)
         self._check_same_shapes()
         self._rebind_optimizers()
         self._rebind_target_updater()
@@ -184,12 +189,12 @@ class SeedBatch:
         with torch.no_grad():
             for k in self._keys:
                 w.get(k).data = torch.stack([p.get(k).detach() for p in per])
-        self._params = _with_seed_dim(TensorDict.from_module(self.worker.loss, as_module=False), self.n, self.agents[0].loss)  # its batch sizes: the worker's hold stacked tensors
+        self._params = _with_seed_dim(w, self.n, self.agents[0].loss)  # agent 0's batch sizes: the worker's hold stacked tensors
         for w_opt, opts in zip(self.worker.optimizers(), zip(*(a.optimizers() for a in self.agents))):
-            w_params = [p for g in w_opt.param_groups for p in g["params"]]
+            own = [_flat_params(o) for o in opts]
             w_opt.state.clear()
-            for j, wp in enumerate(w_params):
-                states = [o.state.get([p for g in o.param_groups for p in g["params"]][j]) for o in opts]
+            for j, wp in enumerate(_flat_params(w_opt)):
+                states = [o.state.get(params[j]) for o, params in zip(opts, own)]
                 if any(s is None for s in states):
                     continue
                 w_opt.state[wp] = {name: (torch.stack([s[name] for s in states]) if torch.is_tensor(v) and v.dim() > 0 else v.clone() if torch.is_tensor(v) else v)
@@ -207,8 +212,8 @@ class SeedBatch:
                 for k in self._keys:
                     mine.get(k).data.copy_(w.get(k).data[i])
                 for w_opt, opt in zip(self.worker.optimizers(), a.optimizers()):
-                    own = [p for g in opt.param_groups for p in g["params"]]
-                    for j, wp in enumerate(p for g in w_opt.param_groups for p in g["params"]):
+                    own = _flat_params(opt)
+                    for j, wp in enumerate(_flat_params(w_opt)):
                         if wp not in w_opt.state:
                             continue
                         opt.state[own[j]] = {name: (v[i].clone() if torch.is_tensor(v) and v.dim() > 0 else v.clone() if torch.is_tensor(v) else v)

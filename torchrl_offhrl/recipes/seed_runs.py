@@ -26,9 +26,9 @@ import torch
 
 from ..agents.seeds import SeedBatch
 from ..utils import to_plain
-from .config import config_fingerprint, default_run_dir, learns_from_dataset
-from .rundir import RunDirectory
+from .config import learns_from_dataset
 from .schema import validate_config
+from .sources import dataset_replay_buffer
 
 __all__ = ["seed_configs", "train_seeds"]
 
@@ -68,7 +68,7 @@ class _Lane:
 
 def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> list[dict]:
     """Train one run per seed, the updates of all seeds batched (:class:`~torchrl_offhrl.agents.seeds.SeedBatch`); each run's summary."""
-    from .train import PreparedRun  # the one-run steps, shared
+    from .train import PreparedRun, run_directory  # the one-run steps, shared
 
     configs = seed_configs(cfg, seeds)
     for c in configs:
@@ -80,7 +80,7 @@ def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> li
         lanes = []
         for c in configs:
             t_start = time.time()
-            run = RunDirectory(c.get("run_dir") or default_run_dir(c), config_fingerprint(c))
+            run = run_directory(c)
             stack.enter_context(run.locked())
             lane = _Lane(PreparedRun.prepare(c, run, t_start, progress))
             phases = lane.r.setting.phases
@@ -109,7 +109,7 @@ def _train_batched(lanes: list[_Lane], remaining: int) -> None:
     if len(hashes) != 1:
         raise ValueError("the seeds' runs read different data; they cannot share updates")
     batch = SeedBatch([lane.r.setting.agent for lane in lanes], generators=[lane.rng for lane in lanes])
-    rb = first.data.to_replay_buffer(batch_size=min(int(first.agent.batch_size), len(first.data)), device=first.device)
+    rb = dataset_replay_buffer(first.data, first.agent, first.device)
     phases = [lane.r.setting.phases[0] for lane in lanes]
     progress = [lane.r.loop.start(phase) for lane, phase in zip(lanes, phases)]
     try:

@@ -5,7 +5,7 @@ The loop only iterates over batches and hands them to ``agent.update``.
 """
 from __future__ import annotations
 
-__all__ = ["dataset_batches", "env_collector", "model_env_metrics", "online_metrics"]
+__all__ = ["dataset_batches", "dataset_replay_buffer", "env_collector", "model_env_metrics", "online_metrics"]
 
 
 def env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu"):
@@ -49,6 +49,11 @@ def online_metrics(batch) -> dict[str, float]:
     return {}
 
 
+def dataset_replay_buffer(data, agent, device="cpu"):
+    """The dataset once in a TorchRL replay buffer on ``device``, sampling ``agent.batch_size`` transitions (at most the dataset's size)."""
+    return data.to_replay_buffer(batch_size=min(int(agent.batch_size), len(data)), device=device)
+
+
 def dataset_batches(data, agent, updates: int, device="cpu"):
     """``updates`` minibatches of ``agent.batch_size`` transitions drawn uniformly (with replacement) from ``data``.
 
@@ -57,6 +62,6 @@ def dataset_batches(data, agent, updates: int, device="cpu"):
     ``device``; sampling uses torch's global RNG, which a resumed run restores
     from its checkpoint.
     """
-    rb = data.to_replay_buffer(batch_size=min(int(agent.batch_size), len(data)), device=device)
+    rb = dataset_replay_buffer(data, agent, device)
     for _ in range(int(updates)):
         yield rb.sample()

@@ -50,7 +50,7 @@ from .setting import build_setting
 
 TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
 
-__all__ = ["PreparedRun", "train"]
+__all__ = ["PreparedRun", "run_directory", "train"]
 
 
 def train(cfg: Mapping, progress: bool = True, on_record=None) -> dict:
@@ -66,13 +66,18 @@ def train(cfg: Mapping, progress: bool = True, on_record=None) -> dict:
     cfg = to_plain(cfg)
     validate_config(cfg)  # every bad value named before any data or model work
     t_start = time.time()
-    run = RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
+    run = run_directory(cfg)
     with run.locked():  # refused here, a run leaves the directory alone: it belongs to the run holding the lock
         try:
             return _train(cfg, run, t_start, progress, on_record)
         except BaseException:
             run.remove_if_empty()  # a run that failed before writing anything (say, on a bad dataset) leaves no folder
             raise
+
+
+def run_directory(cfg: Mapping) -> RunDirectory:
+    """The run directory of a validated config: ``run_dir``, else the default one of its algorithm, data and seed."""
+    return RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
 
 
 def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool, on_record=None) -> dict:
