@@ -34,7 +34,7 @@ def main(argv=None) -> int:
 
     from torchrl_offhrl.data import load_dataset, named_dataset, save_dataset
     from torchrl_offhrl.data.action_pack import load_action_pack, read_action_pack, save_action_pack
-    from torchrl_offhrl.data.generate import dataset_path
+    from torchrl_offhrl.data.catalog import dataset_path
     from torchrl_offhrl.utils import atomic_write
 
     if args.cmd == "pack":

@@ -209,7 +209,7 @@ def test_collection_is_deterministic_and_its_goal_fields_are_consistent(tmp_path
 
 def test_named_stacking_dataset_is_generated_and_cached(tmp_path, monkeypatch):
     from torchrl_offhrl.data import named_dataset
-    from torchrl_offhrl.data.generate import dataset_path
+    from torchrl_offhrl.data.catalog import dataset_path
 
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
     ds = named_dataset("blockstack3-medium-expert", num_transitions=150, progress=False, num_envs=2)

@@ -6,7 +6,7 @@ import torch
 
 from torchrl_offhrl.data import DatasetError, load_dataset, make_toy_dataset
 from torchrl_offhrl.data import generate
-from torchrl_offhrl.data.generate import dataset_path, named_dataset
+from torchrl_offhrl.data.catalog import dataset_path, named_dataset
 from torchrl_offhrl.models import DynamicsEnsemble
 from torchrl_offhrl.recipes.pipeline import fit_or_load_models
 from torchrl_offhrl.recipes.rundir import RunDirectory

@@ -54,7 +54,7 @@ def cmd_policies(args) -> int:
 
 def cmd_collect(args) -> int:
     from .data import export_minari, named_dataset, save_dataset
-    from .data.generate import dataset_path
+    from .data.catalog import dataset_path
 
     t0 = time.time()
     if args.policy:  # the paper's route: a UOF policy trained online collects the block-stacking data

@@ -1,7 +1,8 @@
-"""Offline data: loading, writing, normalisation statistics, splits, collection, generation."""
+"""Offline data: loading, writing, normalisation statistics, splits, collection, generation, the named dataset cache."""
 from .collect import collect_dataset, make_gym_env
 from .dataset import DatasetError, NormalizationStats, OfflineDataset, make_toy_dataset
-from .generate import SampledPolicy, generate_dataset, named_dataset
+from .catalog import named_dataset
+from .generate import SampledPolicy, generate_dataset
 from .io import export_minari, load_dataset, save_dataset
 from .policies import PolicyNotFoundError, list_policies, load_policy, ship_policy
 

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from ..data import OfflineDataset, load_dataset
-from ..data.generate import named_dataset
+from ..data.catalog import named_dataset
 from ..envs.latent import DEFAULT_LATENT_BOUND
 from ..registry import LEVELS
 from ..utils import to_plain
