@@ -124,7 +124,7 @@ def cmd_fit(args) -> int:
 
 def cmd_train(args) -> int:
     from .recipes.config import compose
-    from .recipes.report import format_summary
+    from .recipes.summary import format_summary
     from .recipes.train import train
 
     cfg = compose("offline_train", args.overrides, "train")

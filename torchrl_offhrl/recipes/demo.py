@@ -17,7 +17,7 @@ from pathlib import Path
 
 from ..utils import to_plain
 from .config import compose
-from .report import fmt_number
+from .summary import fmt_number
 from .train import train
 
 __all__ = ["run_demo", "selection_lines"]

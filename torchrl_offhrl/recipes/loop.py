@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from ..utils import atomic_write
-from .report import fmt_number
+from .summary import fmt_number
 
 __all__ = ["OfflinePhase", "OnlinePhase", "Phase", "TrainingLoop"]
 

@@ -42,7 +42,7 @@ from ..utils import atomic_write, to_plain
 from .config import config_fingerprint, default_run_dir
 from .loop import TrainingLoop
 from .plots import plot_training_metrics
-from .report import run_summary
+from .summary import run_summary
 from .rundir import RunDirectory
 from .schema import validate_config
 from .selection import PolicySelector
