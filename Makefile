@@ -1,4 +1,4 @@
-# The README's two commands: `make demo` (main job) and `make test`.
+# The README's two commands: `make demo` (main job) and `make test`; `make docs` builds the docs site.
 # Both create .venv and install everything on a fresh machine.
 # torch goes in first so that pip does not pull a multi-GB CUDA build:
 #   make test TORCH_VERSION=2.13.0                      (CPU build, default)
@@ -12,7 +12,7 @@ PY := $(VENV)/bin/python
 # pytest-xdist workers for `make test`, one torch thread each (tests/conftest.py); TEST_WORKERS=0 runs one process
 TEST_WORKERS ?= 2
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test docs bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,9 +29,13 @@ demo: install
 test: install
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
+docs: install
+	$(PY) -m pip install --quiet -e ".[docs]"
+	$(VENV)/bin/mkdocs build --strict
+
 bench: install
 	$(PY) benchmarks/ensemble_training.py
 	$(PY) benchmarks/env_throughput.py
 
 clean:
-	rm -rf $(VENV) outputs .pytest_cache
+	rm -rf $(VENV) outputs .pytest_cache build/site

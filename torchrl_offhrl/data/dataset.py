@@ -326,7 +326,7 @@ class OfflineDataset:
         path by other data is never mistaken for the old one. Computed once
         per dataset object (about 0.3 s per 1M Hopper transitions).
 
-        Example:
+        Examples:
             >>> from torchrl_offhrl.data import make_toy_dataset
             >>> a, b = make_toy_dataset(num_episodes=2, episode_length=5), make_toy_dataset(num_episodes=2, episode_length=5)
             >>> a.content_hash() == b.content_hash()
