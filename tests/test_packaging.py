@@ -62,3 +62,21 @@ def test_wheel_ships_configs_and_policies(tmp_path):
         assert f"torchrl_offhrl/configs/{cfg}" in names, cfg
     shipped = {Path(n).name for n in names if n.startswith("torchrl_offhrl/data/policies/")}
     assert {"hopper-medium.pt", "hopper-medium.json"} <= shipped
+
+
+def test_one_version_and_a_changelog_entry_for_it():
+    """The version lives in pyproject.toml alone (the package reads it back), and CHANGELOG.md says where it stands."""
+    import re
+
+    import torchrl_offhrl
+
+    root = Path(__file__).parents[1]
+    version = re.search(r'^version = "([^"]+)"$', (root / "pyproject.toml").read_text(), re.M).group(1)
+    assert torchrl_offhrl.__version__ == version  # an editable install made before a version bump: reinstall (make install)
+    log = (root / "CHANGELOG.md").read_text()
+    released = re.findall(r"^## \[(\d+\.\d+\.\d+)\] - \d{4}-\d{2}-\d{2}$", log, re.M)
+    assert released, "CHANGELOG.md has no release section"
+    if ".dev" in version:  # work towards the next release: listed under [Unreleased], which names it
+        assert f"`{version}`" in log.split("## [", 2)[1]
+    else:
+        assert released[0] == version
