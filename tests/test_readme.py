@@ -66,3 +66,14 @@ def test_docs_site_builds_strict(tmp_path):
     assert "demo.yaml" in conf and "moc.yaml" in conf
     api = (site / "reference" / "api" / "envs" / "index.html").read_text()
     assert "PessimisticModelEnv" in api and "LatentActionTransform" in api
+
+
+def test_every_diagnostic_script_is_in_the_index():
+    """scripts/diagnostics/README.md lists every script of the folder, with the question its docstring asks."""
+    import ast
+
+    folder = ROOT / "scripts" / "diagnostics"
+    index = (folder / "README.md").read_text()
+    for f in sorted(folder.glob("*.py")):
+        first = ast.get_docstring(ast.parse(f.read_text())).splitlines()[0]
+        assert f"| `{f.name}` | {first} |" in index, f.name

@@ -28,7 +28,7 @@ data. The pessimistic model ends the episodes of a gait that runs past the
 data (that is its purpose), so it ranks a near-behaviour-cloning policy
 (real score 29-33) above the running ones (64-93) the same runs reached;
 with 250 model episodes per policy the ranking stays, so it is not noise
-(``docs/results/demo_robustness_notes.md``, ``scripts/selection_probe.py``).
+(``docs/results/demo_robustness_notes.md``, ``scripts/diagnostics/selection_probe.py``).
 Where beating the data means leaving it, the P-MDP cannot tell; the criteria
 stay one switch away, and ``scripts/demo_robustness.py`` scores each of
 them on every run it makes.

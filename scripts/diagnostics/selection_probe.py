@@ -1,6 +1,6 @@
 """Which offline signal ranks a run's intermediate policies as the real env does?
 
-    python scripts/selection_probe.py RUN_DIR [RUN_DIR ...] [--out FILE.json]
+    python scripts/diagnostics/selection_probe.py RUN_DIR [RUN_DIR ...] [--out FILE.json]
 
 For every ``snapshot-<frames>.pt`` of a run (``train.snapshot_frames``; the
 runs of ``scripts/demo_robustness.py`` keep one per evaluation), the policy is
@@ -31,7 +31,7 @@ from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env
 from torchrl_offhrl.rollouts import evaluate_policy, first_episode_mask
 
 GAMMAS = (0.99, 0.995, 0.998)
-HORIZONS = (100, 200, 300, 500)
+HORIZONS = (100, 200, 300, 500, 1000)
 
 
 def signals(reward: torch.Tensor, alive: torch.Tensor, member: torch.Tensor, penalized: torch.Tensor) -> dict:
@@ -53,14 +53,16 @@ def signals(reward: torch.Tensor, alive: torch.Tensor, member: torch.Tensor, pen
     return out
 
 
-def probe(run_dir: Path, episodes: int | None = None) -> list[dict]:
+def probe(run_dir: Path, episodes: int | None = None, horizon: int | None = None, pessimism: bool = True) -> list[dict]:
     cfg, _, agent, _, _ = load_run_agent(run_dir, num_envs=1)
     data = resolve_dataset(cfg)
     pcfg = model_config(cfg)
     ensemble, cvae, _ = fit_or_load_models(pcfg, data, progress=False)
     pcfg["env"], _ = model_env_config(cfg, data.metadata.get("level"), data)
+    if horizon is not None:  # e.g. the real episode's 1000 steps where training cuts model episodes at 100
+        pcfg["env"]["horizon"] = horizon
     n = int(episodes or cfg["eval"].get("model_episodes") or cfg["eval"]["episodes"])
-    menv = make_model_env(pcfg, ensemble, cvae, data, batch_size=n, threshold=cfg["threshold"], reset_states="initial", member_draw="cyclic")
+    menv = make_model_env(pcfg, ensemble, cvae, data, batch_size=n, threshold=cfg["threshold"] if pessimism else float("inf"), reset_states="initial", member_draw="cyclic")
     agent.attach(menv)
     records = {r["frames"]: r for r in json.loads((run_dir / "evals.json").read_text())}
     rows = []
@@ -95,11 +97,13 @@ def main() -> None:
     p.add_argument("runs", nargs="+", type=Path)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--model-episodes", type=int, default=None, help="model episodes per policy (default: the run's eval.model_episodes)")
+    p.add_argument("--horizon", type=int, default=None, help="model episode length (default: the run's model_env.horizon)")
+    p.add_argument("--no-pessimism", action="store_true", help="no pessimistic termination: the ensemble's members and the env's own termination alone")
     a = p.parse_args()
     torch.set_num_threads(1)
     allrows, table = [], {}
     for run in a.runs:
-        rows = probe(run, a.model_episodes)
+        rows = probe(run, a.model_episodes, a.horizon, pessimism=not a.no_pessimism)
         allrows += rows
         for k, (score, hit) in picks(rows).items():
             table.setdefault(k, []).append((run.name, score, hit))

@@ -1,8 +1,8 @@
 """Does the CVAE decoder use its latent? The spread of its actions over latents, next to the data's action spread.
 
-    python scripts/decoder_sensitivity.py [hydra overrides of configs/demo.yaml ...]
-    python scripts/decoder_sensitivity.py cvae.kl_weight=0.05
-    python scripts/decoder_sensitivity.py --config=offline_train   # full scale (first argument)
+    python scripts/diagnostics/decoder_sensitivity.py [hydra overrides of configs/demo.yaml ...]
+    python scripts/diagnostics/decoder_sensitivity.py cvae.kl_weight=0.05
+    python scripts/diagnostics/decoder_sensitivity.py --config=offline_train   # full scale (first argument)
 
 For 2,000 dataset states, decodes 16 latents drawn from the prior and 16
 corners of the latent box (+-2, the policies' range) and prints the standard

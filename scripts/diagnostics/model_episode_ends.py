@@ -1,8 +1,8 @@
 """How long do episodes last in the pessimistic model, and what ends them, next to the real env?
 
-    python scripts/model_episode_ends.py [hydra overrides of configs/demo.yaml ...]
-    python scripts/model_episode_ends.py model_env.member_mode=mean ensemble.fit.max_steps=20000
-    python scripts/model_episode_ends.py --config=offline_train ensemble.fit.lr=1e-3   # full scale (first argument)
+    python scripts/diagnostics/model_episode_ends.py [hydra overrides of configs/demo.yaml ...]
+    python scripts/diagnostics/model_episode_ends.py model_env.member_mode=mean ensemble.fit.max_steps=20000
+    python scripts/diagnostics/model_episode_ends.py --config=offline_train ensemble.fit.lr=1e-3   # full scale (first argument)
 
 Rolls the untrained MOC agent's deterministic policy (the CVAE decoder's mean
 action) out for 50 episodes in the model env built exactly as `offhrl train`

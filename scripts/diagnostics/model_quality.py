@@ -1,6 +1,6 @@
 """Held-out one-step quality of fitted ensembles: are the members wrong together (bias) or apart (disagreement)?
 
-    python scripts/model_quality.py MODEL_DIR [MODEL_DIR ...] [--env hopper] [--transitions 20000] [--seed 99]
+    python scripts/diagnostics/model_quality.py MODEL_DIR [MODEL_DIR ...] [--env hopper] [--transitions 20000] [--seed 99]
 
 Generates fresh ``medium`` transitions with a seed no dataset used (held out from every fit), then per
 ensemble: the error of the members' mean next-state prediction and of their reward prediction, in units
