@@ -57,6 +57,12 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
             ["model_env.horizon=25"]),
     "mopo5": ("the shipped demo with MOPO's soft pessimism: every model step pays 5 x the members' discrepancy",
               ["model_env.reward_penalty=5.0"]),
+    "gamma998": ("the shipped demo with the discount 0.998 instead of 0.99 (an effective horizon of ~500 steps, not ~100: "
+                 "under 0.99 a gait that falls at step 350 is worth as much as one that runs 1,000 steps)",
+                 ["algo.gamma=0.998"]),
+    "std037": ("the shipped demo with the intra-option policies' initial std exp(-1) = 0.37 instead of 1 in the latent space "
+               "(algo.init_log_std=-1): with std 1 the policy MOC trains is the CVAE prior's spread around its mean, and the std "
+               "stays at 1.00 over the demo's budget", ["algo.init_log_std=-1.0"]),
 }
 
 
