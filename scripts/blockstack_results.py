@@ -80,6 +80,21 @@ def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int,
         print(f"{name}: final success per goal {s['final'].get('success_per_goal')}", flush=True)
 
 
+def _sac_her_note(groups: dict) -> str:
+    """Which bootstrapping SAC + HER's archived runs used (``algo.terminal_on_success``; absent in a config: true, the old behaviour)."""
+    runs = sorted(d for g in groups.values() for algo, ds in g.items() if algo.startswith("sac_her") for d in ds)
+    if not runs:
+        return ""
+    old = [d.name for d in runs if json.loads((d / "config.json").read_text())["algo"].get("terminal_on_success", True)]
+    why = ("`algo.terminal_on_success=true` (a met sub-goal stopped the critic's bootstrap, so SAC's entropy bonus made reaching it the "
+           "worst action; `blockstack/sac_her_notes.md`)")
+    if old:
+        return (f"**SAC + HER's runs {', '.join(old)} predate the fix of its collapse**: they ran with {why}. With Stable-Baselines3's "
+                "bootstrapping, now the default, its untrained success is kept.")
+    return (f"SAC + HER's runs use Stable-Baselines3's bootstrapping (`algo.terminal_on_success=false`, the default since the fix of its "
+            f"collapse); the rows of this page before that fix ran with {why} and ended at 0 success on every goal.")
+
+
 def archive() -> list[Path]:
     """Archive every finished run under ``outputs/results/blockstack/`` to ``docs/results/blockstack/runs/<run>/``."""
     from torchrl_offhrl.recipes.report import archive_runs
@@ -134,10 +149,9 @@ def report() -> str:
              "Success: the share of an evaluation's episodes of that goal whose success flags equalled the goal at some step (the "
              "env's high-level reward 0), for every agent the same test; mean ± std over seeds. *Final*: the last evaluation; *best*: "
              "the best mean success over the evaluations after training began, per seed (never the reported result). *Data*: the "
-             "behaviour data's own per-goal success at horizon 25.", "",
-             "**SAC + HER's rows here predate the fix of its collapse**: they ran with `algo.terminal_on_success=true` (a met sub-goal "
-             "stopped the critic's bootstrap, so SAC's entropy bonus made reaching it the worst action); with Stable-Baselines3's "
-             "bootstrapping, now the default, its untrained success is kept (`blockstack/sac_her_notes.md`). Not rerun here yet.", ""]
+             "behaviour data's own per-goal success at horizon 25.", ""]
+    if note := _sac_her_note(groups):
+        lines += [note, ""]
     earlier = {tuple(x.strip() for x in key.split(",")): section for key, section in legacy["sections"].items()}
     for (task, dataset) in sorted(set(groups) | set(earlier)):
         if (task, dataset) in earlier:  # as the earlier page gave it (its runs were lost); rows rerun since are in the section after it
