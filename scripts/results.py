@@ -214,10 +214,11 @@ def report(scale: str, tuning: bool = False) -> str:
                          f"run `python scripts/results.py run --scale {name}{' --tuning' if tuning else ''}` first")
     runs.sort(key=lambda r: r["name"])
     out = ROOT / "docs" / "results" / scale
-    table = aggregate(runs, out)
-    paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale", missing_reasons=MISSING.get(scale))  # table.md: the paper's Table I layout
+    cmd = f"python scripts/results.py report --scale {name}{' --tuning' if tuning else ''}"
+    table = aggregate(runs, out, made_by=cmd)
+    paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale", missing_reasons=MISSING.get(scale), made_by=cmd)  # table.md: the paper's Table I layout
     lines = [f"# Offline results, `{name}` scale" + (", tuning seeds" if tuning else ""), "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
-             f"Made by `python scripts/results.py report --scale {name}{' --tuning' if tuning else ''}` from the finished runs: those under `outputs/results/{scale}/` "
+             f"Made by `{cmd}` from the finished runs: those under `outputs/results/{scale}/` "
              f"are first archived to `docs/results/{scale}/runs/<run>/` (config, evaluations, summary, training-scalar tails), and the "
              "report reads the archive, so that runs finished on other machines and sessions count.",
              "Scores are D4RL-normalised; final and best are separate columns (best: the best evaluation after training began; "

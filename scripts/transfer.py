@@ -88,7 +88,7 @@ def tuning_report() -> str:
     runs = sorted(d for d in TUNING_ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
     if not runs:
         raise SystemExit(f"no finished runs under {TUNING_OUT} or {TUNING_ARCHIVE}: run `python scripts/transfer.py run --tuning` first")
-    table = aggregate(runs, TUNING_ARCHIVE)
+    table = aggregate(runs, TUNING_ARCHIVE, made_by="python scripts/transfer.py report --tuning")
     text = "\n".join([
         "# Transfer: runs on the tuning seeds", "",
         "Made by `python scripts/transfer.py report --tuning` from the runs of `python scripts/transfer.py run --tuning ...` "
@@ -117,7 +117,7 @@ def report() -> str:
     if not runs and not old_rows:
         raise SystemExit(f"no finished runs under {OUT} or {ARCHIVE}: run `python scripts/transfer.py run` first")
     out = DOCS
-    table = aggregate(runs, out) if runs else ""
+    table = aggregate(runs, out, made_by="python scripts/transfer.py report") if runs else ""
     if old_rows:
         table = (table + "\n\n" if table else "") + (
             "Rows of an earlier version of this page (their run directories were lost between sessions; `transfer/legacy.json`; "

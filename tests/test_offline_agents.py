@@ -665,3 +665,19 @@ def test_moc_settings_added_this_session_keep_older_runs_resumable():
     assert config_fingerprint(older) == config_fingerprint(now)
     for extra in ("algo.policy_ema=0.1", "algo.loss=torchrl_offhrl.objectives.OptionCriticLoss"):
         assert config_fingerprint(to_plain(compose("offline_train", ["algo=moc", extra]))) != config_fingerprint(now), extra
+
+
+def test_pages_name_the_command_that_rebuilds_them(tmp_path, monkeypatch):
+    """`offhrl aggregate` / `offhrl report` write the command as typed on the page's first lines (results.md, table.md)."""
+    import sys
+
+    from torchrl_offhrl.cli import main
+
+    runs = sorted(str(d) for d in (Path(__file__).parents[1] / "docs" / "results" / "full" / "runs").glob("bc-halfcheetah-medium-seed*"))[:2]
+    assert runs
+    for cmd, page in (("aggregate", "results.md"), ("report", "table.md")):
+        argv = [cmd, *runs, "--out", str(tmp_path / cmd)]
+        monkeypatch.setattr(sys, "argv", ["offhrl", *argv])
+        assert main(argv) == 0
+        text = (tmp_path / cmd / page).read_text()
+        assert any(line.startswith(f"Made by `offhrl {cmd} {runs[0]}") for line in text.splitlines()[:3]), text[:300]

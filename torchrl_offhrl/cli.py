@@ -147,12 +147,19 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def _command_line() -> str:
+    """This command as typed (``offhrl ...``), for the page it writes to name the command that rebuilds it."""
+    import shlex
+
+    return "offhrl " + shlex.join(sys.argv[1:])
+
+
 def cmd_aggregate(args) -> int:
     from pathlib import Path
 
     from .recipes.report import aggregate
 
-    print(aggregate(args.runs, args.out))
+    print(aggregate(args.runs, args.out, made_by=_command_line()))
     written = [f for f in ("results.md", "results.csv", "transfer.csv", "curves.png") if (Path(args.out) / f).is_file()]
     print(f"\nwritten: {args.out}/" + ", ".join(written))
     return 0
@@ -161,7 +168,7 @@ def cmd_aggregate(args) -> int:
 def cmd_report(args) -> int:
     from .recipes.report import paper_table
 
-    print(paper_table(args.runs, args.out, min_seeds=args.min_seeds))
+    print(paper_table(args.runs, args.out, min_seeds=args.min_seeds, made_by=_command_line()))
     print(f"\nwritten: {args.out}/table.md, table.csv, curves_<env>-<dataset>.png")
     return 0
 

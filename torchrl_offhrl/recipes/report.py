@@ -225,13 +225,14 @@ def transfer_table(groups: dict[tuple, list[dict]], marks: Sequence[int] = TRANS
     return "\n".join(lines), rows
 
 
-def aggregate(run_dirs: Sequence, out_dir) -> str:
+def aggregate(run_dirs: Sequence, out_dir, made_by: str | None = None) -> str:
     """Aggregate seeds: writes ``out_dir/results.md``, ``results.csv`` and ``curves.png``; returns the Markdown table(s).
 
     Transfer runs (two phases, ``transfer.task`` set) get their own table
     (:func:`transfer_table`: returns on the new task, also in ``transfer.csv``)
     and their own row of curves (:func:`plot_transfer`; from-scratch runs
     start at the switch of the transfer runs of the same env).
+    ``made_by``: the command that rebuilds the page, named on its first line.
     """
     runs, out = _load_runs(run_dirs, out_dir, "aggregate")
     groups: dict[tuple, list[dict]] = defaultdict(list)
@@ -274,7 +275,7 @@ def aggregate(run_dirs: Sequence, out_dir) -> str:
             w.writeheader()
             w.writerows(trows)
     table = "\n\n".join(tables)
-    (out / "results.md").write_text(table + "\n")
+    (out / "results.md").write_text((f"Made by `{made_by}`.\n\n" if made_by else "") + table + "\n")
     if all(r.get("partial") for r in runs):  # nothing to draw: runs known only by a few evaluations draw no curves
         return table
     plt = pyplot()
@@ -321,7 +322,7 @@ PER_SEED_KEY = {"score": "final", "best_score": "best", "last5": "last5", "selec
 
 
 def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets", min_seeds: int = 3,
-                missing_reasons: Mapping[str, str] | None = None) -> str:
+                missing_reasons: Mapping[str, str] | None = None, made_by: str | None = None) -> str:
     """The paper's Table I from run directories: rows env x dataset, one column per algorithm, the behaviour data last.
 
     Writes ``out_dir/table.md`` (the final evaluations, the best evaluations
@@ -404,7 +405,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                                                            f"[{st['change_ci'][0]:+.1f}, {st['change_ci'][1]:+.1f}], {st['change_up']} runs up")
             per_seed.append(f"- {row_name[env_id, dataset]}, {TABLE_COLUMNS.get(c, c)}: {vals}{change}")
     per_seed.append("")
-    md = [f"# {title}", "",
+    md = [f"# {title}", "", *([f"Made by `{made_by}`.", ""] if made_by else []),
           "D4RL-normalised real-env return, deterministic evaluation: interquartile mean over seeds with its 95% stratified-bootstrap "
           "confidence interval, [lower, upper], (number of seeds); mean ± std per cell in table.csv.", "",
           "## Final evaluation", "", *table("score"), "",
