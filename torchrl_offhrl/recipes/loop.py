@@ -92,13 +92,9 @@ class OfflinePhase(Phase):
             self.seed_env.set_seed(self.seed + run.frames)
         if remaining > 0 and not run.records and self.at_start:
             # the untrained agent: the start of the learning curve (with the CVAE: about the decoder's mean action)
-            run.records.append(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
-            run.checkpoint(loop.agent)
-            loop.report(run.records[-1])
+            loop.keep(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
         elif remaining == 0 and not run.records:
-            run.records.append(loop.evaluate(self.evaluator, save_to=self.final_dir, phase=self.name, selects=self.selects))
-            run.checkpoint(loop.agent)
-            loop.report(run.records[-1])
+            loop.keep(loop.evaluate(self.evaluator, save_to=self.final_dir, phase=self.name, selects=self.selects))
         return remaining
 
 
@@ -120,9 +116,7 @@ class OnlinePhase(Phase):
             switch = run.frames
             if self.new_task:
                 loop.agent.new_task()
-            run.records.append(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
-            run.checkpoint(loop.agent)
-            loop.report(run.records[-1])
+            loop.keep(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
         self.start = switch
         remaining = max(switch + self.total - run.frames, 0)
         if remaining > 0 and self.seed_env is not None:
@@ -179,6 +173,16 @@ class TrainingLoop:
             run.selector.consider(rec, self.agent, run.step)
         return rec
 
+    def keep(self, rec: dict) -> None:
+        """Keep an evaluation record: appended to the run's records, checkpointed with the agent, then reported."""
+        self.run.records.append(rec)
+        self.run.checkpoint(self.agent)
+        self.report(rec)
+
+    def _next_eval(self, phase: Phase) -> int:
+        """The step of the phase's next evaluation after the run's current step (every ``phase.every`` steps from its start)."""
+        return phase.start + ((self.run.step - phase.start) // phase.every + 1) * phase.every
+
     def report(self, rec: dict) -> None:
         """Hand a kept record to ``on_record`` (after its checkpoint: a trial stopped there resumes from it)."""
         if self.on_record is not None:
@@ -215,7 +219,7 @@ class TrainingLoop:
 
         run = self.run
         bar = tqdm(total=phase.total, initial=min(run.step - phase.start, phase.total), desc=phase.desc, disable=not self.progress, unit=run.unit[:-1])
-        return _PhaseProgress(bar=bar, next_eval=phase.start + ((run.step - phase.start) // phase.every + 1) * phase.every)
+        return _PhaseProgress(bar=bar, next_eval=self._next_eval(phase))
 
     def evaluation_due(self, st: _PhaseProgress, phase: Phase, steps: int = 1) -> bool:
         """Whether the next batch (``steps`` more steps) ends at an evaluation (a batched driver syncs its agents first)."""
@@ -251,7 +255,7 @@ class TrainingLoop:
             self._snapshot(rec)
             run.checkpoint(self.agent)
             self.report(rec)
-            st.next_eval = phase.start + ((run.step - phase.start) // phase.every + 1) * phase.every
+            st.next_eval = self._next_eval(phase)
             if run.step >= end:
                 return True
         return False
