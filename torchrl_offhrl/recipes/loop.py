@@ -250,11 +250,9 @@ class TrainingLoop:
         st.bar.update(run.step - before)
         if run.step >= st.next_eval or run.step >= end:
             rec = self.evaluate(phase.evaluator, save_to=phase.final_dir if run.step >= end else None, phase=phase.name, selects=phase.selects)
-            run.records.append(rec)
             self._report(rec, st.bar, unit)
-            self._snapshot(rec)
-            run.checkpoint(self.agent)
-            self.report(rec)
+            self._snapshot(rec)  # before the checkpoint moves on
+            self.keep(rec)
             st.next_eval = self._next_eval(phase)
             if run.step >= end:
                 return True
