@@ -256,3 +256,32 @@ def test_policy_ema_averages_the_weights_and_is_what_evaluations_use():
     assert plain.eval_policy is plain.policy and "averaged_policy" not in plain.state_dict()
     with pytest.raises(ValueError, match=r"algo.policy_ema must be in \(0, 1\]"):
         make_agent("moc", env, num_options=2, hidden_sizes=[8], policy_ema=1.5)
+
+
+def test_log_std_lr_gives_the_log_stds_their_own_annealed_step_size():
+    """algo.log_std_lr: the intra-option log-stds sit in their own Adam group at that step size, so one Adam step moves
+    each by at most about log_std_lr (Adam's first step is lr * sign(grad)), while the other weights move by <= lr;
+    null keeps one group (the runs made before the switch); annealing scales both groups alike."""
+    from torchrl_offhrl.agents import make_agent
+
+    env = _moc_env()
+    agent = make_agent("moc", env, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=512, lr=1e-4, log_std_lr=0.05, anneal_lr=True)
+    agent.attach(env)
+    groups = agent.optimizer.param_groups
+    assert [g["lr"] for g in groups] == [1e-4, 0.05]
+    log_std = next(p for n, p in agent.loss.named_parameters() if n.endswith(".log_std"))
+    assert groups[1]["params"] == [log_std] and all(p is not log_std for p in groups[0]["params"])
+    before = log_std.detach().clone()
+    others = [p.detach().clone() for p in groups[0]["params"]]
+    with torch.no_grad():
+        batch = env.rollout(64, agent.policy, break_when_any_done=False)
+    agent.update(batch)
+    moved = (log_std.detach() - before).abs()
+    assert moved.max() <= 0.05 * 1.001 and moved.max() > 1e-3  # one minibatch step: |delta| ~ 0.05 where the gradient is steady
+    assert max((p.detach() - o).abs().max().item() for p, o in zip(groups[0]["params"], others)) <= 1e-4 * 1.001
+    agent.set_progress(0.5)
+    assert [g["lr"] for g in agent.optimizer.param_groups] == pytest.approx([5e-5, 0.025])
+    plain = make_agent("moc", env, num_options=2, hidden_sizes=[8])
+    assert len(plain.optimizer.param_groups) == 1
+    with pytest.raises(ValueError, match="algo.log_std_lr must be a positive"):
+        make_agent("moc", env, num_options=2, hidden_sizes=[8], log_std_lr=0.0)

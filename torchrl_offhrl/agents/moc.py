@@ -126,6 +126,13 @@ class MOCAgent(OnPolicyAgent):
     offline policy selection, the returned policy and ``offhrl evaluate`` act
     with that average (:attr:`eval_policy`), the collector with the policy.
 
+    ``log_std_lr`` (``algo.log_std_lr``, default None: ``lr``): the step
+    size of the intra-option policies' state-independent log-stds. At
+    ``lr`` 1e-4 and the demo's ~3,200 annealed Adam steps they can move by
+    at most ~0.16, so the std stays at its initial value and PPO optimises
+    a policy as wide as the prior while the evaluation runs its mean
+    (docs/results/demo_robustness_notes.md, row 22).
+
     ``fused_adam`` is a speed switch (the same update rule, see
     :func:`~torchrl_offhrl.agents.adam`).
     """
@@ -179,6 +186,7 @@ class MOCAgent(OnPolicyAgent):
         anneal_lr: bool = True,
         loss: str | None = None,
         policy_ema: float | None = None,
+        log_std_lr: float | None = None,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         if update_schedule not in self.UPDATE_SCHEDULES:
@@ -222,10 +230,15 @@ class MOCAgent(OnPolicyAgent):
             self.optimizer = adam(self.loss.parameters(), lr=lr, eps=adam_eps, fused=fused_adam)
             self.termination_optimizer = self.option_optimizer = None
             return
-        groups = {"termination": [], "option": [], "main": []}
+        groups = {"termination": [], "option": [], "main": [], "log_std": []}
         for name, p in self.loss.named_parameters():
-            groups["termination" if ".termination_head." in name else "option" if ".option_head." in name else "main"].append(p)
-        self.optimizer = adam(groups["main"], lr=lr, eps=adam_eps, fused=fused_adam)
+            group = "termination" if ".termination_head." in name else "option" if ".option_head." in name else "main"
+            groups["log_std" if log_std_lr is not None and name.endswith(".log_std") else group].append(p)
+        if log_std_lr is not None and float(log_std_lr) <= 0:
+            raise ValueError(f"algo.log_std_lr must be a positive step size or null (the intra-option policies' lr), got {log_std_lr}")
+        # the intra-option log-stds in their own Adam group when log_std_lr is set (the same optimiser, annealed alike)
+        main = groups["main"] if log_std_lr is None else [{"params": groups["main"]}, {"params": groups["log_std"], "lr": float(log_std_lr)}]
+        self.optimizer = adam(main, lr=lr, eps=adam_eps, fused=fused_adam)
         self.termination_optimizer = adam(groups["termination"], lr=lr if termination_lr is None else termination_lr, eps=adam_eps, fused=fused_adam)
         self.option_optimizer = adam(groups["option"], lr=lr if option_lr is None else option_lr, eps=adam_eps, fused=fused_adam)
 
