@@ -70,3 +70,41 @@ def test_fit_validates_too(tmp_path, monkeypatch, capsys):
     assert main(["fit", "ensemble.fit.lr=0"]) == 2
     assert "ensemble.fit.lr: expected a number > 0, got 0" in capsys.readouterr().err
     assert not (tmp_path / "cache").exists()
+
+
+def test_the_typed_sections_hold_the_shipped_defaults():
+    """Each typed section's defaults (recipes.schema) are the values offline_train.yaml ships, key for key: the defaults
+    are defined once and the YAML agrees with them; a dict config without a section gets the same values."""
+    from dataclasses import asdict
+
+    from torchrl_offhrl.recipes.schema import SECTIONS, RunConfig, section_defaults
+
+    shipped = to_plain(compose("offline_train", []))
+    for key in SECTIONS:
+        assert shipped[key] == section_defaults(key), key
+    assert RunConfig.parse({}) == RunConfig.parse(shipped)
+    rc = RunConfig.parse(to_plain(compose("demo", [])))
+    assert (rc.train.total("frames"), rc.eval.every("frames"), rc.eval.episodes, rc.collector.num_envs) == (81920, 10240, 30, 64)
+    assert rc.transfer is None and asdict(rc.selection) == {"criterion": "last", "include_start": False}
+    t = RunConfig.parse(to_plain(compose("offline_train", ["transfer.task=backward", "transfer.online_frames=4096"]))).transfer
+    assert (t.task, t.online_frames, t.num_envs, t.decoder) == ("backward", 4096, 16, "discard")
+    with pytest.raises(ValueError, match="unit must be one of"):
+        rc.train.total("steps")
+
+
+def test_a_key_a_typed_section_lacks_is_refused_with_the_keys_it_takes():
+    """A typo in a typed section (train.total_frame) used to be ignored, the run taking the default budget."""
+    with pytest.raises(ValueError) as err:
+        validate_config({"train": {"total_frame": 100}, "eval": {"episodes": 5, "every_frame": 10}, "selection": "last"})
+    msg = str(err.value)
+    assert "train.total_frame: unknown key; train takes total_frames, total_updates, online, snapshot_frames" in msg
+    assert "eval.every_frame: unknown key; eval takes at_start, model_env, every_frames, every_updates, episodes" in msg
+    assert "selection: expected a mapping of criterion, include_start, got 'last'" in msg
+
+
+def test_cli_refuses_an_unknown_key_added_with_plus(tmp_path, monkeypatch, capsys):
+    """Hydra refuses `train.total_frame=5` by itself; `+train.total_frame=5` gets past it and is refused here, before any work."""
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    assert main(["train", "+train.total_frame=5", f"out_root={tmp_path / 'runs'}"]) == 2
+    assert "train.total_frame: unknown key; train takes total_frames" in capsys.readouterr().err
+    assert not (tmp_path / "cache").exists()

@@ -16,6 +16,7 @@ from ..data.catalog import named_dataset
 from ..envs.latent import DEFAULT_LATENT_BOUND
 from ..registry import LEVELS
 from ..utils import to_plain
+from .schema import section_defaults
 
 __all__ = [
     "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "model_config", "model_env_config",
@@ -221,7 +222,7 @@ def transfer_config(cfg: Mapping) -> dict | None:
     t = dict(to_plain(cfg.get("transfer") or {}))
     if t.get("task") is None:
         return None
-    return {"online_frames": 300_000, "num_envs": 16, "decoder": "discard", "from_scratch": False, "eval_every_frames": 10_000, **t}
+    return {**section_defaults("transfer"), **t}  # the defaults are TransferConfig's (recipes.schema)
 
 
 def transfer_label(cfg: Mapping) -> str:

@@ -1,18 +1,31 @@
-"""Up-front validation of a resolved recipe config: every bad value, with its key, before any data or model work.
+"""The recipe config's schema: typed sections with their defaults, and up-front validation of a resolved config.
+
+The sections the training loop reads (``train``, ``eval``, ``selection``,
+``collector``, ``transfer``, ``logger``) are dataclasses here:
+:class:`TrainConfig`, :class:`EvalConfig`, :class:`SelectionConfig`,
+:class:`CollectorConfig`, :class:`TransferConfig`, :class:`LoggerConfig`,
+gathered in :class:`RunConfig` (:meth:`RunConfig.parse`). Each field holds
+its type, its default (the one place it is defined: the shipped
+``offline_train.yaml`` is checked against it by the tests) and its allowed
+values. The algorithm's section is typed by its agent's signature
+(``agent_defaults``: unknown keys are refused when the agent is built),
+the models' sections by the rules below.
 
 A wrong value should cost a second, not the nine minutes of generating a
 dataset before the first use of the value fails (or, for a negative frame
 budget, silently trains nothing). :func:`validate_config` checks the keys
-every command reads against their allowed ranges and raises one
-``ValueError`` that lists each bad value as ``key: expected ..., got ...``.
-Keys of an algorithm's config are checked by their name (``lr`` and
-``*_lr`` positive, ``gamma`` in (0, 1], ...); the agent's constructor still
-rejects keys it does not know.
+every command reads against their allowed values, refuses keys a typed
+section does not have (a typo such as ``train.total_frame`` would otherwise
+be ignored), and raises one ``ValueError`` that lists each problem as
+``key: expected ..., got ...``. Keys of an algorithm's config are checked by
+their name (``lr`` and ``*_lr`` positive, ``gamma`` in (0, 1], ...); the
+agent's constructor still rejects keys it does not know.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
 
 import torch
@@ -20,7 +33,8 @@ import torch
 from ..envs import TASKS
 from .selection import CRITERIA
 
-__all__ = ["validate_config"]
+__all__ = ["CollectorConfig", "EvalConfig", "LoggerConfig", "RunConfig", "SECTIONS", "SelectionConfig", "TrainConfig", "TransferConfig",
+           "UNITS", "section_defaults", "validate_config"]
 
 _MISSING = object()
 
@@ -67,6 +81,163 @@ def _sizes() -> tuple[str, Callable[[Any], bool]]:
     return "a non-empty list of positive integers", lambda v: isinstance(v, (list, tuple)) and len(v) > 0 and all(_is_int(x) and x > 0 for x in v)
 
 
+def _bool() -> tuple[str, Callable[[Any], bool]]:
+    return "true or false", lambda v: isinstance(v, bool)
+
+
+def _setting(rule: tuple[str, Callable[[Any], bool]], default=MISSING, *, default_factory=MISSING, doc: str = ""):
+    """A typed section's field: its default and its allowed values (``rule``: what is allowed, check)."""
+    if default_factory is not MISSING:
+        return field(default_factory=default_factory, metadata={"rule": rule, "doc": doc})
+    return field(default=default, metadata={"rule": rule, "doc": doc})
+
+
+def _positive_ints() -> tuple[str, Callable[[Any], bool]]:
+    return ("a list of positive integers (frames)",
+            lambda v: isinstance(v, (list, tuple)) and all(_is_int(x) and x > 0 for x in v))
+
+
+#: the units of a budget: frames collected (agents on an env) or gradient steps (agents learning from the dataset)
+UNITS = ("frames", "updates")
+
+
+def _unit(unit: str) -> str:
+    if unit not in UNITS:
+        raise ValueError(f"unit must be one of {UNITS} (frames collected or gradient steps), got {unit!r}")
+    return unit
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """``train``: the training budget."""
+
+    total_frames: int = _setting(_int(1), 1_000_000, doc="agents on the model env (and online): frames collected")
+    total_updates: int = _setting(_int(1), 1_000_000, doc="agents learning from the dataset itself: gradient steps")
+    online: bool = _setting(_bool(), False, doc="train in the real env from scratch, in real actions (no models, no CVAE)")
+    snapshot_frames: tuple[int, ...] = _setting(_positive_ints(), (), doc="keep the agent's state at these steps too")
+
+    def total(self, unit: str) -> int:
+        """The budget in ``unit``: ``"frames"`` (collected) or ``"updates"`` (gradient steps)."""
+        return self.total_frames if _unit(unit) == "frames" else self.total_updates
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """``eval``: when and how the real-env evaluations run."""
+
+    at_start: bool = _setting(_bool(), True, doc="also evaluate the untrained agent")
+    model_env: bool = _setting(_bool(), True, doc="also roll the policy out in the model (the model-real gap)")
+    every_frames: int = _setting(_int(1), 50_000)
+    every_updates: int = _setting(_int(1), 50_000)
+    episodes: int = _setting(_int(1), 30, doc="deterministic real-env episodes per evaluation")
+    model_episodes: int | None = _setting(_int(1, optional=True), 50, doc="episodes in the model env (null: episodes)")
+    sampled: bool = _setting(_bool(), False, doc="also evaluate the sampled policy")
+    max_steps: int = _setting(_int(1), 1000)
+
+    def every(self, unit: str) -> int:
+        """The evaluation period in ``unit``: ``"frames"`` or ``"updates"``."""
+        return self.every_frames if _unit(unit) == "frames" else self.every_updates
+
+
+@dataclass(frozen=True)
+class SelectionConfig:
+    """``selection``: the offline policy selection (:mod:`~torchrl_offhrl.recipes.selection`)."""
+
+    criterion: str = _setting(_choice(*CRITERIA), "last")
+    include_start: bool = _setting(_bool(), False, doc="the untrained policy is a candidate too")
+
+
+@dataclass(frozen=True)
+class CollectorConfig:
+    """``collector``: the model envs stepped side by side."""
+
+    num_envs: int = _setting(_int(1), 64)
+
+
+@dataclass(frozen=True)
+class TransferConfig:
+    """``transfer``: the online phase on another task after the offline one (``task`` null: offline only)."""
+
+    task: str | None = _setting((f"null or a task of torchrl_offhrl.envs.TASKS ({', '.join(map(repr, TASKS))})",
+                                 lambda v: v is None or v in TASKS), None)
+    online_frames: int = _setting(_int(1), 300_000)
+    num_envs: int = _setting(_int(1), 16)
+    decoder: str = _setting(_choice("discard", "keep"), "discard")
+    from_scratch: bool = _setting(_bool(), False)
+    eval_every_frames: int = _setting(_int(1), 10_000)
+
+
+@dataclass(frozen=True)
+class LoggerConfig:
+    """``logger``: TorchRL's logger of the training scalars."""
+
+    backend: str | None = _setting(_choice("csv", "tensorboard", "wandb", "mlflow", None), "csv")
+    kwargs: dict = _setting(("a mapping", lambda v: isinstance(v, Mapping)), default_factory=dict)
+
+
+#: the typed sections by their key in the config
+SECTIONS: dict[str, type] = {"train": TrainConfig, "eval": EvalConfig, "selection": SelectionConfig, "collector": CollectorConfig,
+                             "transfer": TransferConfig, "logger": LoggerConfig}
+
+
+def section_defaults(key: str) -> dict:
+    """The defaults of typed section ``key`` as plain values (lists for tuples), e.g. ``section_defaults("transfer")``."""
+    out = {}
+    for f in fields(SECTIONS[key]):
+        v = f.default_factory() if f.default is MISSING else f.default
+        out[f.name] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def _section(cls: type, values: Mapping | None):
+    """A section's dataclass from its mapping (absent keys: the defaults); lists become tuples where the field is one."""
+    kwargs = {}
+    for f in fields(cls):
+        if values is not None and f.name in values:
+            v = values[f.name]
+            kwargs[f.name] = tuple(v) if isinstance(f.default, tuple) else (dict(v) if isinstance(v, Mapping) else v)
+    return cls(**kwargs)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The typed view of a validated recipe config: the sections the training loop reads (:meth:`parse`).
+
+    The algorithm (``algo``), task (``env``) and model sections stay
+    mappings: their schemas are the agent's signature, the task registry and
+    the model classes.
+
+    Example:
+        >>> rc = RunConfig.parse({"seed": 3, "train": {"total_frames": 4096}, "transfer": {"task": "backward"}})
+        >>> rc.train.total("frames"), rc.eval.every("updates"), rc.transfer.task, rc.transfer.online_frames
+        (4096, 50000, 'backward', 300000)
+        >>> RunConfig.parse({"seed": 0}).transfer is None
+        True
+        >>> RunConfig.parse({"train": {"total_frame": 10}})
+        Traceback (most recent call last):
+        ...
+        ValueError: invalid config values (nothing was run):
+          train.total_frame: unknown key; train takes total_frames, total_updates, online, snapshot_frames
+    """
+
+    seed: int
+    train: TrainConfig
+    eval: EvalConfig
+    selection: SelectionConfig
+    collector: CollectorConfig
+    transfer: TransferConfig | None     # None: offline training only (transfer.task null)
+    logger: LoggerConfig
+
+    @classmethod
+    def parse(cls, cfg: Mapping) -> RunConfig:
+        """Validate ``cfg`` (:func:`validate_config`) and return its typed sections."""
+        validate_config(cfg)
+        sections = {k: _section(c, cfg.get(k)) for k, c in SECTIONS.items()}
+        if sections["transfer"].task is None:
+            sections["transfer"] = None
+        return cls(seed=int(cfg.get("seed", 0)), **sections)
+
+
 _FIT = {"lr": _num(0, lo_open=True), "batch_size": _int(1), "max_epochs": _int(1), "max_steps": _int(1, optional=True), "patience": _int(0)}
 
 #: key path -> (what is allowed, check); absent keys are left to their defaults
@@ -88,27 +259,9 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "model_env.latent_bound": _num(0, lo_open=True),
     "model_env.reward_penalty": _num(0),
     "model_env.reward_scale": ("a positive number or 'auto'", lambda v: v == "auto" or (_is_num(v) and v > 0)),
-    "collector.num_envs": _int(1),
     "torch_threads": _int(1, optional=True),
-    "train.total_frames": _int(1),
-    "train.total_updates": _int(1),
-    "train.online": ("true or false", lambda v: isinstance(v, bool)),
-    "train.snapshot_frames": ("a list of positive integers (frames)", lambda v: isinstance(v, (list, tuple)) and all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in v)),
-    "eval.every_frames": _int(1),
-    "eval.every_updates": _int(1),
-    "eval.episodes": _int(1),
-    "eval.model_episodes": _int(1, optional=True),
-    "eval.sampled": ("true or false", lambda v: isinstance(v, bool)),
-    "selection.criterion": _choice(*CRITERIA),
-    "selection.include_start": ("true or false", lambda v: isinstance(v, bool)),
-    "eval.max_steps": _int(1),
-    "transfer.task": (f"null or a task of torchrl_offhrl.envs.TASKS ({', '.join(map(repr, TASKS))})", lambda v: v is None or v in TASKS),
-    "transfer.online_frames": _int(1),
-    "transfer.num_envs": _int(1),
-    "transfer.decoder": _choice("discard", "keep"),
-    "transfer.from_scratch": ("true or false", lambda v: isinstance(v, bool)),
-    "transfer.eval_every_frames": _int(1),
-    "logger.backend": _choice("csv", "tensorboard", "wandb", "mlflow", None),
+    # the typed sections' fields: their rules are held by the dataclasses
+    **{f"{key}.{f.name}": f.metadata["rule"] for key, section in SECTIONS.items() for f in fields(section)},
 }
 
 #: rules for an algorithm's keys, by name (whatever the algorithm)
@@ -172,6 +325,13 @@ def validate_config(cfg: Mapping) -> None:
         value = _get(cfg, key)
         if value is not _MISSING and not ok(value):
             problems.append(f"{key}: expected {what}, got {value!r}")
+    for key, section in SECTIONS.items():
+        given = cfg.get(key)
+        if isinstance(given, Mapping):
+            names = [f.name for f in fields(section)]
+            problems += [f"{key}.{k}: unknown key; {key} takes {', '.join(names)}" for k in given if k not in names]
+        elif given is not None:
+            problems.append(f"{key}: expected a mapping of {', '.join(f.name for f in fields(section))}, got {given!r}")
     if "device" in cfg:
         what = _device_problem(cfg["device"])
         if what:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
@@ -32,6 +32,7 @@ from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
 from .pipeline import fit_or_load_models, make_model_env, make_real_env
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
+from .schema import RunConfig, TransferConfig
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 
 __all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "setting_of"]
@@ -50,7 +51,7 @@ class Setting:
     title: str                  # the evaluation plots' title
     env_label: str              # the real env's id, in progress lines
     selectable: bool            # whether the offline policy selection may pick another policy than the last
-    tcfg: dict | None           # the transfer settings, or None
+    transfer: TransferConfig | None  # the transfer settings, or None
     stacking: bool              # a goal-conditioned block-stacking task
     n_goals: int
     pessimism: dict | None
@@ -71,7 +72,7 @@ class Setting:
     @property
     def xlabel(self) -> str:
         """The x-axis of the run's curves and logs."""
-        return UNIT_LABELS["transfer" if self.tcfg else self.unit]
+        return UNIT_LABELS["transfer" if self.transfer else self.unit]
 
     def plot_curves(self, records: list[dict], folder: Path, behaviour_mean: float | None) -> None:
         """The run's learning curve (``learning_curve.png``: both phases of a transfer run) and, on a goal-conditioned task, ``success.png``."""
@@ -79,31 +80,31 @@ class Setting:
         title = f"{algo} on {self.cfg['env']['env_id']} ({self.cfg['dataset']})"
         if self.stacking:
             plot_goal_success([records], folder / "success.png", label=algo, title=title, xlabel=UNIT_LABELS[self.unit])
-        if self.tcfg is None:
+        if self.transfer is None:
             plot_curve([records], folder / "learning_curve.png", label=algo, title=title, behaviour=behaviour_mean, xlabel=UNIT_LABELS[self.unit])
         else:
-            plot_transfer([records], folder / "learning_curve.png", label=algo, title=f"{title}, then {self.tcfg['task']} online")
+            plot_transfer([records], folder / "learning_curve.png", label=algo, title=f"{title}, then {self.transfer.task} online")
 
     def summary_extras(self, records: list[dict]) -> dict:
         """What the setting adds to a run's summary: the data's per-goal success (block stacking), the switch (transfer)."""
         out = {}
         if self.stacking and self.data.metadata.get("goal_success"):  # the behaviour data's own per-goal success (its collection's horizon)
             out["behaviour_success_per_goal"] = [self.data.metadata["goal_success"].get(str(k)) for k in range(self.n_goals)]
-        if self.tcfg is not None:
-            out["transfer"] = {**self.tcfg, "switch_frame": self.phases[-1].start}
+        if self.transfer is not None:
+            out["transfer"] = {**asdict(self.transfer), "switch_frame": self.phases[-1].start}
             out["offline_final"] = next((r for r in reversed(records) if r.get("phase") == "offline"), None)
         return out
 
 
-def snapshot_steps(cfg: Mapping, unit: str, tcfg: dict | None) -> set[int]:
+def snapshot_steps(rc: RunConfig, unit: str) -> set[int]:
     """``train.snapshot_frames`` as a set, checked: each falls on an evaluation and (one-phase runs) within the budget."""
-    snapshots = {int(x) for x in cfg["train"].get("snapshot_frames") or []}
-    every = int(cfg["eval"][f"every_{unit}"])
+    snapshots = set(rc.train.snapshot_frames)
+    every, total = rc.eval.every(unit), rc.train.total(unit)
     if any(x % every for x in snapshots):
         raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
                          f"eval.every_{unit} ({every})")
-    if any(x > int(cfg["train"][f"total_{unit}"]) for x in snapshots) and tcfg is None:
-        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={cfg['train'][f'total_{unit}']}")
+    if any(x > total for x in snapshots) and rc.transfer is None:
+        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={total}")
     return snapshots
 
 
@@ -139,6 +140,7 @@ class Parts:
     """What every setting starts from (:func:`build_setting`): the config, the task, the data, the models it uses, timings."""
 
     cfg: dict
+    rc: RunConfig               # the typed sections of cfg (train, eval, selection, collector, transfer, logger)
     run_path: Path
     device: torch.device
     stacking: bool              # a goal-conditioned block-stacking task (task_of(env_id).goal_conditioned)
@@ -159,7 +161,7 @@ class Parts:
 
     @property
     def episodes(self) -> int:
-        return int(self.cfg["eval"]["episodes"])
+        return self.rc.eval.episodes
 
     @property
     def ref(self) -> tuple | None:
@@ -168,7 +170,7 @@ class Parts:
 
     @property
     def eval_seed(self) -> int:
-        return int(self.cfg["seed"]) * 1000 + 7
+        return self.rc.seed * 1000 + 7
 
     def make_agent(self, env, algo: dict | None = None, latent: bool = True):
         """The config's agent, built for ``env``'s specs, acting in latent actions (``latent``) or real ones."""
@@ -182,7 +184,7 @@ class Parts:
         if not self.stacking:
             return make_real_env(self.env_id, cvae, num_envs=self.episodes, latent_bound=bound)
         goals = [k for k in range(self.n_goals) for _ in range(self.episodes)]
-        return make_real_env(self.env_id, cvae, num_envs=len(goals), latent_bound=bound, goals=goals, max_episode_steps=int(self.cfg["eval"]["max_steps"]))
+        return make_real_env(self.env_id, cvae, num_envs=len(goals), latent_bound=bound, goals=goals, max_episode_steps=self.rc.eval.max_steps)
 
     def add_reward_transforms(self, env):
         """Returns in the logs (``RewardSum``) and the reward scale the agent learns with; logged and evaluated returns stay unscaled."""
@@ -193,31 +195,30 @@ class Parts:
 
     def evaluator(self, eval_env, model_eval_env=None, task: str | None = None, algo: dict | None = None):
         """The evaluation of ``eval_env``: per goal on a stacking task (:class:`GoalEvaluator`), else returns (:class:`Evaluator`)."""
-        cfg = self.cfg
+        ev = self.rc.eval
         if self.stacking:
             return GoalEvaluator(eval_env, self.env_id, self.episodes, self.n_goals, int(self.pcfg["env"].get("horizon", 25)),
-                                 int(cfg["eval"]["max_steps"]), seed=self.eval_seed, model_env=model_eval_env)
-        return Evaluator(eval_env, self.env_id, self.episodes, int(cfg["eval"]["max_steps"]), seed=self.eval_seed, ref=self.ref, model_env=model_eval_env,
-                         task=task, gamma=float((algo or cfg["algo"]).get("gamma", 0.99)), sampled=bool(cfg["eval"].get("sampled", False)))
+                                 ev.max_steps, seed=self.eval_seed, model_env=model_eval_env)
+        return Evaluator(eval_env, self.env_id, self.episodes, ev.max_steps, seed=self.eval_seed, ref=self.ref, model_env=model_eval_env,
+                         task=task, gamma=float((algo or self.cfg["algo"]).get("gamma", 0.99)), sampled=ev.sampled)
 
     def offline_phase(self, evaluator, batches, unit: str, batch_metrics, seed_env, online: bool = False, transfer: bool = False) -> OfflinePhase:
         """The phase from step 0 (the run's only one, or a transfer run's offline phase, ``"offline"``)."""
-        cfg = self.cfg
+        cfg, rc = self.cfg, self.rc
         return OfflinePhase(
-            name="offline" if transfer else None, evaluator=evaluator, total=int(cfg["train"][f"total_{unit}"]),
-            every=int(cfg["eval"][f"every_{unit}"]), batches=batches,
+            name="offline" if transfer else None, evaluator=evaluator, total=rc.train.total(unit), every=rc.eval.every(unit), batches=batches,
             desc=f"{cfg['algo']['name']} on {cfg['env']['name']}" + (" (online)" if online else f"-{self.level}"),
             final_dir=Path(self.run_path) / "offline" if transfer else Path(self.run_path),  # a transfer run's last files are its online phase's
-            batch_metrics=batch_metrics, seed_env=seed_env, seed=int(cfg["seed"]), at_start=bool(cfg["eval"].get("at_start", True)),
+            batch_metrics=batch_metrics, seed_env=seed_env, seed=rc.seed, at_start=rc.eval.at_start,
             done_when="online" if transfer else None,
         )
 
-    def setting(self, agent, phases: list[Phase], unit: str = "frames", selectable: bool = False, tcfg: dict | None = None,
+    def setting(self, agent, phases: list[Phase], unit: str = "frames", selectable: bool = False,
                 pessimism: dict | None = None, threshold: float | None = None, closers: tuple = ()) -> Setting:
         """The :class:`Setting` of these parts, with what the setting built."""
         return Setting(
             cfg=self.cfg, snapshots=self.snapshots, data=self.data, agent=agent, phases=phases, unit=unit,
-            title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, tcfg=tcfg, stacking=self.stacking,
+            title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, transfer=self.rc.transfer, stacking=self.stacking,
             n_goals=self.n_goals, pessimism=pessimism, threshold=threshold, reward_scale=self.pcfg["env"].get("reward_scale", 1.0),
             model_info=self.model_info, ref=self.ref, t_data=self.t_data, t_models=self.t_models, device=self.device, closers=list(closers),
         )
@@ -244,15 +245,15 @@ class ModelEnvSetting:
         cfg, latent = p.cfg, acts_in_latent_space(p.cfg)
         cvae = p.cvae if latent else None
         p.pcfg["env"], pess = model_env_config(cfg, p.level, p.data)
-        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=int(cfg["collector"]["num_envs"]), latent=latent)
+        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.collector.num_envs, latent=latent)
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
         p.add_reward_transforms(agent.attach(env))
         eval_env = agent.attach(p.eval_real_env(cvae))  # after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
         model_eval_env = None
-        if cfg["eval"].get("model_env", True):  # the same evaluation in the model: the model-real gap
+        if p.rc.eval.model_env:  # the same evaluation in the model: the model-real gap
             # the real env's start states, whatever training uses; every member rolls out the same number of episodes (the LCB over members)
-            model_eval_env = agent.attach(make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=int(cfg["eval"].get("model_episodes") or p.episodes),
+            model_eval_env = agent.attach(make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.eval.model_episodes or p.episodes,
                                                          latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic"))
         evaluator = p.evaluator(eval_env, model_eval_env, task="forward" if transfer else None)
         phase = p.offline_phase(evaluator, lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
@@ -314,7 +315,7 @@ class OnlineSetting:
         p.pcfg["env"] = {k: settings[k] for k in ("reward_scale", "horizon") if k in settings}
         if p.stacking:  # goals drawn by the env at each reset
             p.pcfg["env"].setdefault("horizon", 25)
-        env = make_real_env(p.env_id, None, num_envs=int(cfg["collector"]["num_envs"]),
+        env = make_real_env(p.env_id, None, num_envs=p.rc.collector.num_envs,
                             **({"max_episode_steps": int(p.pcfg["env"]["horizon"])} if p.stacking else {}))
         agent = p.make_agent(env, latent=False)
         p.add_reward_transforms(agent.attach(env))
@@ -340,37 +341,37 @@ class TransferSetting:
         return not tcfg["from_scratch"] or (acts_in_latent_space(cfg) and tcfg["decoder"] == "keep")
 
     def build(self, p: Parts) -> Setting:
-        cfg, tcfg = p.cfg, transfer_config(p.cfg)
+        cfg, tcfg = p.cfg, p.rc.transfer
         latent = acts_in_latent_space(cfg)
-        keep_decoder = latent and tcfg["decoder"] == "keep"
+        keep_decoder = latent and tcfg.decoder == "keep"
 
         def real_env(num_envs: int):  # the real env of the online phase, on the new task, in the action space the agent acts in
-            return make_real_env(p.env_id, p.cvae if keep_decoder else None, num_envs=num_envs, latent_bound=latent_bound(cfg), task=tcfg["task"],
+            return make_real_env(p.env_id, p.cvae if keep_decoder else None, num_envs=num_envs, latent_bound=latent_bound(cfg), task=tcfg.task,
                                  discard_decoder=latent and not keep_decoder)
 
         phases, eval_env, pess, threshold = [], None, None, None
-        if not tcfg["from_scratch"]:
+        if not tcfg.from_scratch:
             agent, phase, eval_env, pess, threshold, _ = ModelEnvSetting.model_part(p, transfer=True)
             phases.append(phase)
             with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
-                online_env = p.add_reward_transforms(agent.attach(real_env(int(tcfg["num_envs"]))))
+                online_env = p.add_reward_transforms(agent.attach(real_env(tcfg.num_envs)))
                 online_eval_env = agent.attach(real_env(p.episodes))
         else:  # the agent is built for the real env it trains in; no P-MDP
             p.pcfg["env"], _ = model_env_config(cfg, p.level, p.data)  # the reward scale it learns with
-            online_env = real_env(int(tcfg["num_envs"]))
+            online_env = real_env(tcfg.num_envs)
             agent = p.make_agent(online_env, latent=latent)
             p.add_reward_transforms(agent.attach(online_env))
             with torch.random.fork_rng():
                 online_eval_env = agent.attach(real_env(p.episodes))
-        online_evaluator = Evaluator(online_eval_env, p.env_id, p.episodes, int(cfg["eval"]["max_steps"]), seed=p.eval_seed, ref=p.ref, task=tcfg["task"])
+        online_evaluator = Evaluator(online_eval_env, p.env_id, p.episodes, p.rc.eval.max_steps, seed=p.eval_seed, ref=p.ref, task=tcfg.task)
         # random actions only for a run from scratch: after the offline phase frames_done > 0, and the agent acts from the start
         phases.append(OnlinePhase(
-            name="online", evaluator=online_evaluator, total=int(tcfg["online_frames"]), every=int(tcfg["eval_every_frames"]),
+            name="online", evaluator=online_evaluator, total=tcfg.online_frames, every=tcfg.eval_every_frames,
             batches=lambda remaining, frames_done: env_collector(online_env, agent, remaining, frames_done=frames_done, device=p.device),
-            desc=f"{cfg['algo']['name']} on {cfg['env']['name']} ({tcfg['task']}, online)", final_dir=Path(p.run_path),
-            batch_metrics=online_metrics, seed_env=online_env, seed=int(cfg["seed"]), selects=False, new_task=not tcfg["from_scratch"],
+            desc=f"{cfg['algo']['name']} on {cfg['env']['name']} ({tcfg.task}, online)", final_dir=Path(p.run_path),
+            batch_metrics=online_metrics, seed_env=online_env, seed=p.rc.seed, selects=False, new_task=not tcfg.from_scratch,
         ))
-        return p.setting(agent, phases, tcfg=tcfg, pessimism=pess, threshold=threshold, closers=(eval_env, online_eval_env, online_env))
+        return p.setting(agent, phases, pessimism=pess, threshold=threshold, closers=(eval_env, online_eval_env, online_env))
 
 
 #: the settings a run can be, the first whose ``applies(cfg)`` holds is built (the model env's is the default)
@@ -383,12 +384,14 @@ def setting_of(cfg: dict):
     return next(s for s in SETTINGS if s.applies(cfg))
 
 
-def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = True) -> Setting:
-    """The :class:`Setting` of a validated config: data, models, agent, envs, evaluators and phases; files of the last
-    evaluation go to ``run_path``. ``t_start``: the run's start (the data and model timings)."""
+def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = True, rc: RunConfig | None = None) -> Setting:
+    """The :class:`Setting` of a config: data, models, agent, envs, evaluators and phases; files of the last
+    evaluation go to ``run_path``. ``t_start``: the run's start (the data and model timings). ``rc``: the config's
+    typed sections when the caller parsed them already (:meth:`RunConfig.parse`, which validates ``cfg``)."""
+    rc = RunConfig.parse(cfg) if rc is None else rc
     kind = setting_of(cfg)
-    torch.manual_seed(cfg["seed"])
-    snapshots = snapshot_steps(cfg, kind.unit, transfer_config(cfg))  # a bad value named before any data or model work
+    torch.manual_seed(rc.seed)
+    snapshots = snapshot_steps(rc, kind.unit)  # a bad value named before any data or model work
     data = resolve_dataset(cfg)  # one dataset for every training seed (its own seed is dataset_seed)
     stacking = task_of(cfg["env"]["env_id"]).goal_conditioned
     n_goals = G.n_goals(G.check_blocks(G.blocks_for_obs_dim(data.observation_dim))) if stacking else 0
@@ -401,8 +404,8 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
     t_models = time.time() - t_start - t_data
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg["torch_threads"]))
-    torch.manual_seed(cfg["seed"])  # the agent's initial weights do not depend on whether the models were fitted or loaded
-    parts = Parts(cfg=cfg, run_path=Path(run_path), device=torch.device(cfg.get("device", "cpu")), stacking=stacking, data=data, n_goals=n_goals,
+    torch.manual_seed(rc.seed)  # the agent's initial weights do not depend on whether the models were fitted or loaded
+    parts = Parts(cfg=cfg, rc=rc, run_path=Path(run_path), device=torch.device(cfg.get("device", "cpu")), stacking=stacking, data=data, n_goals=n_goals,
                   level=data.metadata.get("level"), pcfg=pcfg, ensemble=ensemble, cvae=cvae, model_info=model_info, t_data=t_data, t_models=t_models,
                   snapshots=snapshots)
     return kind.build(parts)

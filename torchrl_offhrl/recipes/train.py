@@ -44,7 +44,7 @@ from .loop import TrainingLoop
 from .plots import plot_training_metrics
 from .summary import run_summary
 from .rundir import RunDirectory
-from .schema import validate_config
+from .schema import RunConfig
 from .selection import PolicySelector
 from .setting import build_setting
 
@@ -64,12 +64,12 @@ def train(cfg: Mapping, progress: bool = True, on_record=None) -> dict:
     ``RuntimeError`` instead of interleaving its checkpoints and logs.
     """
     cfg = to_plain(cfg)
-    validate_config(cfg)  # every bad value named before any data or model work
+    rc = RunConfig.parse(cfg)  # the typed sections; every bad value named before any data or model work
     t_start = time.time()
     run = run_directory(cfg)
     with run.locked():  # refused here, a run leaves the directory alone: it belongs to the run holding the lock
         try:
-            return _train(cfg, run, t_start, progress, on_record)
+            return _train(cfg, rc, run, t_start, progress, on_record)
         except BaseException:
             run.remove_if_empty()  # a run that failed before writing anything (say, on a bad dataset) leaves no folder
             raise
@@ -80,8 +80,8 @@ def run_directory(cfg: Mapping) -> RunDirectory:
     return RunDirectory(cfg.get("run_dir") or default_run_dir(cfg), config_fingerprint(cfg))
 
 
-def _train(cfg: dict, run: RunDirectory, t_start: float, progress: bool, on_record=None) -> dict:
-    r = PreparedRun.prepare(cfg, run, t_start, progress, on_record)
+def _train(cfg: dict, rc: RunConfig, run: RunDirectory, t_start: float, progress: bool, on_record=None) -> dict:
+    r = PreparedRun.prepare(cfg, run, t_start, progress, on_record, rc=rc)
     for phase in r.setting.phases:
         r.loop.run_phase(phase)
     return r.finish()
@@ -102,20 +102,20 @@ class PreparedRun:
     previous_summary: dict | None
 
     @classmethod
-    def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool, on_record=None) -> PreparedRun:
-        s = build_setting(cfg, run.path, t_start, progress)  # data, models, agent, envs, evaluators, phases
+    def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool, on_record=None, rc: RunConfig | None = None) -> PreparedRun:
+        rc = RunConfig.parse(cfg) if rc is None else rc
+        s = build_setting(cfg, run.path, t_start, progress, rc=rc)  # data, models, agent, envs, evaluators, phases
         agent, unit = s.agent, s.unit
         run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
         run.unit = unit
-        scfg = cfg.get("selection") or {}
-        run.selector = PolicySelector(scfg.get("criterion", "last") if s.selectable else "last", scfg.get("include_start", False))
+        run.selector = PolicySelector(rc.selection.criterion if s.selectable else "last", rc.selection.include_start)
         previous_summary = None
         if run.resume(agent, s.device) and (run.path / "summary.json").is_file():
             previous_summary = json.loads((run.path / "summary.json").read_text())
             (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
         run.write_json("config.json", {**cfg, "resolved_pessimism": s.pessimism, "threshold": s.threshold, "resolved_reward_scale": s.reward_scale,
                                        "model_dir": s.model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
-        logger = run.logger(cfg.get("logger", {}).get("backend"), **cfg.get("logger", {}).get("kwargs", {}))
+        logger = run.logger(rc.logger.backend, **rc.logger.kwargs)
         loop = TrainingLoop(run, agent, logger=logger, title=s.title, snapshots=s.snapshots, t_start=t_start, progress=progress, env_label=s.env_label,
                             on_record=on_record)
         return cls(cfg, run, s, loop, t_start, time.time(), run.frames, run.updates, previous_summary)
