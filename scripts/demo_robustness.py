@@ -63,6 +63,9 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "std037": ("the shipped demo with the intra-option policies' initial std exp(-1) = 0.37 instead of 1 in the latent space "
                "(algo.init_log_std=-1): with std 1 the policy MOC trains is the CVAE prior's spread around its mean, and the std "
                "stays at 1.00 over the demo's budget", ["algo.init_log_std=-1.0"]),
+    "machine2": ("the shipped demo rerun on another machine of the same kind (2-core AMD EPYC, a fresh clone): the same datasets "
+                 "bit for bit, the models fitted anew (their fits differ in floating point), so what the machine alone changes; "
+                 "the pair of every variant measured on that machine", []),
     "stdlr": ("the shipped demo with the intra-option log-stds learning at 1e-3 instead of the policy's 1e-4 "
               "(algo.log_std_lr=1e-3): at 1e-4 they cannot move over the demo's ~3,200 annealed steps, so PPO trains a "
               "policy as wide as the prior; here the std can shrink where the return asks it to",

@@ -187,7 +187,8 @@ def test_scheduler_is_validated_and_trials_carry_their_settings(tmp_path):
     # Ray's config of a trial: its index and its settings (an experiment started before the settings were added: the index alone)
     assert trial_index({"trial": {"index": 3, "algo.lr": 0.1}}) == 3 and trial_index({"trial": 2}) == 2
     rec = {"frames": 10, "step": 10, "return_mean": 5.0, "normalized_d4rl": None, "phase": "offline", "success_per_goal": [1.0], "flag": True}
-    assert _record_metrics(rec, "/r") == {"frames": 10, "step": 10, "return_mean": 5.0, "run_dir": "/r", "skipped": False}
+    assert _record_metrics(rec, "/r") == {"frames": 10, "step": 10, "return_mean": 5.0, "run_dir": "/r", "skipped": False,
+                                          "finished": False}
 
 
 def test_asha_search_reports_every_evaluation_and_finishes(ray_session, hopper_file, tmp_path, monkeypatch):
@@ -205,3 +206,26 @@ def test_asha_search_reports_every_evaluation_and_finishes(ray_session, hopper_f
         assert [e["updates"] for e in evals][:2] == [0, 10]
     progress = list((tmp_path / "out" / "tune" / "a").rglob("progress.csv"))
     assert progress and max(len(p.read_text().strip().splitlines()) - 1 for p in progress) >= 3  # one Ray result per evaluation, not one per trial
+
+
+def test_asha_stops_a_poor_trial_at_its_first_rung(ray_session, hopper_file, tmp_path, monkeypatch):
+    """Issue 42's acceptance: an ASHA search stops a poor trial early. Two trials one after the other: the first's
+    evaluation episodes run 20 steps, the second's 2, so at ASHA's first rung (the 2nd report: grace_period 2) the
+    second's return is far below the first's recorded one and ASHA stops it there; the first runs all its evaluations."""
+    from torchrl_offhrl.recipes.tune import tune_search
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    spec = tmp_path / "asha.yaml"
+    spec.write_text("kind: agent\nscheduler: asha\nmetric: return_mean\ngrid: {eval.max_steps: [20, 2]}\n"
+                    "overrides: [algo=bc, train.total_updates=30, eval.every_updates=10, eval.episodes=2, "
+                    "algo.batch_size=16, 'algo.hidden_sizes=[8]']\n")
+    tune_search(str(spec), [f"dataset={hopper_file}"], name="stop", out_root=str(tmp_path / "out"), verbose=0, max_concurrent=1)
+    runs = tmp_path / "out" / "tune" / "stop" / "runs"
+    full, poor = ([e["updates"] for e in json.loads((runs / f"trial{i:03d}" / "evals.json").read_text())] for i in range(2))
+    assert full == [0, 10, 20, 30]
+    assert poor[:2] == [0, 10] and len(poor) < len(full), poor  # stopped at the rung, before its budget
+    assert not (runs / "trial001" / "summary.json").is_file() and (runs / "trial000" / "summary.json").is_file()
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / "out" / "tune" / "stop" / "results.csv").open()))
+    assert [(r["trial"], r["finished"], r["step"]) for r in rows] == [("0", "True", "30"), ("1", "False", str(poor[-1]))]

@@ -193,7 +193,7 @@ def _train_trial(config: dict) -> None:
 def _record_metrics(rec: Mapping, run_dir) -> dict:
     """What a trial reports at each evaluation: the record's numbers, its step and run directory."""
     out = {k: v for k, v in rec.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
-    out.update({"run_dir": str(run_dir), "skipped": False})
+    out.update({"run_dir": str(run_dir), "skipped": False, "finished": False})  # finished: False until the summary (a scheduler may stop it here)
     return out
 
 
@@ -217,7 +217,7 @@ def _metrics(summary: Mapping, skipped: bool) -> dict:
     best = summary.get("best") or {}
     out = {k: v for k, v in final.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
     out.update({f"best_{k}": v for k, v in best.items() if k in ("normalized_d4rl", "return_mean", "success_rate") and isinstance(v, (int, float))})
-    out.update({"run_dir": summary.get("run_dir"), "skipped": skipped, "step": summary.get("step")})
+    out.update({"run_dir": summary.get("run_dir"), "skipped": skipped, "step": summary.get("step"), "finished": True})
     return out
 
 
