@@ -17,7 +17,6 @@ does not know which setting it runs; a new setting is a new class in
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
