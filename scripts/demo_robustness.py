@@ -73,6 +73,11 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
 }
 
 
+#: variant -> the baseline it is compared with run for run (same dataset and agent seeds, same machine): the paired block
+#: of the table. The earlier variants' pairs (the shipped demo's archived runs) are in the notes.
+PAIRED = {"stdlr": "machine2"}
+
+
 def run_name(d: int, a: int = 0) -> str:
     """The folder of dataset seed ``d`` and agent seed ``a``: ``d<d>`` for the demo's agent seed 0, else ``d<d>a<a>``."""
     return f"d{d}" if a == 0 else f"d{d}a{a}"
@@ -175,6 +180,21 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
     return out + [""]
 
 
+def paired_rows(variant: str, baseline: str, rs: list[dict]) -> list[str]:
+    """``variant``'s returned policies against ``baseline``'s on the runs both have (same seeds): per run and the paired change."""
+    from torchrl_offhrl.stats import paired_change
+
+    base = {(r["dataset_seed"], r["agent_seed"]): r for r in rows_of(baseline)}
+    both = [(r, base[(r["dataset_seed"], r["agent_seed"])]) for r in rs if (r["dataset_seed"], r["agent_seed"]) in base]
+    if not both:
+        return []
+    ch = paired_change([r["selected"] for r, _ in both], [b["selected"] for _, b in both])
+    per_run = ", ".join(f"d{label((r['dataset_seed'], r['agent_seed']))}: {b['selected']:.1f} -> {r['selected']:.1f}" for r, b in both)
+    return [f"Paired with `{baseline}` on the same {len(both)} runs (returned policy, {baseline} -> {variant}): {per_run}. "
+            f"Beats both: {variant} {sum(r['beats_both'] for r, _ in both)}/{len(both)}, {baseline} {sum(b['beats_both'] for _, b in both)}/{len(both)}; "
+            f"paired change {ch['mean']:+.1f} [{ch['ci'][0]:+.1f}, {ch['ci'][1]:+.1f}], {ch['up']} of {ch['n']} up.", ""]
+
+
 def table(variants: list[str]) -> str:
     from torchrl_offhrl.stats import iqm_ci, mean_std
 
@@ -213,6 +233,8 @@ def table(variants: list[str]) -> str:
             lines.append(f"| IQM [95% CI] | {' | '.join(agg)} | {wins}/{len(rs)} | {hits}/{len(rs)} | |")
             lines.append("| mean ± std | " + " | ".join(msd) + " | | | |")
             lines.append("")
+            if v in PAIRED:
+                lines += paired_rows(v, PAIRED[v], rs)
             crit = criteria_rows([run for run in runs if pick({"dataset_seed": run[0][0]})])
             if crit:
                 lines += [f"Selection criteria compared on the same runs ({group}): the real score of the evaluation each criterion "
