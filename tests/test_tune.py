@@ -111,8 +111,8 @@ def test_tiny_sweep_resumes_an_interrupted_sweep_without_redoing_finished_trials
     from torchrl_offhrl.recipes.tune import sweep
 
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
-    over = [f"dataset={hopper_file}", "train.total_updates=20", "eval.every_updates=20", "eval.episodes=2", "eval.max_steps=20",
-            "algo.batch_size=16", "algo.hidden_sizes=[8]"]
+    over = ["train.total_updates=20", "eval.every_updates=20", "eval.episodes=2", "eval.max_steps=20",
+            "algo.batch_size=16", "algo.hidden_sizes=[8]"]  # the dataset is the sweep's --datasets axis
     root = tmp_path / "out" / "sweeps" / "s"
     seed5 = root / "bc-hopper-hopper_tiny-seed5"
     seed5.mkdir(parents=True)
@@ -150,6 +150,18 @@ def test_the_number_of_trials_is_an_option_and_a_search_key_override_says_so(tmp
         tune_search("models", ["num_samples=2"], out_root=str(tmp_path))
     with pytest.raises(ValueError, match=r"--num-samples must be >= 1"):
         tune_search("models", [], num_samples=0, out_root=str(tmp_path))
+
+
+def test_a_sweep_axis_given_as_an_override_is_refused(tmp_path):
+    """`offhrl sweep ... dataset=FILE` used to train on the file under the label and run directory of the default
+    --datasets medium (`bc-hopper-medium-seed4`); an axis of the sweep is refused as an override, naming its option."""
+    from torchrl_offhrl.recipes.tune import sweep
+
+    with pytest.raises(ValueError, match=r"dataset is an axis of the sweep; give it as --datasets"):
+        sweep(["bc"], ["hopper"], ["medium"], [4], ["dataset=/data/hopper.hdf5"], out_root=str(tmp_path))
+    with pytest.raises(ValueError, match=r"seed is an axis of the sweep; give it as --seeds"):
+        sweep(["bc"], ["hopper"], ["medium"], [4], ["+seed=3"], out_root=str(tmp_path))
+    assert not (tmp_path / "sweeps").exists()
 
 
 def test_an_interrupted_search_raises_before_writing_blank_rows():
