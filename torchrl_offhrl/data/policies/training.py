@@ -6,6 +6,13 @@ trains that run with TorchRL's :class:`~torchrl.objectives.SACLoss` (or CrossQLo
 it every ``eval_every`` environment steps and keeps every evaluated actor as a
 small state dict, so the medium and expert levels are picked afterwards from
 one run (:func:`pick_checkpoint`).
+
+Why it keeps its own loop beside the SAC agent's (``agents/sac.py``, with
+which it shares :func:`make_sac_loss`): it sits in the data layer, below the
+agents and the recipes, because dataset generation ships what it trains; it
+trains CrossQ, which no agent does; and its state format is what the shipped
+policies' cards name. Moving it onto the recipe loop (``train.online=true``,
+``algo=sac``, ``eval.sampled``, snapshots) is open in issue 41.
 """
 from __future__ import annotations
 
