@@ -85,11 +85,11 @@ def _bool() -> tuple[str, Callable[[Any], bool]]:
     return "true or false", lambda v: isinstance(v, bool)
 
 
-def _setting(rule: tuple[str, Callable[[Any], bool]], default=MISSING, *, default_factory=MISSING, doc: str = ""):
+def _setting(rule: tuple[str, Callable[[Any], bool]], default=MISSING, *, default_factory=MISSING):
     """A typed section's field: its default and its allowed values (``rule``: what is allowed, check)."""
     if default_factory is not MISSING:
-        return field(default_factory=default_factory, metadata={"rule": rule, "doc": doc})
-    return field(default=default, metadata={"rule": rule, "doc": doc})
+        return field(default_factory=default_factory, metadata={"rule": rule})
+    return field(default=default, metadata={"rule": rule})
 
 
 def _positive_ints() -> tuple[str, Callable[[Any], bool]]:
@@ -111,10 +111,10 @@ def _unit(unit: str) -> str:
 class TrainConfig:
     """``train``: the training budget."""
 
-    total_frames: int = _setting(_int(1), 1_000_000, doc="agents on the model env (and online): frames collected")
-    total_updates: int = _setting(_int(1), 1_000_000, doc="agents learning from the dataset itself: gradient steps")
-    online: bool = _setting(_bool(), False, doc="train in the real env from scratch, in real actions (no models, no CVAE)")
-    snapshot_frames: tuple[int, ...] = _setting(_positive_ints(), (), doc="keep the agent's state at these steps too")
+    total_frames: int = _setting(_int(1), 1_000_000)  # agents on the model env (and online): frames collected
+    total_updates: int = _setting(_int(1), 1_000_000)  # agents learning from the dataset itself: gradient steps
+    online: bool = _setting(_bool(), False)  # train in the real env from scratch, in real actions (no models, no CVAE)
+    snapshot_frames: tuple[int, ...] = _setting(_positive_ints(), ())  # keep the agent's state at these steps too
 
     def total(self, unit: str) -> int:
         """The budget in ``unit``: ``"frames"`` (collected) or ``"updates"`` (gradient steps)."""
@@ -125,13 +125,13 @@ class TrainConfig:
 class EvalConfig:
     """``eval``: when and how the real-env evaluations run."""
 
-    at_start: bool = _setting(_bool(), True, doc="also evaluate the untrained agent")
-    model_env: bool = _setting(_bool(), True, doc="also roll the policy out in the model (the model-real gap)")
+    at_start: bool = _setting(_bool(), True)  # also evaluate the untrained agent
+    model_env: bool = _setting(_bool(), True)  # also roll the policy out in the model (the model-real gap)
     every_frames: int = _setting(_int(1), 50_000)
     every_updates: int = _setting(_int(1), 50_000)
-    episodes: int = _setting(_int(1), 30, doc="deterministic real-env episodes per evaluation")
-    model_episodes: int | None = _setting(_int(1, optional=True), 50, doc="episodes in the model env (null: episodes)")
-    sampled: bool = _setting(_bool(), False, doc="also evaluate the sampled policy")
+    episodes: int = _setting(_int(1), 30)  # deterministic real-env episodes per evaluation
+    model_episodes: int | None = _setting(_int(1, optional=True), 50)  # episodes in the model env (null: episodes)
+    sampled: bool = _setting(_bool(), False)  # also evaluate the sampled policy
     max_steps: int = _setting(_int(1), 1000)
 
     def every(self, unit: str) -> int:
@@ -144,7 +144,7 @@ class SelectionConfig:
     """``selection``: the offline policy selection (:mod:`~torchrl_offhrl.recipes.selection`)."""
 
     criterion: str = _setting(_choice(*CRITERIA), "last")
-    include_start: bool = _setting(_bool(), False, doc="the untrained policy is a candidate too")
+    include_start: bool = _setting(_bool(), False)  # the untrained policy is a candidate too
 
 
 @dataclass(frozen=True)

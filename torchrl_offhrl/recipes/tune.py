@@ -432,10 +432,11 @@ def sweep(algos: Sequence[str], envs: Sequence[str], datasets: Sequence[str], se
     ``results.md`` next to the runs.
     """
     axes = {"algo": "--algos", "env": "--envs", "dataset": "--datasets", "seed": "--seeds"}
-    clash = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") in axes]
+    keyed = [(o, o.split("=", 1)[0].lstrip("+~")) for o in overrides]
+    clash = sorted({k for _, k in keyed if k in axes})
     if clash:  # the grid's value would be replaced under the grid's label and run directory name (a file trained as 'medium')
-        raise ValueError(f"{clash}: {', '.join(sorted({o.split('=', 1)[0].lstrip('+~') for o in clash}))} is an axis of the sweep; give it as "
-                         f"{', '.join(axes[o.split('=', 1)[0].lstrip('+~')] for o in clash)} (e.g. --datasets /path/to/file.hdf5)")
+        raise ValueError(f"{[o for o, k in keyed if k in axes]}: {', '.join(clash)} is an axis of the sweep; give it as "
+                         f"{', '.join(axes[k] for k in clash)} (e.g. --datasets /path/to/file.hdf5)")
     for algo, env, ds in itertools.product(algos, envs, datasets):  # every combination composes: errors before Ray starts
         _compose([f"algo={algo}", f"env={env}", f"dataset={ds}", *overrides])
     root = Path(out_root or "outputs") / "sweeps"
