@@ -7,8 +7,8 @@
 Data generated on another CPU differs in its floating-point details; a new
 ``dataset_seed`` (its own 100k transitions of the shipped hopper-medium
 policy, its own ensemble and CVAE fits) simulates that. Each variant is a
-list of hydra overrides of ``configs/demo.yaml``; one agent seed (0) per
-dataset seed. Dataset seeds 1-3 are for choosing (tuning); 4 and up for
+list of hydra overrides of ``configs/demo.yaml``; agent seed 0 per dataset
+seed unless ``--agent-seeds`` asks for others (runs ``d<seed>a<agent>``). Dataset seeds 1-3 are for choosing (tuning); 4 and up for
 reporting. Run directories: ``outputs/demo_robustness/<variant>/d<seed>``; what the
 table reads (config, evaluations, summaries) is archived in the repo under
 ``docs/results/demo_robustness_runs/<variant>/d<seed>`` as each run finishes (the cache, ``$TORCHRL_OFFHRL_CACHE``, keeps the datasets and models: a
@@ -204,7 +204,7 @@ def table(variants: list[str]) -> str:
     lines = ["# The demo on many dataset seeds", "",
              "Made by `python scripts/demo_robustness.py table` from the runs archived in `docs/results/demo_robustness_runs/` by `python scripts/demo_robustness.py run VARIANT --dataset-seeds ...`.",
              "Each dataset seed generates its own 100k hopper-medium transitions and fits its own ensemble and CVAE (what another "
-             "machine's floating point does to the demo); one agent seed (0). D4RL-normalised scores, 30 deterministic real-env "
+             "machine's floating point does to the demo); agent seed 0 unless a row names another. D4RL-normalised scores, 30 deterministic real-env "
              "episodes per evaluation. *returned*: the policy the run returns (offline policy "
              "selection, chosen without the real env; the last policy for `last`); *beats both*: returned > untrained and > data. "
              "Dataset seeds 1-3 were used for choices; 4 and up only for reporting.", ""]
