@@ -73,12 +73,15 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
               "(algo.log_std_lr=1e-3): at 1e-4 they cannot move over the demo's ~3,200 annealed steps, so PPO trains a "
               "policy as wide as the prior; here the std can shrink where the return asks it to",
               ["algo.log_std_lr=1.0e-3"]),
+    "stdsched": ("the shipped demo with the intra-option std on a schedule instead of learned (algo.final_log_std=-1): "
+                 "exp(0) = 1 at the start (where the shipped runs find their gaits), exp(-1) = 0.37 at the end (where std037's "
+                 "runs kept the gaits they found)", ["algo.final_log_std=-1.0"]),
 }
 
 
 #: variant -> the baseline it is compared with run for run (same dataset and agent seeds, same machine): the paired block
 #: of the table. The earlier variants' pairs (the shipped demo's archived runs) are in the notes.
-PAIRED = {"stdlr": "machine2", "mb64": "machine2"}
+PAIRED = {"stdlr": "machine2", "mb64": "machine2", "stdsched": "machine2"}
 
 
 def run_name(d: int, a: int = 0) -> str:

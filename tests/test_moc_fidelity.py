@@ -285,3 +285,30 @@ def test_log_std_lr_gives_the_log_stds_their_own_annealed_step_size():
     assert len(plain.optimizer.param_groups) == 1
     with pytest.raises(ValueError, match="algo.log_std_lr must be a positive"):
         make_agent("moc", env, num_options=2, hidden_sizes=[8], log_std_lr=0.0)
+
+
+def test_final_log_std_schedules_the_log_stds_on_a_line_instead_of_learning_them():
+    """algo.final_log_std: the log-stds are in no optimiser, an update leaves them where they are, and set_progress puts
+    every option's log-std at init + (final - init) * fraction (hand-computed: -1 at 0.25 of the way from 0 to -4)."""
+    from torchrl_offhrl.agents import make_agent
+
+    env = _moc_env()
+    agent = make_agent("moc", env, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=512, init_log_std=0.0, final_log_std=-4.0,
+                       policy_ema=0.5)
+    agent.attach(env)
+    log_std = agent.policy.heads.log_std
+    assert not log_std.requires_grad
+    assert all(p is not log_std for opt in agent.optimizers() for g in opt.param_groups for p in g["params"])
+    agent.set_progress(0.25)
+    assert torch.equal(log_std, torch.full_like(log_std, -1.0))
+    assert torch.equal(agent.averaged_policy.heads.log_std, torch.full_like(log_std, -1.0))
+    with torch.no_grad():
+        batch = env.rollout(64, agent.policy, break_when_any_done=False)
+    scale = agent.policy.get_option_heads(batch.clone())["option_scale"]
+    assert torch.allclose(scale, torch.full_like(scale, float(torch.tensor(-1.0).exp())))
+    agent.update(batch)
+    assert torch.equal(log_std, torch.full_like(log_std, -1.0))
+    agent.set_progress(1.0)
+    assert torch.equal(log_std, torch.full_like(log_std, -4.0))
+    with pytest.raises(ValueError, match="leave algo.log_std_lr null"):
+        make_agent("moc", env, num_options=2, hidden_sizes=[8], final_log_std=-1.0, log_std_lr=1e-3)

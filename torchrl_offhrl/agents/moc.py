@@ -133,6 +133,17 @@ class MOCAgent(OnPolicyAgent):
     a policy as wide as the prior while the evaluation runs its mean
     (docs/results/demo_robustness_notes.md, row 22).
 
+    ``final_log_std`` (``algo.final_log_std``, default None: learned): a
+    schedule for the intra-option log-stds instead of learning them. Before
+    each update (:meth:`set_progress`) they are set to the line from
+    ``init_log_std`` to ``final_log_std`` at the fraction of the frame budget
+    done, the same for every option and action dimension: wide early (the
+    CVAE prior's own spread, where the demo's runs find their gaits), narrow
+    late (where a std of exp(-1) from the start kept the gaits runs found;
+    docs/results/demo_robustness_notes.md, rows 22-24). PPO's ratio compares
+    each batch with the log-probs it was collected with, so the step from one
+    batch's std to the next is part of the ratio.
+
     ``fused_adam`` is a speed switch (the same update rule, see
     :func:`~torchrl_offhrl.agents.adam`).
     """
@@ -187,6 +198,7 @@ class MOCAgent(OnPolicyAgent):
         loss: str | None = None,
         policy_ema: float | None = None,
         log_std_lr: float | None = None,
+        final_log_std: float | None = None,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         if update_schedule not in self.UPDATE_SCHEDULES:
@@ -200,6 +212,11 @@ class MOCAgent(OnPolicyAgent):
             obs_loc=obs_loc, obs_scale=obs_scale, init_log_std=init_log_std, obs_clip=obs_clip,
             option_head_gain=option_head_gain, termination_head_gain=termination_head_gain, intra_head_gain=intra_head_gain,
         )
+        if final_log_std is not None and log_std_lr is not None:
+            raise ValueError("algo.final_log_std schedules the log-stds, so they are not learned: leave algo.log_std_lr null")
+        self.log_std_schedule = None if final_log_std is None else (float(init_log_std), float(final_log_std))
+        if self.log_std_schedule is not None:
+            heads.log_std.requires_grad_(False)
         self.policy = OptionCriticActor(heads, low=low, high=high, action_key=action_key)
         critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale, obs_clip=obs_clip)
         loss_class = self.loss_class if loss is None else import_class(loss, OptionCriticLoss, "algo.loss")
@@ -232,6 +249,8 @@ class MOCAgent(OnPolicyAgent):
             return
         groups = {"termination": [], "option": [], "main": [], "log_std": []}
         for name, p in self.loss.named_parameters():
+            if not p.requires_grad:  # scheduled log-stds (final_log_std)
+                continue
             group = "termination" if ".termination_head." in name else "option" if ".option_head." in name else "main"
             groups["log_std" if log_std_lr is not None and name.endswith(".log_std") else group].append(p)
         if log_std_lr is not None and float(log_std_lr) <= 0:
@@ -248,6 +267,15 @@ class MOCAgent(OnPolicyAgent):
 
     def prepare(self, batch) -> None:
         self.loss.prepare_batch(batch)
+
+    def set_progress(self, fraction: float) -> None:
+        """Anneal the step sizes (``anneal_lr``) and, with ``final_log_std``, set the log-stds on their line."""
+        super().set_progress(fraction)
+        if self.log_std_schedule is not None:
+            start, end = self.log_std_schedule
+            f = min(max(float(fraction), 0.0), 1.0)
+            for policy in filter(None, (self.policy, self.averaged_policy)):
+                policy.heads.log_std.fill_(start + (end - start) * f)
 
     def update(self, batch) -> dict:
         metrics = self._update(batch)
