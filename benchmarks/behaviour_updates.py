@@ -2,7 +2,7 @@
 
     python benchmarks/behaviour_updates.py [--threads 1] [--device cpu] [--updates 300]
 
-For SAC and CrossQ (``torchrl_offhrl.data.policies.training.BehaviourLearner``,
+For SAC and CrossQ (``torchrl_offhrl.agents.behaviour.BehaviourLearner``,
 the exact update rule of ``scripts/train_behaviour.py``) at HalfCheetah-v5
 dimensions (17 observations, 6 actions), batch 256, actor MLP(256, 256), it
 times ``--updates`` updates drawn from a TorchRL replay buffer of random
@@ -30,7 +30,8 @@ def main():
     from tensordict import TensorDict
     from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
 
-    from torchrl_offhrl.data.policies.training import BehaviourLearner, make_behaviour_actor
+    from torchrl_offhrl.agents.behaviour import BehaviourLearner
+    from torchrl_offhrl.data.policies.actors import make_behaviour_actor
 
     dev = torch.device(a.device)
     obs_dim, act_dim, n = 17, 6, 100_000

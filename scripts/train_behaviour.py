@@ -13,7 +13,8 @@ import argparse
 
 import torch
 
-from torchrl_offhrl.data.policies.training import ALGORITHMS, train_behaviour
+from torchrl_offhrl.data.policies.actors import ALGORITHMS
+from torchrl_offhrl.recipes.behaviour import train_behaviour
 
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

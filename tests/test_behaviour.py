@@ -5,7 +5,7 @@ import pytest
 import torch
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-import torchrl_offhrl.data.policies.training as beh
+import torchrl_offhrl.recipes.behaviour as beh
 from torchrl_offhrl.rollouts import evaluate_policy
 from torchrl_offhrl.data import load_policy, ship_policy
 

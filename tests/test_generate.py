@@ -26,7 +26,7 @@ from torchrl_offhrl.data import (
     ship_policy,
 )
 from torchrl_offhrl.data.catalog import dataset_path
-from torchrl_offhrl.data.policies.training import make_behaviour_actor
+from torchrl_offhrl.data.policies.actors import make_behaviour_actor
 from torchrl_offhrl.rollouts import evaluate_policy
 from torchrl_offhrl.utils import one_thread
 

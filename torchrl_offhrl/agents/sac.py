@@ -9,12 +9,53 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.modules import ValueOperator
 from torchrl.objectives import group_optimizers
 
-from ..data.policies.training import make_sac_loss
 from ..nets import NormalizedMLP, tanh_gaussian_actor
 from .base import Agent, MetricMeans, action_box, adam, compile_setting, sum_losses
 from .registry import register_agent
 
-__all__ = ["SACAgent", "sac_optimizer"]
+__all__ = ["SACAgent", "make_sac_loss", "sac_optimizer", "sac_step"]
+
+
+def make_sac_loss(actor, qvalue, action_spec, gamma: float = 0.99, tau: float = 0.005, alpha_init: float = 1.0, action_key: str = "action"):
+    """TorchRL's :class:`~torchrl.objectives.SACLoss` as this project uses it, and its Polyak target updater.
+
+    Two Q networks, squared-error critic loss, target critics (not a target
+    actor) updated with ``tau``, the default target entropy
+    ``-(action elements)`` of ``action_spec`` (one env's, unbatched). Shared
+    by :class:`SACAgent`, :class:`~torchrl_offhrl.agents.sac_her.SACHERAgent`
+    and the behaviour-policy learner
+    (:class:`~torchrl_offhrl.agents.behaviour.BehaviourLearner`). Returns
+    ``(loss, target_updater)``.
+    """
+    from torchrl.objectives import SACLoss, SoftUpdate
+
+    loss = SACLoss(
+        actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True,
+        alpha_init=alpha_init, action_spec=action_spec,
+    )
+    loss.set_keys(action=action_key)
+    loss.make_value_estimator(gamma=gamma)
+    return loss, SoftUpdate(loss, tau=tau)
+
+
+def sac_step(loss_fn, minibatch, optimizers, target_updater):
+    """SAC's gradient step, the one every SAC trainer of the project takes; returns the losses.
+
+    One forward of the three losses (``loss_fn(minibatch)``: TorchRL's
+    ``SACLoss`` detaches the critic in the actor loss and the log-prob in the
+    temperature loss, so their sum steps each part on its own loss), one
+    backward of the sum, a step of each optimiser in ``optimizers`` (one
+    grouped optimiser, as :func:`sac_optimizer` makes, or one per part), then
+    the Polyak step of the target critics.
+    """
+    out = loss_fn(minibatch)
+    for opt in optimizers:
+        opt.zero_grad()
+    sum_losses(out).backward()
+    for opt in optimizers:
+        opt.step()
+    target_updater.step()
+    return out
 
 
 def sac_optimizer(loss, lr: float, fused_adam: bool = True):
@@ -87,12 +128,7 @@ class SACAgent(Agent):
         metrics = MetricMeans()
         if self.frames >= self.init_random_frames:
             for _ in range(max(1, round(frames * self.utd_ratio))):
-                out = self.loss_fn()(sample())
-                self.optimizer.zero_grad()
-                sum_losses(out).backward()
-                self.optimizer.step()
-                self.target_updater.step()
-                metrics.add(out)
+                metrics.add(sac_step(self.loss_fn(), sample(), (self.optimizer,), self.target_updater))
         return {**metrics.means(), "updates": metrics.count}
 
     def new_task(self) -> None:

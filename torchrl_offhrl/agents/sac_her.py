@@ -27,10 +27,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ..data.policies.training import make_sac_loss
 from .her import LOW_DONE, LOW_REWARD, low_level_done, low_level_keys, prepare_low_level, sub_goal_her_buffer
 from .registry import register_agent
-from .sac import SACAgent, sac_optimizer
+from .sac import SACAgent, make_sac_loss, sac_optimizer
 from .uof import goal_networks
 
 __all__ = ["SACHERAgent"]

@@ -49,7 +49,7 @@ class SampledPolicy(TensorDictModuleBase):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
-        >>> from torchrl_offhrl.data.policies.training import make_behaviour_actor
+        >>> from torchrl_offhrl.data.policies.actors import make_behaviour_actor
         >>> actor = make_behaviour_actor(3, 2, -torch.ones(2), torch.ones(2), hidden=(8,))
         >>> td = TensorDict(observation=torch.zeros(5, 3), batch_size=[5])
         >>> with set_exploration_type(ExplorationType.DETERMINISTIC):

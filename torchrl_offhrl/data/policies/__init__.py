@@ -6,7 +6,7 @@ stopped at about a third of the expert's return. This folder holds such
 policies as pairs of files:
 
 * ``<name>.pt``: the state dict of the actor built by
-  :func:`torchrl_offhrl.data.policies.training.make_behaviour_actor`;
+  :func:`torchrl_offhrl.data.policies.actors.make_behaviour_actor`;
 * ``<name>.json``: its card (env id, level, training and evaluation facts,
   the command that reproduces it, package versions, actor dimensions).
 
@@ -30,7 +30,7 @@ from ...rollouts import evaluate_policy
 from ...scores import normalized_score
 from ...utils import atomic_write, one_thread
 from ..collect import make_gym_env, package_versions
-from .training import ALGORITHMS, make_behaviour_actor, pick_checkpoint
+from .actors import ALGORITHMS, make_behaviour_actor, pick_checkpoint
 
 __all__ = ["POLICY_DIR", "PolicyNotFoundError", "list_policies", "load_policy", "ship_policy"]
 
@@ -82,7 +82,7 @@ def load_policy(name_or_path: str | os.PathLike) -> tuple[torch.nn.Module, dict[
 
     Returns:
         ``(actor, card)``: the tanh-Gaussian actor of
-        :func:`~torchrl_offhrl.data.policies.training.make_behaviour_actor` in eval
+        :func:`~torchrl_offhrl.data.policies.actors.make_behaviour_actor` in eval
         mode (it samples under ``ExplorationType.RANDOM`` and returns its mean
         under ``DETERMINISTIC``), and the card as a dict.
 
@@ -145,7 +145,7 @@ def ship_policy(
 
     Args:
         run_dir: the ``--out`` folder of ``scripts/train_behaviour.py``
-            (:func:`~torchrl_offhrl.data.policies.training.train_behaviour`):
+            (:func:`~torchrl_offhrl.recipes.behaviour.train_behaviour`):
             ``actor_<steps>.pt`` files and ``evals.json``.
         name: the policy name, ``<env>-<level>`` by convention
             (``"hopper-medium"``).

@@ -1,180 +1,43 @@
-"""Online SAC / CrossQ in the real Gymnasium env, to make D4RL-style behaviour policies (the data layer: generation ships what this trains).
+"""Train a D4RL-style behaviour policy online in the real Gymnasium env (``scripts/train_behaviour.py``).
 
 D4RL's protocol: "expert" is a fully trained SAC policy, "medium" a checkpoint
 of the same run stopped at about a third of the expert's return. This module
-trains that run with TorchRL's :class:`~torchrl.objectives.SACLoss` (or CrossQLoss), evaluates
-it every ``eval_every`` environment steps and keeps every evaluated actor as a
-small state dict, so the medium and expert levels are picked afterwards from
-one run (:func:`pick_checkpoint`).
+runs that training (the learner: :class:`~torchrl_offhrl.agents.behaviour.BehaviourLearner`,
+SAC through the SAC agents' gradient step, or CrossQ), evaluates it every
+``eval_every`` environment steps and keeps every evaluated actor as a small
+state dict, so the medium and expert levels are picked afterwards from one
+run (:func:`~torchrl_offhrl.data.policies.actors.pick_checkpoint`,
+:func:`~torchrl_offhrl.data.policies.ship_policy`).
 
-Why it keeps its own loop beside the SAC agent's (``agents/sac.py``, with
-which it shares :func:`make_sac_loss`): it sits in the data layer, below the
-agents and the recipes, because dataset generation ships what it trains; it
-trains CrossQ, which no agent does; and its state format is what the shipped
-policies' cards name. Moving it onto the recipe loop (``train.online=true``,
-``algo=sac``, ``eval.sampled``, snapshots) is open in issue 41.
+Why its loop is not the recipe loop's (:mod:`~torchrl_offhrl.recipes.train`):
+a behaviour run keeps *every* evaluated actor (the levels are chosen after
+the run, by their returns), evaluates both the sampled and the mean policy
+(D4RL's data is sampled), and its folder's format (``evals.json``,
+``actor_<steps>.pt``, ``state/``) is what :func:`ship_policy` and the
+shipped policies' cards name; the recipe loop's run directory, policy
+selection and model-env settings do not apply to it.
 """
 from __future__ import annotations
 
 import json
-import math
 import time
 import warnings
 from pathlib import Path
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule
-from torch import nn
 
-from ...nets import mlp, tanh_gaussian_actor
-from ...rollouts import evaluate_policy
-from ...utils import atomic_write
-from ..collect import make_gym_env
-from .plots import plot_behaviour_run
+from ..agents.behaviour import BehaviourLearner
+from ..data import make_gym_env
+from ..data.policies.actors import algorithm_defaults, make_behaviour_actor
+from ..data.policies.plots import plot_behaviour_run
+from ..rollouts import evaluate_policy
+from ..utils import atomic_write
 
-__all__ = ["ALGORITHMS", "BehaviourLearner", "make_sac_loss", "latest_state", "make_behaviour_actor", "pick_checkpoint", "train_behaviour", "train_behaviour_sac"]
+__all__ = ["latest_state", "save_state", "train_behaviour", "train_behaviour_sac"]
 
-
-def make_behaviour_actor(obs_dim: int, act_dim: int, low, high, hidden=(256, 256)):
-    """SAC's tanh-Gaussian actor: ``observation`` -> ``action`` (+ ``action_log_prob``).
-
-    Call it inside ``torchrl.envs.utils.set_exploration_type`` to choose
-    between sampling (``RANDOM``, D4RL's stochastic data) and the mean
-    (``DETERMINISTIC``).
-
-    Examples:
-        >>> import torch
-        >>> actor = make_behaviour_actor(3, 2, -torch.ones(2), torch.ones(2), hidden=(8,))
-        >>> from tensordict import TensorDict
-        >>> actor(TensorDict(observation=torch.zeros(4, 3), batch_size=[4]))["action"].shape
-        torch.Size([4, 2])
-    """
-    net = nn.Sequential(mlp(obs_dim, 2 * act_dim, hidden, activation="relu"), NormalParamExtractor())
-    return tanh_gaussian_actor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]), low, high)
-
-
-#: Defaults of each algorithm of :func:`train_behaviour` (the published ones,
-#: except CrossQ's critic width: 256 instead of 2048, for CPU budgets).
-ALGORITHMS = {
-    "sac": {"lr": 3e-4, "betas": (0.9, 0.999), "policy_delay": 1, "target_critics": True, "loss": "SAC (torchrl SACLoss)"},
-    "crossq": {"lr": 1e-3, "betas": (0.5, 0.999), "policy_delay": 3, "target_critics": False, "loss": "CrossQ (torchrl CrossQLoss)"},
-}
 _KEEP = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated"))
 
 
-def _algorithm(name: str) -> dict:
-    """The defaults of a behaviour-training algorithm (a clear error for an unknown name)."""
-    if name not in ALGORITHMS:
-        raise ValueError(f"train_behaviour: algorithm must be one of {sorted(ALGORITHMS)}, got {name!r}.")
-    return ALGORITHMS[name]
-
-
-class _CrossQCritic(nn.Module):
-    """CrossQ's critic: batch renormalisation on the input and after each hidden layer, no target copy."""
-
-    def __init__(self, in_dim: int, hidden, momentum: float = 0.01, warmup_steps: int = 10_000):
-        from torchrl.modules import BatchRenorm1d
-
-        super().__init__()
-        layers: list[nn.Module] = [BatchRenorm1d(in_dim, momentum=momentum, warmup_steps=warmup_steps)]
-        for h in hidden:
-            layers += [nn.Linear(in_dim, h), BatchRenorm1d(h, momentum=momentum, warmup_steps=warmup_steps), nn.ReLU()]
-            in_dim = h
-        layers.append(nn.Linear(in_dim, 1))
-        self.net = nn.Sequential(*layers)
-
-    def forward(self, observation, action):
-        return self.net(torch.cat([observation, action], -1))
-
-
-def make_sac_loss(actor, qvalue, action_spec, gamma: float = 0.99, tau: float = 0.005, alpha_init: float = 1.0, action_key: str = "action"):
-    """TorchRL's :class:`~torchrl.objectives.SACLoss` as this project uses it, and its Polyak target updater.
-
-    Two Q networks, squared-error critic loss, target critics (not a target
-    actor) updated with ``tau``, the default target entropy
-    ``-(action elements)`` of ``action_spec`` (one env's, unbatched). Shared
-    by the behaviour-policy trainer and the offline SAC agent
-    (:mod:`torchrl_offhrl.agents.sac`). Returns ``(loss, target_updater)``.
-    """
-    from torchrl.objectives import SACLoss, SoftUpdate
-
-    loss = SACLoss(
-        actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True,
-        alpha_init=alpha_init, action_spec=action_spec,
-    )
-    loss.set_keys(action=action_key)
-    loss.make_value_estimator(gamma=gamma)
-    return loss, SoftUpdate(loss, tau=tau)
-
-
-class BehaviourLearner:
-    """The losses, optimisers and update rule of :func:`train_behaviour` (SAC or CrossQ), for one actor.
-
-    The actor must already be on ``device``, where the critics are built.
-    ``update(batch)`` does one critic update (and, every ``policy_delay``
-    updates, one actor and temperature update; SAC: every update, plus the
-    Polyak step of its target critics). ``state_dict`` / ``load_state_dict``
-    cover the networks, the temperature and the optimisers.
-    """
-
-    def __init__(self, actor, obs_dim: int, act_dim: int, action_spec, algorithm: str = "sac", critic_hidden=(256, 256), lr: float | None = None, gamma: float = 0.99, tau: float = 0.005, device=None):
-        from torchrl.modules import MLP, ValueOperator
-        from torchrl.objectives import CrossQLoss
-
-        algo = _algorithm(algorithm)
-        self.algorithm = algorithm
-        self.policy_delay = algo["policy_delay"]
-        lr = algo["lr"] if lr is None else lr
-        if algorithm == "sac":
-            qnet = MLP(in_features=obs_dim + act_dim, out_features=1, num_cells=list(critic_hidden), activation_class=nn.ReLU)
-            qvalue = ValueOperator(qnet, in_keys=["observation", "action"]).to(device)
-            self.loss, self.target_updater = make_sac_loss(actor, qvalue, action_spec, gamma=gamma, tau=tau)
-        else:
-            qvalue = ValueOperator(_CrossQCritic(obs_dim + act_dim, critic_hidden), in_keys=["observation", "action"]).to(device)
-            self.loss = CrossQLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", action_spec=action_spec)
-            self.target_updater = None
-            self.loss.make_value_estimator(gamma=gamma)
-        adam = lambda params: torch.optim.Adam(params, lr=lr, betas=algo["betas"])
-        self.opt_actor = adam(self.loss.actor_network_params.flatten_keys().values())
-        self.opt_q = adam(self.loss.qvalue_network_params.flatten_keys().values())
-        self.opt_alpha = adam([self.loss.log_alpha])
-        self.updates = 0
-
-    def update(self, batch) -> None:
-        self.updates += 1
-        if self.algorithm == "sac":  # one forward for the three losses (the critic is detached in the actor loss)
-            losses = self.loss(batch)
-            self._step((self.opt_q, self.opt_actor, self.opt_alpha), losses["loss_qvalue"] + losses["loss_actor"] + losses["loss_alpha"])
-            self.target_updater.step()
-            return
-        loss_q, _ = self.loss.qvalue_loss(batch)
-        self._step((self.opt_q,), loss_q)
-        if self.updates % self.policy_delay == 0:
-            loss_pi, meta = self.loss.actor_loss(batch)
-            self._step((self.opt_actor, self.opt_alpha), loss_pi + self.loss.alpha_loss(meta["log_prob"]))
-
-    @staticmethod
-    def _step(opts, total) -> None:
-        for opt in opts:
-            opt.zero_grad()
-        total.backward()
-        for opt in opts:
-            opt.step()
-
-    def state_dict(self) -> dict:
-        return {
-            "loss": self.loss.state_dict(),
-            "opt_actor": self.opt_actor.state_dict(),
-            "opt_q": self.opt_q.state_dict(),
-            "opt_alpha": self.opt_alpha.state_dict(),
-            "updates": self.updates,
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.loss.load_state_dict(state["loss"])
-        for key in ("opt_actor", "opt_q", "opt_alpha"):
-            getattr(self, key).load_state_dict(state[key])
-        self.updates = state["updates"]
 
 
 def train_behaviour(
@@ -247,7 +110,7 @@ def train_behaviour(
     from torchrl.data import LazyTensorStorage, ReplayBuffer
     from tqdm.auto import tqdm
 
-    _algorithm(algorithm)  # fail before touching out_dir
+    algorithm_defaults(algorithm)  # fail before touching out_dir
     dev = torch.device("cpu" if device is None else device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device={device!r}, but this torch build ({torch.__version__}) sees no CUDA GPU: "
@@ -262,7 +125,7 @@ def train_behaviour(
         "hidden": list(hidden),
         "critic_hidden": list(critic_hidden),
         "seed": seed,
-        "lr": _algorithm(algorithm)["lr"] if lr is None else lr,
+        "lr": algorithm_defaults(algorithm)["lr"] if lr is None else lr,
         "batch_size": batch_size,
         "gamma": gamma,
         "tau": tau,
@@ -275,7 +138,7 @@ def train_behaviour(
     if state_dir is not None:  # a saved run: check it is this one, and whether anything is left to do
         state = torch.load(state_dir / "state.pt", map_location="cpu", weights_only=True)
         saved = state["identity"]
-        unused = set() if _algorithm(algorithm)["target_critics"] else {"tau"}  # CrossQ has no target critics
+        unused = set() if algorithm_defaults(algorithm)["target_critics"] else {"tau"}  # CrossQ has no target critics
         diff = {k: (saved[k], v) for k, v in identity.items() if k in saved and k not in unused and saved[k] != v}
         if diff:
             raise ValueError(
@@ -407,12 +270,3 @@ def save_state(out: Path, rb, state: dict) -> None:
         cur.rename(old)
     tmp.rename(cur)
     shutil.rmtree(old, ignore_errors=True)
-
-
-def pick_checkpoint(records: list[dict], target: float | None = None, key: str = "stochastic") -> dict:
-    """The evaluation record for a level: the best return (``target=None``) or the return closest to ``target``."""
-    if not records:
-        raise ValueError("pick_checkpoint: no evaluation records")
-    if target is None:
-        return max(records, key=lambda r: r[key]["mean"])
-    return min(records, key=lambda r: abs(r[key]["mean"] - target) if math.isfinite(r[key]["mean"]) else float("inf"))
