@@ -33,7 +33,7 @@ import torch
 from ..envs import TASKS
 from .selection import CRITERIA
 
-__all__ = ["CollectorConfig", "EvalConfig", "LoggerConfig", "RunConfig", "SECTIONS", "SelectionConfig", "TrainConfig", "TransferConfig",
+__all__ = ["CollectorConfig", "EvalConfig", "LoggerConfig", "RunConfig", "SECTIONS", "parse_section", "SelectionConfig", "TrainConfig", "TransferConfig",
            "UNITS", "section_defaults", "validate_config"]
 
 _MISSING = object()
@@ -187,6 +187,16 @@ def section_defaults(key: str) -> dict:
         v = f.default_factory() if f.default is MISSING else f.default
         out[f.name] = list(v) if isinstance(v, tuple) else v
     return out
+
+
+def parse_section(key: str, values: Mapping | None):
+    """Typed section ``key`` from its mapping alone (absent keys: the defaults), for code that holds part of a config.
+
+    Example:
+        >>> parse_section("train", {"total_updates": 500}).total("updates")
+        500
+    """
+    return _section(SECTIONS[key], values)
 
 
 def _section(cls: type, values: Mapping | None):

@@ -208,8 +208,9 @@ def finished_run(run_dir, cfg: Mapping) -> dict | None:
 
 def _budget(cfg: Mapping) -> int:
     from .config import learns_from_dataset
+    from .schema import parse_section
 
-    return int(cfg["train"]["total_updates" if learns_from_dataset(cfg) else "total_frames"])
+    return parse_section("train", cfg.get("train")).total("updates" if learns_from_dataset(cfg) else "frames")
 
 
 def _metrics(summary: Mapping, skipped: bool) -> dict:
