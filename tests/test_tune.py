@@ -241,3 +241,29 @@ def test_asha_stops_a_poor_trial_at_its_first_rung(ray_session, hopper_file, tmp
 
     rows = list(csv.DictReader((tmp_path / "out" / "tune" / "stop" / "results.csv").open()))
     assert [(r["trial"], r["finished"], r["step"]) for r in rows] == [("0", "True", "30"), ("1", "False", str(poor[-1]))]
+
+
+def test_every_command_of_the_sweeps_guide_parses_and_composes():
+    """Each `offhrl tune|sweep` line of docs/guides/sweeps.md's code blocks (lines with `...` are elisions) parses as
+    written, names a preset that loads, and every config it would train composes: the guide cannot drift from the CLI."""
+    import itertools
+    import re
+
+    from torchrl_offhrl.cli import build_parser, overrides_last
+    from torchrl_offhrl.recipes.config import compose
+
+    text = (Path(__file__).parents[1] / "docs" / "guides" / "sweeps.md").read_text()
+    blocks = re.findall(r"```bash\n(.*?)```", text, flags=re.S)
+    lines = [ln.split("#", 1)[0].strip() for b in blocks for ln in b.splitlines()]
+    commands = [shlex.split(ln) for ln in lines if "offhrl" in ln and "..." not in ln]
+    assert len(commands) >= 5
+    for words in commands:
+        argv = words[words.index("offhrl") + 1:]
+        args = build_parser().parse_args(overrides_last(argv))
+        if argv[0] == "tune":
+            assert load_search(args.preset)["grid"]
+            compose("offline_train", list(args.overrides))
+        else:
+            assert argv[0] == "sweep"
+            for algo, env, ds in itertools.product(args.algos, args.envs, args.datasets):
+                compose("offline_train", [f"algo={algo}", f"env={env}", f"dataset={ds}", *args.overrides])
