@@ -312,3 +312,38 @@ def test_final_log_std_schedules_the_log_stds_on_a_line_instead_of_learning_them
     assert torch.equal(log_std, torch.full_like(log_std, -4.0))
     with pytest.raises(ValueError, match="leave algo.log_std_lr null"):
         make_agent("moc", env, num_options=2, hidden_sizes=[8], final_log_std=-1.0, log_std_lr=1e-3)
+
+
+def test_prior_coef_is_half_the_squared_norm_of_the_executed_options_mode_action_and_pulls_it_in():
+    """algo.prior_coef: with eta=0 the weights are the executed option's one-hot, so loss_prior is
+    coef * 0.5 * mean_b ||a_{o_b}(s_b)||^2 with a = 2 tanh(loc) on the [-2, 2] latent box (hand-computed from the
+    heads); a coefficient of 0 leaves the loss's output as it was (no loss_prior key); training on the term alone
+    shrinks the mode actions."""
+    from torchrl_offhrl.agents import make_agent
+
+    env = _moc_env()
+    agent = make_agent("moc", env, num_options=2, hidden_sizes=[8], epochs=1, minibatch_size=512, eta=0.0, prior_coef=0.5, intra_head_gain=1.0,
+                       anneal_lr=False, lr=1e-2)
+    agent.attach(env)
+    with torch.no_grad():
+        batch = env.rollout(32, agent.policy, break_when_any_done=False)
+    agent.prepare(batch)
+    flat = batch.reshape(-1)
+    out = agent.loss(flat)
+    with torch.no_grad():
+        _, loc, _, _ = agent.policy.heads(flat["observation"])
+        low, high = agent.policy.low, agent.policy.high
+        mode = low + (high - low) * (torch.tanh(loc) + 1) / 2  # [B, n, A]
+        executed = mode.gather(1, flat["option"].long().reshape(-1, 1, 1).expand(-1, 1, mode.shape[-1])).squeeze(1)
+        expected = 0.5 * 0.5 * executed.pow(2).sum(-1).mean()
+    assert torch.allclose(out["loss_prior"], expected, rtol=1e-5)
+    assert "loss_prior" not in make_agent("moc", env, num_options=2, hidden_sizes=[8]).loss(flat.clone()).keys()
+    before = float(expected)
+    opt = torch.optim.SGD(agent.policy.parameters(), lr=0.5)
+    for _ in range(20):
+        opt.zero_grad()
+        agent.loss(flat)["loss_prior"].backward()
+        opt.step()
+    assert float(agent.loss(flat)["loss_prior"]) < 0.5 * before
+    with pytest.raises(ValueError, match="prior_coef must be >= 0"):
+        make_agent("moc", env, num_options=2, hidden_sizes=[8], prior_coef=-1.0)

@@ -661,9 +661,9 @@ def test_moc_settings_added_this_session_keep_older_runs_resumable():
 
     now = to_plain(compose("offline_train", ["algo=moc"]))
     assert now["algo"]["loss"] is None and now["algo"]["policy_ema"] is None
-    older = {**now, "algo": {k: v for k, v in now["algo"].items() if k not in ("loss", "policy_ema", "log_std_lr", "final_log_std")}}
+    older = {**now, "algo": {k: v for k, v in now["algo"].items() if k not in ("loss", "policy_ema", "log_std_lr", "final_log_std", "prior_coef")}}
     assert config_fingerprint(older) == config_fingerprint(now)
-    for extra in ("algo.policy_ema=0.1", "algo.loss=torchrl_offhrl.objectives.OptionCriticLoss", "algo.log_std_lr=0.01", "algo.final_log_std=-1.0"):
+    for extra in ("algo.policy_ema=0.1", "algo.loss=torchrl_offhrl.objectives.OptionCriticLoss", "algo.log_std_lr=0.01", "algo.final_log_std=-1.0", "algo.prior_coef=1.0"):
         assert config_fingerprint(to_plain(compose("offline_train", ["algo=moc", extra]))) != config_fingerprint(now), extra
 
 

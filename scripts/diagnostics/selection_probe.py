@@ -10,8 +10,9 @@ start states, member ``i % K`` for episode ``i``, the evaluation's seed), and
 candidate selection signals are computed from those rollouts alone: the
 return (undiscounted, discounted with several gammas, truncated at several
 horizons), each as the mean over episodes and as the worst member's mean (a
-lower confidence bound over the ensemble), the reward per step and the
-pessimistic-termination rate. The real-env score is the run's own record at
+lower confidence bound over the ensemble), the reward per step, the
+pessimistic-termination rate and the ensemble's discrepancy on the visited
+model states (mean, 90th percentile: lower is picked, as for the rate). The real-env score is the run's own record at
 that evaluation (read, never used to compute a signal). For each signal it
 prints the real score of the evaluation it would pick and whether that is
 within 5 points of the run's best.
@@ -34,8 +35,12 @@ GAMMAS = (0.99, 0.995, 0.998)
 HORIZONS = (100, 200, 300, 500, 1000)
 
 
-def signals(reward: torch.Tensor, alive: torch.Tensor, member: torch.Tensor, penalized: torch.Tensor) -> dict:
-    """Every candidate signal of one policy's model rollouts (``[E, T]`` rewards and first-episode mask, ``[E]`` members)."""
+#: signals where the smaller value is picked
+LOWER_IS_BETTER = ("penalized", "disc_mean", "disc_p90")
+
+
+def signals(reward: torch.Tensor, alive: torch.Tensor, member: torch.Tensor, penalized: torch.Tensor, discrepancy: torch.Tensor | None = None) -> dict:
+    """Every candidate signal of one policy's model rollouts (``[E, T]`` rewards, discrepancies and first-episode mask, ``[E]`` members)."""
     r = reward * alive
     T = r.shape[1]
     per_episode = {"total": r.sum(1)}
@@ -50,6 +55,10 @@ def signals(reward: torch.Tensor, alive: torch.Tensor, member: torch.Tensor, pen
     out["rate_mean"] = float(r.sum() / alive.sum())
     out["len_mean"] = float(alive.sum(1).float().mean())
     out["penalized"] = float(penalized.float().mean())
+    if discrepancy is not None:
+        d = discrepancy[alive].double()
+        out["disc_mean"] = float(d.mean())
+        out["disc_p90"] = float(torch.quantile(d, 0.9))
     return out
 
 
@@ -74,7 +83,8 @@ def probe(run_dir: Path, episodes: int | None = None, horizon: int | None = None
                                     return_rollout=True)
         alive = first_episode_mask(td["next", "done"].reshape(n, -1))
         pen = (td["next", "penalized"].reshape(n, -1) & alive).any(1)
-        sig = signals(td["next", "reward"].reshape(n, -1).double(), alive, td["model_member"][:, 0].reshape(-1), pen)
+        sig = signals(td["next", "reward"].reshape(n, -1).double(), alive, td["model_member"][:, 0].reshape(-1), pen,
+                      td["next", "discrepancy"].reshape(n, -1))
         rows.append({"run": str(run_dir), "frames": int(s["frames"]), "real": records[int(s["frames"])]["normalized_d4rl"], **sig})
     return rows
 
@@ -86,7 +96,7 @@ def picks(rows: list[dict]) -> dict[str, tuple[float, bool]]:
     for k in rows[0]:
         if k in ("run", "frames", "real"):
             continue
-        pick = (min if k == "penalized" else max)(rows, key=lambda r: r[k])
+        pick = (min if k in LOWER_IS_BETTER else max)(rows, key=lambda r: r[k])
         out[k] = (pick["real"], best - pick["real"] <= 5.0)
     out["last"] = (rows[-1]["real"], best - rows[-1]["real"] <= 5.0)
     return out

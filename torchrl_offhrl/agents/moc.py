@@ -144,6 +144,12 @@ class MOCAgent(OnPolicyAgent):
     each batch with the log-probs it was collected with, so the step from one
     batch's std to the next is part of the ratio.
 
+    ``prior_coef`` (``algo.prior_coef``, default 0: off): the loss's soft
+    trust region around the latent prior's mode
+    (:class:`~torchrl_offhrl.objectives.OptionCriticLoss`'s ``loss_prior``,
+    ``0.5 * prior_coef * ||a_o(s)||^2`` at every option's mode action),
+    stepped with the intra-option policies.
+
     ``fused_adam`` is a speed switch (the same update rule, see
     :func:`~torchrl_offhrl.agents.adam`).
     """
@@ -179,6 +185,7 @@ class MOCAgent(OnPolicyAgent):
         critic_coef: float = 0.5,
         entropy_coef: float = 0.0,
         option_entropy_coef: float = 0.01,
+        prior_coef: float = 0.0,
         frames_per_batch: int = 2048,
         epochs: int = 10,
         minibatch_size: int = 64,
@@ -231,6 +238,7 @@ class MOCAgent(OnPolicyAgent):
             critic_coef=critic_coef,
             entropy_coef=entropy_coef,
             option_entropy_coef=option_entropy_coef,
+            **({"prior_coef": prior_coef} if prior_coef else {}),  # a loss class without the term still builds
             gamma=gamma,
             lmbda=lmbda,
             importance_correction=importance_correction,
@@ -263,7 +271,7 @@ class MOCAgent(OnPolicyAgent):
 
     UPDATE_SCHEDULES = ("joint", "per_term")
     #: the loss terms stepped over the minibatch epochs by the per-term schedule
-    MINIBATCH_TERMS = ("loss_objective", "loss_critic", "loss_entropy")
+    MINIBATCH_TERMS = ("loss_objective", "loss_critic", "loss_entropy", "loss_prior")
 
     def prepare(self, batch) -> None:
         self.loss.prepare_batch(batch)
@@ -288,7 +296,7 @@ class MOCAgent(OnPolicyAgent):
     def _update(self, batch) -> dict:
         if self.update_schedule == "joint":
             return super().update(batch)
-        metrics = self.minibatch_epochs(batch, self.optimizer, lambda out: sum(out[k] for k in self.MINIBATCH_TERMS))
+        metrics = self.minibatch_epochs(batch, self.optimizer, lambda out: sum(out[k] for k in self.MINIBATCH_TERMS if k in out.keys()))
         # termination and pi_O: one step each on the whole batch (official MOC), with the updated critic
         out = self.loss(batch.reshape(-1))
         self.termination_optimizer.zero_grad()

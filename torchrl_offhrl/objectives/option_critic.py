@@ -253,6 +253,14 @@ class OptionCriticLoss(LossModule):
         critic_coef, termination_coef, option_coef: loss weights.
         entropy_coef: intra-option entropy bonus.
         option_entropy_coef: entropy bonus of ``pi_O`` (0.01).
+        prior_coef: weight of a soft trust region around the latent prior's
+            mode (0: off): ``loss_prior = prior_coef * 0.5 * ||a_o(s)||^2``
+            for every option's mode action ``a_o(s)`` (the action the
+            deterministic policy runs), ``w``-weighted as the entropy term.
+            In a latent action space whose prior is ``N(0, I)`` it is the
+            prior's negative log-density at the mode, up to a constant: a
+            penalty that grows as the evaluated policy leaves the region the
+            decoder was trained on, where a box bound is all or nothing.
         normalize_advantage: standardise the advantage within each call.
         gamma, lmbda: the default value estimator's discount and GAE lambda.
         importance_correction: ``"assignment"`` (default, as before),
@@ -375,6 +383,7 @@ class OptionCriticLoss(LossModule):
         option_coef: float = 1.0,
         entropy_coef: float = 0.0,
         option_entropy_coef: float = 0.01,
+        prior_coef: float = 0.0,
         normalize_advantage: bool = True,
         gamma: float = 0.99,
         lmbda: float = 0.95,
@@ -406,6 +415,9 @@ class OptionCriticLoss(LossModule):
         self.option_coef = float(option_coef)
         self.entropy_coef = float(entropy_coef)
         self.option_entropy_coef = float(option_entropy_coef)
+        if prior_coef < 0:
+            raise ValueError(f"prior_coef must be >= 0, got {prior_coef}")
+        self.prior_coef = float(prior_coef)
         self.normalize_advantage = normalize_advantage
         self._gamma, self._lmbda = gamma, lmbda
         self.set_keys(**self._keys_from_networks(actor_network, critic_network))
@@ -479,7 +491,7 @@ class OptionCriticLoss(LossModule):
     @property
     def out_keys(self):
         return [
-            "loss_objective", "loss_critic", "loss_termination", "loss_option", "loss_option_entropy", "loss_entropy",
+            "loss_objective", "loss_critic", "loss_termination", "loss_option", "loss_option_entropy", "loss_entropy", "loss_prior",
             "termination_rate", "option_duration", "option_usage", "clip_fraction", "approx_kl", "action_std", "option_entropy", "z",
             "option_usage_entropy", "termination_advantage", "termination_advantage_positive", "explained_variance",
         ]
@@ -601,14 +613,15 @@ class OptionCriticLoss(LossModule):
         return log_prob - old_exec + log_assign - log_assign.gather(-1, o)
 
     def intra_option_loss(self, td: TensorDictBase, weights: torch.Tensor) -> tuple[dict, dict]:
-        """PPO-clipped surrogate of every option and the intra-option entropy bonus.
+        """PPO-clipped surrogate of every option and the intra-option entropy bonus (and, with ``prior_coef``, the prior term).
 
-        Returns ``({"loss_objective", "loss_entropy"}, {"clip_fraction", "approx_kl", "action_std"})``.
+        Returns ``({"loss_objective", "loss_entropy"[, "loss_prior"]}, {"clip_fraction", "approx_kl", "action_std"})``.
         """
         k = self.tensor_keys
         action = td.get(k.action)
         o = td.get(k.option).long().reshape(-1).unsqueeze(-1)
-        new_logp = self.option_dist(td).log_prob(action.unsqueeze(-2))  # [B, n]
+        dist = self.option_dist(td)
+        new_logp = dist.log_prob(action.unsqueeze(-2))  # [B, n]
         ratio = self.importance_log_ratio(td, new_logp).exp()
         adv = td.get(k.advantage).reshape(-1)
         if self.normalize_advantage and adv.numel() > 1:
@@ -627,7 +640,12 @@ class OptionCriticLoss(LossModule):
             approx_kl = (old_exec.squeeze(-1) - new_logp.gather(-1, o).squeeze(-1)).mean()
             action_std = scale.detach().gather(-2, o.unsqueeze(-1).expand(-1, 1, scale.shape[-1])).mean()
         metrics = {"clip_fraction": clip_fraction, "approx_kl": approx_kl, "action_std": action_std}
-        return {"loss_objective": loss_objective, "loss_entropy": loss_entropy}, metrics
+        losses = {"loss_objective": loss_objective, "loss_entropy": loss_entropy}
+        if self.prior_coef > 0:  # every option's mode action (what the deterministic policy runs), [B, n, A]
+            mode_sq = dist.deterministic_sample.pow(2).sum(-1)  # [B, n]
+            losses["loss_prior"] = self.prior_coef * 0.5 * (weights * mode_sq).sum(-1).mean()
+            metrics["mode_norm"] = mode_sq.detach().gather(-1, o).sqrt().mean()
+        return losses, metrics
 
     def critic_loss(self, td: TensorDictBase, weights: torch.Tensor) -> tuple[dict, dict]:
         """``critic_coef * sum_o w_t(o) (Q(s_t, o) - G_t)^2``, averaged: ``({"loss_critic"}, {})``."""

@@ -241,7 +241,7 @@ def algo_label(algo_cfg: Mapping) -> str:
 #: settings added after runs already existed, with the value that reproduces those runs: a config holding
 #: exactly that value fingerprints as one without the key, so older checkpoints still resume
 #: (``reward_hidden_sizes: null``: the reward model takes the transition model's widths)
-LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01, "loss": None, "policy_ema": None, "log_std_lr": None, "final_log_std": None,
+LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01, "loss": None, "policy_ema": None, "log_std_lr": None, "final_log_std": None, "prior_coef": 0.0,
                                                           "terminal_on_success": True},
                                                  "ensemble": {"reward_hidden_sizes": None}, "model_env": {"reward_penalty": 0.0}}
 
