@@ -23,8 +23,11 @@ Scales:
 
 At both scales the model-free baselines (``--algos iql td3bc bc cql``: no
 model, trained on the dataset itself) take 100k gradient steps, evaluated
-every 10k with the same episodes and seeds; ``morel`` is PPO on the P-MDP
-in real actions with MOReL's discrepancy (``configs/algo/morel.yaml``).
+every 10k with the same episodes and seeds; ``morel`` in these runs is PPO
+on the P-MDP in real actions from a random policy with MOReL's discrepancy
+and a threshold of max / 3 (``configs/algo/morel.yaml`` before 2026-12-02;
+the config now follows MOReL's official code: a behaviour-cloned start, a
+KL-bounded step, 3 x max, and has not been run at these scales yet).
 
 Seeds 4, 5, 6 by default: seeds 0 and 10 were the development seeds of
 ``scripts/moc_experiments.py``, and seeds 1-3 were looked at while choosing

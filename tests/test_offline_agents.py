@@ -420,11 +420,16 @@ def test_transfer_script_keeps_variants_and_tuning_runs_apart(monkeypatch):
 
 
 def test_morel_is_one_named_config():
-    """algo=morel: PPO in real actions on the P-MDP with MOReL's max-pairwise discrepancy and threshold rule (max / 3)."""
+    """algo=morel: MOReL as its official code runs D4RL Hopper: a behaviour-cloned start, a KL-bounded policy step (PPO's
+    adaptive KL penalty at NPG's ~0.01 per iteration), 700-step episodes from the data's start states at discount 0.999,
+    the max-pairwise discrepancy and its threshold rule (3.0 x the data's max, HALT reward 0), in real actions."""
     cfg = to_plain(compose("offline_train", ["algo=morel", "env=hopper", "dataset=medium"]))
     assert cfg["algo"]["name"] == "ppo" and cfg["algo"]["label"] == "morel"
     assert cfg["ablation"]["no_cvae"] is True and cfg["model_env"]["discrepancy"] == "max_pairwise"
-    assert cfg["model_env"]["pessimism"]["fraction"] == pytest.approx(1 / 3)
+    assert cfg["model_env"]["pessimism"] == {"fraction": 3.0, "penalty": 0.0}
+    assert (cfg["model_env"]["horizon"], cfg["model_env"]["reset_states"]) == (700, "initial")
+    assert (cfg["algo"]["loss_type"], cfg["algo"]["kl_target"], cfg["algo"]["gamma"], cfg["algo"]["lmbda"]) == ("kl", 0.01, 0.999, 0.97)
+    assert cfg["algo"]["bc_init_steps"] > 0
     # the command line still wins over the named config, and the other algorithms keep the defaults
     assert to_plain(compose("offline_train", ["algo=morel", "model_env.discrepancy=variance"]))["model_env"]["discrepancy"] == "variance"
     plain = to_plain(compose("offline_train", ["algo=ppo"]))
@@ -433,12 +438,15 @@ def test_morel_is_one_named_config():
 
 def test_morel_trains_end_to_end(hopper_file, cache, tmp_path):
     tiny = ["ensemble.hidden_sizes=[16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16]", "cvae.fit.max_steps=20", "collector.num_envs=4",
-            "train.total_frames=64", "eval.every_frames=64", "algo.frames_per_batch=64", "algo.epochs=1", "eval.episodes=2", "eval.max_steps=15"]
+            "train.total_frames=64", "eval.every_frames=64", "algo.frames_per_batch=64", "algo.epochs=1", "eval.episodes=2", "eval.max_steps=15",
+            "algo.bc_init_steps=200", "model_env.horizon=15"]
     summary = train(to_plain(compose("offline_train", ["algo=morel", f"dataset={hopper_file}", f"out_root={tmp_path}", *tiny])), progress=False)
     run = Path(summary["run_dir"])
     assert run.name.startswith("morel-hopper-hopper_random-") and run.name.endswith("-no_cvae-seed0")
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["resolved_pessimism"] == {"fraction": pytest.approx(1 / 3), "penalty": 20.0}  # the env group's penalty
+    assert cfg["resolved_pessimism"] == {"fraction": 3.0, "penalty": 0.0}  # MOReL's HALT: the episode ends, reward 0
+    bc = json.loads((run / "pretrain.json").read_text())  # the behaviour-cloned start was fitted before the first evaluation
+    assert bc["bc_init_steps"] == 200 and bc["bc_init_nll_last"] < bc["bc_init_nll_first"]
     from torchrl_offhrl.models import DynamicsEnsemble
 
     ensemble = DynamicsEnsemble.load(Path(cfg["model_dir"]) / "ensemble.pt")
@@ -446,7 +454,7 @@ def test_morel_trains_end_to_end(hopper_file, cache, tmp_path):
     from torchrl_offhrl.envs.calibration import dataset_discrepancy
 
     d = dataset_discrepancy(ensemble, load_dataset(hopper_file), "max_pairwise")
-    assert cfg["threshold"] == pytest.approx(float(d.max()) / 3, rel=1e-4)
+    assert cfg["threshold"] == pytest.approx(float(d.max()) * 3, rel=1e-4)
 
 
 def test_offhrl_evaluate_rebuilds_a_dataset_agent(hopper_file, cache, tmp_path):
@@ -681,3 +689,37 @@ def test_pages_name_the_command_that_rebuilds_them(tmp_path, monkeypatch):
         assert main(argv) == 0
         text = (tmp_path / cmd / page).read_text()
         assert any(line.startswith(f"Made by `offhrl {cmd} {runs[0]}") for line in text.splitlines()[:3]), text[:300]
+
+
+def test_ppo_bc_init_clones_the_data_and_the_kl_loss_trains():
+    """algo.bc_init_steps: PPO's pretrain fits the actor to the dataset's actions (here a constant 0.5 in every dimension,
+    which the cloned policy's deterministic action then reproduces); 0 does nothing; an agent acting in latent actions is
+    refused with the fix named. algo.loss_type=kl: TorchRL's KLPENPPOLoss, whose KL coefficient adapts after an update."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env, make_toy_dataset
+
+    env = make_gym_env("Pendulum-v1", num_envs=4)
+    d = make_toy_dataset(num_episodes=8, episode_length=25, obs_dim=3, action_dim=1)
+    d.data["action"] = torch.full_like(d.data["action"], 0.5)
+    torch.manual_seed(0)
+    agent = make_agent("ppo", env, action_key="action", hidden_sizes=[16], bc_init_steps=300, bc_init_lr=3e-3, loss_type="kl")
+    agent.attach(env)
+    out = agent.pretrain(d)
+    assert out["bc_init_steps"] == 300 and out["bc_init_nll_last"] < out["bc_init_nll_first"]
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        act = agent.policy(d[:64].select("observation").clone())["action"]
+    low, high = float(env.action_spec.space.low.flatten()[0]), float(env.action_spec.space.high.flatten()[0])  # Pendulum: [-2, 2]
+    assert (low, high) == (-2.0, 2.0)
+    assert torch.allclose(act, torch.full_like(act, 0.5), atol=0.1)
+    assert make_agent("ppo", env, action_key="action", hidden_sizes=[16]).pretrain(d) == {}
+    with pytest.raises(ValueError, match="ablation.no_cvae=true"):
+        make_agent("ppo", env, action_key="action", hidden_sizes=[16], bc_init_steps=5).pretrain(d.data.exclude("action"))
+    beta = float(agent.loss.beta)
+    with torch.no_grad():
+        batch = env.rollout(64, agent.policy, break_when_any_done=False)
+    agent.update(batch)
+    assert type(agent.loss).__name__ == "KLPENPPOLoss" and float(agent.loss.beta) != beta
+    with pytest.raises(ValueError, match="loss_type must be 'clip'"):
+        make_agent("ppo", env, action_key="action", loss_type="trpo")

@@ -104,7 +104,8 @@ class Agent:
     (extra numbers and files of a real-env evaluation), ``replay_buffer``
     (off-policy agents: the loop checkpoints it), ``init_random_frames``
     (frames the collector fills with uniformly random actions first),
-    ``frames_per_batch`` (the collector's batch).
+    ``frames_per_batch`` (the collector's batch), :meth:`pretrain` (a start
+    from the dataset before training, e.g. MOReL's behaviour-cloned policy).
 
     ``update(batch)`` returns a dict of float metrics (logged under their
     names) that includes ``"updates"``: the number of gradient steps taken.
@@ -155,6 +156,13 @@ class Agent:
 
     def set_progress(self, fraction: float) -> None:
         """Called before each update with the fraction of the frame budget done (``[0, 1]``); default: nothing."""
+
+    def pretrain(self, data) -> dict:
+        """Called once, with the offline dataset, when a run starts from scratch (not when it resumes); default: nothing.
+
+        Returns metrics to record in the run's summary (``{}``: none).
+        """
+        return {}
 
     def new_task(self) -> None:
         """Called once when the task changes (the transfer setting's switch to online fine-tuning); default: nothing.

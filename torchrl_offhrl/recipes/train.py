@@ -110,7 +110,12 @@ class PreparedRun:
         run.unit = unit
         run.selector = PolicySelector(rc.selection.criterion if s.selectable else "last", rc.selection.include_start)
         previous_summary = None
-        if run.resume(agent, s.device) and (run.path / "summary.json").is_file():
+        resumed = run.resume(agent, s.device)
+        if not resumed:  # a start from the dataset before training (e.g. MOReL's behaviour cloning); a resumed run has it in its weights
+            pretrained = agent.pretrain(s.data)
+            if pretrained:
+                run.write_json("pretrain.json", pretrained)
+        if resumed and (run.path / "summary.json").is_file():
             previous_summary = json.loads((run.path / "summary.json").read_text())
             (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
         run.write_json("config.json", {**cfg, "resolved_pessimism": s.pessimism, "threshold": s.threshold, "resolved_reward_scale": s.reward_scale,
