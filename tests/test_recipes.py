@@ -31,6 +31,7 @@ TINY = [
     "eval.at_start=false",
 ]
 ALGO_TINY = {"sac": ["algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32"], "ppo": ["algo.epochs=2"], "moc": ["algo.epochs=2"]}
+ALGO_TINY["mopo"] = [*ALGO_TINY["sac"], "algo.real_ratio=0.25"]
 
 
 def _cfg(algo, data, out, extra=()):
@@ -588,7 +589,8 @@ def test_mopo_config_is_sac_on_penalised_short_rollouts(toy_data, fitted_ensembl
     from torchrl_offhrl.recipes.pipeline import make_model_env
 
     cfg = to_plain(compose("offline_train", ["algo=mopo", "model_env.reward_scale=1.0"]))
-    assert cfg["algo"]["name"] == "sac" and cfg["algo"]["label"] == "mopo" and cfg["ablation"] == {"no_cvae": True, "no_pessimism": True}
+    assert cfg["algo"]["name"] == "mopo" and cfg["algo"]["label"] == "mopo" and cfg["ablation"] == {"no_cvae": True, "no_pessimism": True}
+    assert cfg["algo"]["real_ratio"] == 0.05 and cfg["algo"]["utd_ratio"] == 1.0  # the SAC group's settings, inherited
     settings, pess = model_env_config(cfg, "medium")
     env = make_model_env({"env": settings}, fitted_ensemble, None, toy_data, batch_size=8, latent=False).base_env
     assert env.reward_penalty == 5.0 and env.horizon == 5 and env.threshold == float("inf") and env.penalty == 0.0
@@ -611,3 +613,40 @@ def test_on_record_sees_every_evaluation_after_its_checkpoint(hopper_file, cache
     evals = json.loads((Path(summary["run_dir"]) / "evals.json").read_text())
     assert [f for f, _ in seen] == [e["frames"] for e in evals] == [0, 128, 256]
     assert all(f == ckpt for f, ckpt in seen)
+
+
+def test_mopo_mixes_real_ratio_of_each_minibatch_from_the_scaled_dataset(toy_data, fitted_ensemble):
+    """MOPOAgent: of a 40-row minibatch, round(40 * 0.25) = 10 rows come from the dataset (marked here by a reward of 7,
+    which the model env never gives), with the reward scale the env's rewards get (x 0.5 -> 3.5); the rest from the model
+    rollouts' replay. An agent in latent actions is refused with the fix named; its hyper-parameters include SAC's."""
+    from torchrl_offhrl.agents import agent_defaults, make_agent
+    from torchrl_offhrl.recipes.config import model_env_config
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    cfg = to_plain(compose("offline_train", ["algo=mopo", "model_env.reward_scale=1.0"]))
+    settings, _ = model_env_config(cfg, "medium")
+    env = make_model_env({"env": settings}, fitted_ensemble, None, toy_data, batch_size=8, latent=False)
+    agent = make_agent("mopo", env, action_key="action", hidden_sizes=[16], batch_size=40, real_ratio=0.25, init_random_frames=0)
+    assert {"real_ratio", "utd_ratio", "batch_size"} <= set(agent_defaults("mopo"))
+    marked = toy_data[:].clone()
+    marked.set(("next", "reward"), torch.full_like(marked.get(("next", "reward")), 7.0))
+    agent.use_dataset(marked, reward_scale=0.5)
+    with torch.no_grad():
+        batch = env.rollout(10, agent.policy, break_when_any_done=False)
+    agent.replay_buffer.extend(batch.reshape(-1))
+    mb = agent.mixed_sample()
+    assert mb.batch_size == torch.Size([40])
+    assert int((mb["next", "reward"] == 3.5).sum()) == 10
+    out = agent.update(batch)
+    assert out["updates"] == batch.numel()
+    with pytest.raises(ValueError, match="ablation.no_cvae=true"):
+        make_agent("mopo", env, action_key="action", hidden_sizes=[16]).use_dataset(marked.exclude("action"))
+
+
+def test_mopo_trains_end_to_end_with_the_dataset_in_its_minibatches(hopper_file, cache, tmp_path):
+    """algo=mopo through `train`: the model env's setting hands the agent the dataset (a quarter of each of its 32-row
+    minibatches here), it trains, evaluates and writes its summary like any model-env run."""
+    summary = train(_cfg("mopo", hopper_file, tmp_path), progress=False)
+    run = Path(summary["run_dir"])
+    assert run.name.startswith("mopo-hopper-hopper_random-") and run.name.endswith("-no_cvae-no_pessimism-seed0")
+    assert summary["updates"] > 0 and summary["final"]["return_mean"] > 0

@@ -11,7 +11,7 @@ code, just defining it: registration happens at class creation); see
 Examples:
     >>> from torchrl_offhrl.agents import AGENTS
     >>> sorted(AGENTS)
-    ['bc', 'cql', 'iql', 'moc', 'ppo', 'sac', 'sac_her', 'td3bc', 'uof']
+    ['bc', 'cql', 'iql', 'moc', 'mopo', 'ppo', 'sac', 'sac_her', 'td3bc', 'uof']
 """
 from __future__ import annotations
 
@@ -60,4 +60,4 @@ def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_
 
 
 # the algorithms shipped with the library register themselves on import
-from . import bc, cql, iql, moc, ppo, sac, sac_her, td3bc, uof  # noqa: E402,F401
+from . import bc, cql, iql, moc, mopo, ppo, sac, sac_her, td3bc, uof  # noqa: E402,F401

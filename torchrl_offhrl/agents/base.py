@@ -105,7 +105,9 @@ class Agent:
     (off-policy agents: the loop checkpoints it), ``init_random_frames``
     (frames the collector fills with uniformly random actions first),
     ``frames_per_batch`` (the collector's batch), :meth:`pretrain` (a start
-    from the dataset before training, e.g. MOReL's behaviour-cloned policy).
+    from the dataset before training, e.g. MOReL's behaviour-cloned policy),
+    :meth:`use_dataset` (the dataset beside the model env, e.g. MOPO's mixed
+    minibatches).
 
     ``update(batch)`` returns a dict of float metrics (logged under their
     names) that includes ``"updates"``: the number of gradient steps taken.
@@ -156,6 +158,10 @@ class Agent:
 
     def set_progress(self, fraction: float) -> None:
         """Called before each update with the fraction of the frame budget done (``[0, 1]``); default: nothing."""
+
+    def use_dataset(self, data, reward_scale: float = 1.0) -> None:
+        """Called when a model-env run is built (fresh or resumed), with the offline dataset and the reward scale of the env's
+        rewards; default: nothing (MOPO mixes the dataset's transitions into its minibatches)."""
 
     def pretrain(self, data) -> dict:
         """Called once, with the offline dataset, when a run starts from scratch (not when it resumes); default: nothing.

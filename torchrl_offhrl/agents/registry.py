@@ -28,9 +28,22 @@ def register_agent(name: str):
 
 
 def agent_defaults(name: str) -> dict:
-    """The hyper-parameters agent ``name`` takes from its config, with their defaults (``inspect.Parameter.empty`` if required)."""
-    sig = inspect.signature(agent_class(name).__init__)
-    return {k: p.default for k, p in sig.parameters.items() if k != "self" and k not in _CONTEXT and p.kind is p.KEYWORD_ONLY}
+    """The hyper-parameters agent ``name`` takes from its config, with their defaults (``inspect.Parameter.empty`` if required).
+
+    A subclass whose ``__init__`` passes ``**kwargs`` on to its parent's (e.g.
+    MOPO's to SAC's) takes the parent's hyper-parameters too.
+    """
+    out: dict = {}
+    for cls in agent_class(name).__mro__:
+        if "__init__" not in vars(cls):
+            continue
+        params = inspect.signature(cls.__init__).parameters
+        for k, p in params.items():
+            if k != "self" and k not in _CONTEXT and p.kind is p.KEYWORD_ONLY:
+                out.setdefault(k, p.default)
+        if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+            break
+    return out
 
 
 def agent_class(name: str) -> type[Agent]:

@@ -248,6 +248,7 @@ class ModelEnvSetting:
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
         p.add_reward_transforms(agent.attach(env))
+        agent.use_dataset(p.data, float(p.pcfg["env"].get("reward_scale", 1.0)))  # the rewards as the env's transforms scale them
         eval_env = agent.attach(p.eval_real_env(cvae))  # after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
         model_eval_env = None
         if p.rc.eval.model_env:  # the same evaluation in the model: the model-real gap

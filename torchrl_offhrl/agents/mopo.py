@@ -1,0 +1,74 @@
+"""MOPO (Yu et al., 2020): SAC on short model rollouts with an uncertainty-penalised reward, mixed with the dataset's transitions."""
+from __future__ import annotations
+
+import torch
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+from .registry import register_agent
+from .sac import SACAgent
+
+__all__ = ["MOPOAgent"]
+
+
+@register_agent("mopo")
+class MOPOAgent(SACAgent):
+    """SAC whose minibatches mix model rollouts with the dataset's own transitions, as MOPO's policy optimisation does.
+
+    The model env supplies MOPO's rollouts: branched from dataset states
+    (``model_env.reset_states=any``), ``model_env.horizon`` steps long, each
+    step's reward penalised by ``model_env.reward_penalty`` times the
+    members' discrepancy (``configs/algo/mopo.yaml`` sets these to the
+    official code's values). Each gradient step draws ``real_ratio`` of its
+    minibatch from the dataset (MOPO's and MBPO's 5% by default) and the
+    rest from the replay of model rollouts, so the critic also sees real,
+    unpenalised transitions. The dataset's rewards get the reward scale the
+    model env's rewards get (the loop passes it to :meth:`use_dataset`).
+
+    The dataset's actions are real actions: with ``real_ratio > 0`` the agent
+    must act in them (``ablation.no_cvae=true``, as ``algo=mopo`` sets).
+    """
+
+    #: the transition entries the SAC loss reads, taken from both sources
+    TRANSITION_KEYS = ("observation", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"))
+
+    def __init__(self, env, *, real_ratio: float = 0.05, **kwargs):
+        super().__init__(env, **kwargs)
+        if not 0.0 <= float(real_ratio) < 1.0:
+            raise ValueError(f"algo.real_ratio must be in [0, 1) (the share of each minibatch drawn from the dataset), got {real_ratio}")
+        self.real_ratio = float(real_ratio)
+        batch = self.replay_buffer.batch_size
+        self.real_batch = round(batch * self.real_ratio)
+        self.model_batch = batch - self.real_batch
+        # the model rollouts' replay (the same storage) hands out the model's share of each minibatch
+        self.replay_buffer = ReplayBuffer(storage=self.replay_buffer.storage, batch_size=self.model_batch)
+        self.dataset_buffer = None
+
+    def use_dataset(self, data, reward_scale: float = 1.0) -> None:
+        """Keep the dataset's transitions (an :class:`~torchrl_offhrl.data.OfflineDataset` or a TensorDict; rewards times
+        ``reward_scale``, as the model env's) to mix into each minibatch."""
+        if not self.real_batch:
+            return
+        td = data[:]  # an OfflineDataset or a TensorDict of transitions
+        if self.action_key not in td.keys(True):
+            raise ValueError(f"algo.real_ratio mixes the dataset's transitions, whose actions are real, but this agent acts in "
+                             f"{self.action_key!r}: give ablation.no_cvae=true (act in real actions), or algo.real_ratio=0")
+        td = td.select(*self.TRANSITION_KEYS, self.action_key).clone()
+        td.set(("next", "reward"), td.get(("next", "reward")) * float(reward_scale))
+        device = self.replay_buffer.storage.device if hasattr(self.replay_buffer.storage, "device") else None
+        self.dataset_buffer = ReplayBuffer(storage=LazyTensorStorage(len(td), device=device), batch_size=self.real_batch)
+        self.dataset_buffer.extend(td)
+
+    def mixed_sample(self):
+        """A minibatch of ``batch_size``: ``real_ratio`` of it from the dataset, the rest from the model rollouts' replay."""
+        if self.dataset_buffer is None:
+            return self.replay_buffer.sample()
+        keys = [*self.TRANSITION_KEYS, self.action_key]
+        model = self.replay_buffer.sample().select(*keys)
+        real = self.dataset_buffer.sample().select(*keys).to(model.device)
+        return torch.cat([model, real], 0)
+
+    def update(self, batch):
+        if self.real_batch and self.dataset_buffer is None:
+            raise RuntimeError("MOPOAgent: call use_dataset(data, reward_scale) before training (the training loop does)")
+        self.replay_buffer.extend(batch.reshape(-1))
+        return self.gradient_steps(batch.numel(), self.mixed_sample)
