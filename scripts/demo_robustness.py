@@ -85,12 +85,15 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
                "mode latent action pays 0.5 x its squared norm in the intra-option loss, against advantages normalised to unit "
                "spread; the latent actions' norm grew from 0.4-0.7 at the gaits to 0.8-1.1 after the collapses (row 2)",
                ["algo.prior_coef=1.0"]),
+    "prior01": ("prior1 with a tenth of the coefficient (algo.prior_coef=0.1): at 1 the mode actions stay at the prior's mode "
+                "and the policy at its untrained score", ["algo.prior_coef=0.1"]),
+    "prior003": ("prior1 with algo.prior_coef=0.03", ["algo.prior_coef=0.03"]),
 }
 
 
 #: variant -> the baseline it is compared with run for run (same dataset and agent seeds, same machine): the paired block
 #: of the table. The earlier variants' pairs (the shipped demo's archived runs) are in the notes.
-PAIRED = {"stdlr": "machine2", "mb64": "machine2", "stdsched": "machine2", "batch4096": "machine2", "prior1": "machine2"}
+PAIRED = {"stdlr": "machine2", "mb64": "machine2", "stdsched": "machine2", "batch4096": "machine2", "prior1": "machine2", "prior01": "machine2", "prior003": "machine2"}
 
 
 def run_name(d: int, a: int = 0) -> str:
