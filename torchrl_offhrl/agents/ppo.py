@@ -1,6 +1,7 @@
 """PPO (TorchRL :class:`~torchrl.objectives.ClipPPOLoss`) with a tanh-Gaussian actor and a state-value critic."""
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import torch
@@ -109,7 +110,9 @@ class PPOAgent(OnPolicyAgent):
         if self.action_key not in data:
             raise ValueError(f"algo.bc_init_steps clones the dataset's actions, but this agent acts in {self.action_key!r}, which the "
                              "dataset does not hold: give ablation.no_cvae=true (act in real actions), or algo.bc_init_steps=0")
-        bc = BCLoss(self.policy)
+        with warnings.catch_warnings():  # TorchRL's BCLoss notes an attribute its annotations lack; nothing to act on
+            warnings.filterwarnings("ignore", message="The name target_actor_network_params")
+            bc = BCLoss(self.policy)
         bc.set_keys(action=self.action_key)
         opt = adam(self.policy.parameters(), lr=self.bc_init["lr"], fused=False)
         device = next(self.policy.parameters()).device
