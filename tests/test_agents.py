@@ -121,7 +121,7 @@ def test_make_agent_rejects_unknown_names_and_keys():
     d = make_toy_dataset(num_episodes=4, episode_length=10)
     env = make_model_env({"env": {"threshold": 1.0}}, DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)),
                          ConditionalVAE.for_dataset(d, hidden_sizes=(8,)), d, batch_size=8)
-    with pytest.raises(ValueError, match=r"unknown algorithm 'td4'; registered agents: \['bc', 'cql', 'iql', 'moc', 'ppo', 'sac', 'sac_her', 'td3bc', 'uof'"):
+    with pytest.raises(ValueError, match=r"unknown algorithm 'td4'; registered agents: \['bc', 'cql', 'iql', 'moc', 'mopo', 'ppo', 'sac', 'sac_her', 'td3bc', 'uof'"):
         make_agent("td4", env)
     with pytest.raises(TypeError, match=r"algo=moc: unknown hyper-parameter\(s\) \['etaa'\]; MOCAgent accepts \[.*'eta'"):
         make_agent("moc", env, {"etaa": 0.5})
