@@ -88,12 +88,15 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "prior01": ("prior1 with a tenth of the coefficient (algo.prior_coef=0.1): at 1 the mode actions stay at the prior's mode "
                 "and the policy at its untrained score", ["algo.prior_coef=0.1"]),
     "prior003": ("prior1 with algo.prior_coef=0.03", ["algo.prior_coef=0.03"]),
+    "clip01": ("the shipped demo with PPO's own trust region halved: the intra-option ratio clipped at 0.1 instead of the paper's "
+               "0.2 (algo.clip_epsilon=0.1; the env group's PPO value on Hopper), so that no batch moves the policy far from the one "
+               "that collected it", ["algo.clip_epsilon=0.1"]),
 }
 
 
 #: variant -> the baseline it is compared with run for run (same dataset and agent seeds, same machine): the paired block
 #: of the table. The earlier variants' pairs (the shipped demo's archived runs) are in the notes.
-PAIRED = {"stdlr": "machine2", "mb64": "machine2", "stdsched": "machine2", "batch4096": "machine2", "prior1": "machine2", "prior01": "machine2", "prior003": "machine2"}
+PAIRED = {"stdlr": "machine2", "mb64": "machine2", "stdsched": "machine2", "batch4096": "machine2", "prior1": "machine2", "prior01": "machine2", "prior003": "machine2", "clip01": "machine2"}
 
 
 def run_name(d: int, a: int = 0) -> str:
