@@ -54,18 +54,16 @@ class MOPOAgent(SACAgent):
                              f"{self.action_key!r}: give ablation.no_cvae=true (act in real actions), or algo.real_ratio=0")
         td = td.select(*self.TRANSITION_KEYS, self.action_key).clone()
         td.set(("next", "reward"), td.get(("next", "reward")) * float(reward_scale))
-        device = self.replay_buffer.storage.device if hasattr(self.replay_buffer.storage, "device") else None
-        self.dataset_buffer = ReplayBuffer(storage=LazyTensorStorage(len(td), device=device), batch_size=self.real_batch)
+        # beside the model rollouts' replay, on its device: the two halves of a minibatch are concatenated as they come
+        self.dataset_buffer = ReplayBuffer(storage=LazyTensorStorage(len(td), device=self.replay_buffer.storage.device), batch_size=self.real_batch)
         self.dataset_buffer.extend(td)
 
     def mixed_sample(self):
         """A minibatch of ``batch_size``: ``real_ratio`` of it from the dataset, the rest from the model rollouts' replay."""
         if self.dataset_buffer is None:
             return self.replay_buffer.sample()
-        keys = [*self.TRANSITION_KEYS, self.action_key]
-        model = self.replay_buffer.sample().select(*keys)
-        real = self.dataset_buffer.sample().select(*keys).to(model.device)
-        return torch.cat([model, real], 0)
+        model = self.replay_buffer.sample().select(*self.TRANSITION_KEYS, self.action_key)  # the dataset's buffer holds only these
+        return torch.cat([model, self.dataset_buffer.sample()], 0)
 
     def update(self, batch):
         if self.real_batch and self.dataset_buffer is None:
