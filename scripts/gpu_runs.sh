@@ -4,7 +4,7 @@
 # e.g. bash scripts/gpu_runs.sh $OUT python3 430 hopper,halfcheetah cql 4 5 6
 # 1. rebuilds each .packs/ENV-medium.pt into the dataset cache (scripts/action_pack.py unpack: refused unless it is
 #    the same data, bit for bit, as on the machines that generated it), the envs side by side;
-# 2. as soon as an env's data is there, runs `scripts/results.py run --scale full --envs ENV --algos ALGO --seeds SEED`
+# 2. as soon as an env's data is there, runs `torchrl_offhrl/results/table1.py run --scale full --envs ENV --algos ALGO --seeds SEED`
 #    for each seed at once, with --speed $SPEED (default: device=cuda algo.cudagraphs=true); every run is stopped
 #    SECONDS after the script started.
 # DATASET=medium-expert (default medium) trains on medium-expert, rebuilt from the packs of its two parts
@@ -17,8 +17,8 @@
 # it (if not, it quits it and the runs share the GPU by time slices: ~770 updates/s together, measured below).
 # 3. every 20 s, and at the end, packs each run directory (checkpoint, evaluations, logs) into OUT_DIR/<run>.tgz.
 # A run cut short by the time limit resumes from its last checkpoint wherever its .tgz is unpacked under
-# outputs/results/full/ (`scripts/results.py run` again, on a CPU or a GPU); a finished one is archived and
-# reported by `scripts/results.py report --scale full`. Run directories carried into outputs/results/full/
+# outputs/results/full/ (`torchrl_offhrl/results/table1.py run` again, on a CPU or a GPU); a finished one is archived and
+# reported by `torchrl_offhrl/results/table1.py report --scale full`. Run directories carried into outputs/results/full/
 # resume here.
 # Measured (2026-11-27, H100, CQL on hopper-medium, seeds 4-6, SPEED="device=cuda algo.cudagraphs=true algo.compile=true"):
 # unpacking took 46 s; the three runs shared the GPU at ~770 updates/s together (each 10k-update block took 38-40 s,
@@ -62,7 +62,7 @@ for env in ${envs//,/ }; do
         echo "$env unpacked after $((SECONDS - t0)) s"
         [ "${UNPACK_ONLY:-0}" = 1 ] && exit 0
         for s in "${seeds[@]}"; do
-            timeout $((limit - (SECONDS - t0))) "$py" scripts/results.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" --datasets "$dataset" \
+            timeout $((limit - (SECONDS - t0))) "$py" torchrl_offhrl/results/table1.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" --datasets "$dataset" \
                 --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-$env-seed$s.log" 2>&1 &
         done
         wait

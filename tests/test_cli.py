@@ -124,7 +124,7 @@ def test_console_script_installed():
 
 
 def test_hydra_deletion_overrides_are_accepted():
-    """``~key`` (hydra's deletion, as scripts/transfer.py passes for agents without a minibatch) composes."""
+    """``~key`` (hydra's deletion, as torchrl_offhrl/results/transfer.py passes for agents without a minibatch) composes."""
     from torchrl_offhrl.recipes.config import compose
 
     cfg = compose("demo", ["algo=sac", "~algo.minibatch_size"])
@@ -150,12 +150,12 @@ def test_the_demo_cites_what_its_robustness_page_measured():
 
 
 def test_the_robustness_page_is_what_its_archived_runs_give():
-    """docs/results/demo_robustness.md is rebuilt exactly from docs/results/demo_robustness_runs/ (scripts/demo_robustness.py table)."""
+    """docs/results/demo_robustness.md is rebuilt exactly from docs/results/demo_robustness_runs/ (torchrl_offhrl/results/robustness.py table)."""
     from pathlib import Path
 
-    from conftest import load_script
+    from importlib import import_module
 
-    mod = load_script("demo_robustness")
+    mod = import_module("torchrl_offhrl.results.robustness")
     page = (Path(__file__).resolve().parents[1] / "docs" / "results" / "demo_robustness.md").read_text()
     assert mod.table(list(mod.VARIANTS)) + "\n" == page
     rows = mod.rows_of("shipped")

@@ -2,7 +2,7 @@
 
 Layers, lowest first (DESIGN): the shared base modules (``utils``, ``scores``, ``stats``,
 ``registry``, ``nets``, ``rollouts``) < ``data`` < ``models`` < ``envs`` <
-``modules`` / ``objectives`` < ``agents`` < ``recipes`` < ``cli``. Every
+``modules`` / ``objectives`` < ``agents`` < ``recipes`` < ``results`` < ``cli``. Every
 import counts, those inside functions too. The checker is tested on
 synthetic sources, so a contract that could not fail would be caught.
 """
@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1] / PKG
 LAYERS = {
     "utils": 0, "scores": 0, "stats": 0, "registry": 0, "nets": 0, "rollouts": 0, "blockstack": 0,
     "data": 1, "models": 2, "envs": 3, "modules": 4, "objectives": 4,
-    "agents": 5, "recipes": 6, "cli": 7,
+    "agents": 5, "recipes": 6, "results": 7, "cli": 8,
 }
 
 

@@ -14,6 +14,7 @@ from torchrl_offhrl.recipes.config import compose
 from torchrl_offhrl.recipes.train import train
 from torchrl_offhrl.utils import to_plain
 from conftest import load_script
+from importlib import import_module
 
 ROOT = Path(__file__).resolve().parents[1]
 DATASET_ALGOS = ["bc", "iql", "td3bc", "cql"]
@@ -345,8 +346,8 @@ def test_partial_runs_count_in_the_tables_but_draw_no_curves(tmp_path):
 
 
 def test_results_script_rebuilds_lost_runs_from_the_committed_record():
-    """scripts/results.py: the committed legacy record gives back the committed table's per-seed scores, and a rerun takes a run's place."""
-    mod = load_script("results")
+    """torchrl_offhrl/results/table1.py: the committed legacy record gives back the committed table's per-seed scores, and a rerun takes a run's place."""
+    mod = import_module("torchrl_offhrl.results.table1")
     runs, diag = mod.legacy_runs("full", skip=set())
     by_name = {r["name"]: r for r in runs}
     seed4 = by_name["moc-hopper-medium-seed4"]  # start 31.4, final 95.9, best 95.9 at the end: two evaluations
@@ -361,10 +362,10 @@ def test_results_script_rebuilds_lost_runs_from_the_committed_record():
 
 
 def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories(monkeypatch):
-    """scripts/results.py run --datasets medium-expert: the dataset reaches the config and names the run directory."""
+    """torchrl_offhrl/results/table1.py run --datasets medium-expert: the dataset reaches the config and names the run directory."""
     import torchrl_offhrl.recipes.train as train_mod
 
-    mod = load_script("results")
+    mod = import_module("torchrl_offhrl.results.table1")
     seen = []
     monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"final": {"normalized_d4rl": 1.0}})
     monkeypatch.setattr(mod, "archive", lambda scale: [])
@@ -380,10 +381,10 @@ def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories
 
 
 def test_results_script_keeps_tuning_runs_apart(monkeypatch):
-    """scripts/results.py run --tuning: seeds 1-3 by default, run directories and archive under <scale>_tuning; seeds 4-6 refused."""
+    """torchrl_offhrl/results/table1.py run --tuning: seeds 1-3 by default, run directories and archive under <scale>_tuning; seeds 4-6 refused."""
     import torchrl_offhrl.recipes.train as train_mod
 
-    mod = load_script("results")
+    mod = import_module("torchrl_offhrl.results.table1")
     seen, archived = [], []
     monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"final": {"normalized_d4rl": 1.0}})
     monkeypatch.setattr(mod, "archive", lambda scale: archived.append(scale) or [])
@@ -398,11 +399,11 @@ def test_results_script_keeps_tuning_runs_apart(monkeypatch):
 
 
 def test_transfer_script_keeps_variants_and_tuning_runs_apart(monkeypatch):
-    """scripts/transfer.py run --tuning --tag T --extra ...: the overrides reach the config, the tag names the run
+    """torchrl_offhrl/results/transfer.py run --tuning --tag T --extra ...: the overrides reach the config, the tag names the run
     directory and the rows (algo.label), tuning runs go to their own folder; seeds 4-6 and untagged overrides are refused."""
     import torchrl_offhrl.recipes.train as train_mod
 
-    mod = load_script("transfer")
+    mod = import_module("torchrl_offhrl.results.transfer")
     seen = []
     monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"run_dir": cfg["run_dir"], "algo": "moc"})
     monkeypatch.setattr("torchrl_offhrl.recipes.report.format_summary", lambda s: "")
@@ -601,10 +602,10 @@ def test_cudagraphs_switch_is_the_same_update_off_a_gpu(algo):
 
 
 def test_transfer_script_compares_deterministic_and_sampled_final_policies(monkeypatch, tmp_path):
-    """scripts/transfer.py sampled: each finished run evaluated both ways on the same seed, mean ± std per group, cached until the run moves."""
+    """torchrl_offhrl/results/transfer.py sampled: each finished run evaluated both ways on the same seed, mean ± std per group, cached until the run moves."""
     import torchrl_offhrl.recipes.evaluation as ev_mod
 
-    mod = load_script("transfer")
+    mod = import_module("torchrl_offhrl.results.transfer")
     monkeypatch.setattr(mod, "OUT", tmp_path / "runs")
     monkeypatch.setattr(mod, "SAMPLED_PAGE", tmp_path / "sampled.md")
     for seed in (4, 5):
@@ -632,7 +633,7 @@ def test_transfer_script_compares_deterministic_and_sampled_final_policies(monke
 
 def test_transfer_page_lists_the_rows_short_of_three_seeds():
     """Every row the transfer setting asks for is named on the page while it has fewer than 3 seeds, with its reason."""
-    mod = load_script("transfer")
+    mod = import_module("torchrl_offhrl.results.transfer")
     names = [f"{a}-{e}-medium-{k}-seed{s}" for a, e, k in mod.EXPECTED for s in (4, 5, 6)]
     assert mod.short_rows(names) == []
     names.remove("ppo-hopper-medium-scratch-seed6")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from importlib import import_module
 from pathlib import Path
 
 import pytest
@@ -11,7 +12,6 @@ from tensordict.nn import TensorDictModule
 
 from torchrl_offhrl.blockstack import goals as G
 from torchrl_offhrl.objectives import TwinDDPGLoss
-from conftest import load_script
 
 
 # ------------------------------------------------------------------------------------------ the low-level loss
@@ -366,8 +366,8 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
 
 
 def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_earlier_page(tmp_path, monkeypatch):
-    """scripts/blockstack_results.py: a finished run is archived and reported; a group with no archived run is the earlier page's text."""
-    mod = load_script("blockstack_results")
+    """torchrl_offhrl/results/blockstack.py: a finished run is archived and reported; a group with no archived run is the earlier page's text."""
+    mod = import_module("torchrl_offhrl.results.blockstack")
     monkeypatch.setattr(mod, "BASE", tmp_path / "outputs")
     monkeypatch.setattr(mod, "OUT", tmp_path / "docs")
     monkeypatch.setattr(mod, "ARCHIVE", tmp_path / "docs" / "blockstack" / "runs")

@@ -209,6 +209,12 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_results(args) -> int:
+    from .results import main as results_main
+
+    return results_main(args.args)
+
+
 def cmd_demo(args) -> int:
     from .recipes.demo import run_demo
 
@@ -310,6 +316,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml for every run")
     _ray_options(s)
     s.set_defaults(func=cmd_sweep)
+
+    s = sub.add_parser("results", help="every results page under docs/results/: run a preset's experiments and rebuild its pages "
+                                       "(offhrl results list)", add_help=False,
+                       description="offhrl results list | rebuild [PRESET ...] | PRESET ARGS... (e.g. `offhrl results table1 report "
+                                   "--scale demo`); a checkout of the repository is where the pages and runs live.")
+    s.add_argument("args", nargs=argparse.REMAINDER, help="list, rebuild [PRESET ...], or a preset and its own arguments")
+    s.set_defaults(func=cmd_results)
     return p
 
 
@@ -340,7 +353,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run a command; a user error (missing file or policy, bad name or value) prints one message and returns 2."""
     from .data import DatasetError, PolicyNotFoundError
 
-    args = build_parser().parse_args(overrides_last(sys.argv[1:] if argv is None else list(argv)))
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # a results preset parses its own arguments (its --extra takes key=value overrides where it says)
+    args = build_parser().parse_args(argv if argv[:1] == ["results"] else overrides_last(argv))
     # TorchRL's INFO lines (spec inference, spec checks) are noise on a command line; torchrl sets
     # its logger's level when imported (RL_LOGGING_LEVEL), so import it first, unless the user chose
     import torchrl  # noqa: F401

@@ -30,7 +30,7 @@ data (that is its purpose), so it ranks a near-behaviour-cloning policy
 with 250 model episodes per policy the ranking stays, so it is not noise
 (``docs/results/demo_robustness_notes.md``, ``scripts/diagnostics/selection_probe.py``).
 Where beating the data means leaving it, the P-MDP cannot tell; the criteria
-stay one switch away, and ``scripts/demo_robustness.py`` scores each of
+stay one switch away, and ``torchrl_offhrl/results/robustness.py`` scores each of
 them on every run it makes.
 
 Evaluations at step 0 (the untrained agent) are candidates only with

@@ -1,12 +1,12 @@
 """The transfer setting's runs (offline on forward-running data, then online on running backwards), then docs/results/transfer.md.
 
-    python scripts/transfer.py run [--envs hopper] [--algos moc ppo sac] [--kinds transfer scratch] [--seeds 4 5 6]
-    python scripts/transfer.py report      # docs/results/transfer.md, transfer.csv, curves.png
-    python scripts/transfer.py sampled     # docs/results/transfer_sampled.md: final policies, deterministic vs sampled
+    offhrl results transfer run [--envs hopper] [--algos moc ppo sac] [--kinds transfer scratch] [--seeds 4 5 6]
+    offhrl results transfer report      # docs/results/transfer.md, transfer.csv, curves.png
+    offhrl results transfer sampled     # docs/results/transfer_sampled.md: final policies, deterministic vs sampled
 
 Kinds of run (every one an ordinary run directory under ``outputs/results/transfer/``, resumable by rerunning):
 
-* ``transfer``: the paper's setting. The offline phase is the ``demo`` scale of ``scripts/results.py`` (100k generated
+* ``transfer``: the paper's setting. The offline phase is the ``demo`` scale of ``torchrl_offhrl/results/table1.py`` (100k generated
   ``medium`` transitions, demo-size models fitted 20k steps, 205k model-env frames), then ``--online-frames`` real-env
   frames (default 300k) on the ``backward`` task with the decoder discarded;
 * ``scratch``: the same agent trained online only, from its initial weights, on the backward task (the baseline);
@@ -21,12 +21,10 @@ the switch and 50k / 100k / 300k frames after it, the final and (apart) the best
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results import BUDGET  # noqa: E402  (the demo scale's offline budget)
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
+from .table1 import BUDGET  # noqa: E402  (the demo scale's offline budget)
 
 KINDS = {
     "transfer": ["transfer.task=backward"],
@@ -51,11 +49,11 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
         extra: list[str] = (), tag: str | None = None, tuning: bool = False) -> None:
     """Every (env, kind, algo, seed) run in turn; ``extra`` overrides go to every run, ``tag`` names such a variant
     (its run directories and its rows: ``algo.label=<algo>_<tag>``)."""
-    from torchrl_offhrl.agents import agent_defaults
-    from torchrl_offhrl.recipes.config import compose
-    from torchrl_offhrl.recipes.report import format_summary
-    from torchrl_offhrl.recipes.train import train
-    from torchrl_offhrl.utils import to_plain
+    from ..agents import agent_defaults
+    from ..recipes.config import compose
+    from ..recipes.report import format_summary
+    from ..recipes.train import train
+    from ..utils import to_plain
 
     out = TUNING_OUT if tuning else OUT
     for env in envs:
@@ -75,23 +73,23 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
 def archive(tuning: bool = False) -> list[Path]:
     """Archive every finished run under ``outputs/results/transfer/`` to ``docs/results/transfer/runs/<run>/``
     (``tuning``: ``outputs/results/transfer_tuning/`` to ``docs/results/transfer/tuning/``)."""
-    from torchrl_offhrl.recipes.report import archive_runs
+    from ..recipes.report import archive_runs
 
     return archive_runs(TUNING_OUT, TUNING_ARCHIVE) if tuning else archive_runs(OUT, ARCHIVE)
 
 
 def tuning_report() -> str:
     """``docs/results/transfer_tuning.md``: the table and curves of the runs on the tuning seeds (``run --tuning``)."""
-    from torchrl_offhrl.recipes.report import aggregate
+    from ..recipes.report import aggregate
 
     archive(tuning=True)
     runs = sorted(d for d in TUNING_ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
     if not runs:
-        raise SystemExit(f"no finished runs under {TUNING_OUT} or {TUNING_ARCHIVE}: run `python scripts/transfer.py run --tuning` first")
-    table = aggregate(runs, TUNING_ARCHIVE, made_by="python scripts/transfer.py report --tuning")
+        raise SystemExit(f"no finished runs under {TUNING_OUT} or {TUNING_ARCHIVE}: run `offhrl results transfer run --tuning` first")
+    table = aggregate(runs, TUNING_ARCHIVE, made_by="offhrl results transfer report --tuning")
     text = "\n".join([
         "# Transfer: runs on the tuning seeds", "",
-        "Made by `python scripts/transfer.py report --tuning` from the runs of `python scripts/transfer.py run --tuning ...` "
+        "Made by `offhrl results transfer report --tuning` from the runs of `offhrl results transfer run --tuning ...` "
         "(archived to `docs/results/transfer/tuning/`). These runs look for why an agent learns as it does on the new task; "
         "they use the tuning seeds (not 4-6, the seeds of `docs/results/transfer.md`) and are never mixed into that page. "
         "A row named `<algo>_<tag>` is a variant run with `--tag <tag> --extra <overrides>`; its overrides are in each run's "
@@ -106,7 +104,7 @@ def tuning_report() -> str:
 def report() -> str:
     import json
 
-    from torchrl_offhrl.recipes.report import aggregate, group_key, load_run
+    from ..recipes.report import aggregate, group_key, load_run
 
     archive()
     runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
@@ -115,16 +113,16 @@ def report() -> str:
     groups = {"|".join(group_key(load_run(d))) for d in runs}  # as the table's first four columns
     old_rows = {k: r for k, r in legacy["rows"].items() if k not in groups}  # a group rerun here replaces the earlier page's row
     if not runs and not old_rows:
-        raise SystemExit(f"no finished runs under {OUT} or {ARCHIVE}: run `python scripts/transfer.py run` first")
+        raise SystemExit(f"no finished runs under {OUT} or {ARCHIVE}: run `offhrl results transfer run` first")
     out = DOCS
-    table = aggregate(runs, out, made_by="python scripts/transfer.py report") if runs else ""
+    table = aggregate(runs, out, made_by="offhrl results transfer report") if runs else ""
     if old_rows:
         table = (table + "\n\n" if table else "") + (
             "Rows of an earlier version of this page (their run directories were lost between sessions; `transfer/legacy.json`; "
             "their curves: `transfer/legacy_curves.png`):\n\n" + "\n".join([legacy["header"], "|" + "---|" * 14, *old_rows.values()]))
     lines = ["# Transfer: offline on forward-running data, then online on running backwards", "",
              __doc__.split("Kinds of run")[1].split("\n", 1)[1].strip(), "",
-             "Made by `python scripts/transfer.py report` from the finished runs, archived from `outputs/results/transfer/` to "
+             "Made by `offhrl results transfer report` from the finished runs, archived from `outputs/results/transfer/` to "
              "`docs/results/transfer/runs/`. "
              "Returns are raw real-env returns on the backward task (D4RL's normalisation is the forward task's); "
              "the offline column is the last evaluation of the offline phase on the forward task. On Hopper a return of about 1,000 "
@@ -187,7 +185,7 @@ def sampled(envs: list[str], episodes: int = 10, seed: int = 12345) -> str:
 
     import numpy as np
 
-    from torchrl_offhrl.recipes.evaluation import evaluate_run
+    from ..recipes.evaluation import evaluate_run
 
     cache = SAMPLED_PAGE.with_suffix(".json")
     done = json.loads(cache.read_text()) if cache.is_file() else {}
@@ -213,7 +211,7 @@ def sampled(envs: list[str], episodes: int = 10, seed: int = 12345) -> str:
         return f"{np.mean(xs):,.0f} ± {np.std(xs, ddof=1) if len(xs) > 1 else 0.0:,.0f}"
 
     lines = ["# Transfer: final policies evaluated deterministically and sampled", "",
-             "Made by `python scripts/transfer.py sampled` from the runs' final checkpoints (`outputs/results/transfer/`): each is "
+             "Made by `offhrl results transfer sampled` from the runs' final checkpoints (`outputs/results/transfer/`): each is "
              f"evaluated on its last task (backward) on the same {episodes} start states (seed {seed}), once deterministically as the "
              "learning curves do (PPO and SAC: the mean action; MOC: the likeliest option, ended where its termination probability "
              "passes 0.5, and that option's mean action) and once sampling actions (and MOC's options and terminations) as in "
@@ -229,7 +227,7 @@ def sampled(envs: list[str], episodes: int = 10, seed: int = 12345) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results transfer", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("--envs", nargs="+", default=["hopper"])
@@ -259,6 +257,3 @@ def main(argv=None) -> int:
         print(tuning_report() if a.tuning else report())
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

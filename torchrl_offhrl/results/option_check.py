@@ -1,7 +1,7 @@
 """Are a MOC run's options alive, temporally extended and learned (not as initialised)? Issue 13's option criteria.
 
-    python scripts/option_check.py outputs/results/demo/moc-hopper-medium-seed4 [...]   # prints a markdown table
-    python scripts/option_check.py --out docs/results/demo/option_check.md outputs/results/demo/moc-*
+    offhrl results option-check outputs/results/demo/moc-hopper-medium-seed4 [...]   # prints a markdown table
+    offhrl results option-check --out docs/results/demo/option_check.md outputs/results/demo/moc-*
 
 Per run, on 20,000 states of the run's own dataset:
 
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import torch
@@ -66,7 +65,7 @@ def check(run: Path, n_states: int = 20_000) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results option-check", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path)
     p.add_argument("--out", type=Path, default=None, help="also write the table to this markdown file")
     a = p.parse_args(argv)
@@ -78,10 +77,7 @@ def main(argv=None) -> int:
     print(text)
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text("# MOC option check\n\nMade by `python scripts/option_check.py --out " + str(a.out) + " " + " ".join(map(str, a.runs))
+        a.out.write_text("# MOC option check\n\nMade by `offhrl results option-check --out " + str(a.out) + " " + " ".join(map(str, a.runs))
                          + "` (see the script's docstring for what each column is).\n\n" + text + "\n")
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

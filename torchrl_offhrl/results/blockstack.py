@@ -1,8 +1,8 @@
 """Offline UOF on block stacking against SAC + HER and BC: resumable runs, then the per-goal table and figures.
 
-    python scripts/blockstack_results.py run [--tasks blockstack2] [--datasets medium-expert medium] [--algos uof sac_her bc]
+    offhrl results blockstack run [--tasks blockstack2] [--datasets medium-expert medium] [--algos uof sac_her bc]
         [--seeds 4 5 6] [--ablations [no_cvae cvae_no_goal no_pessimism]] [--no-main] [--frames 40000]
-    python scripts/blockstack_results.py report          # docs/results/block_stacking.md and its figures
+    offhrl results blockstack report          # docs/results/block_stacking.md and its figures
 
 Every run is an ordinary run directory of ``offhrl train`` under
 ``outputs/results/blockstack/`` (rerunning resumes from its checkpoint, so the
@@ -38,10 +38,9 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
 BASE = ROOT / "outputs" / "results" / "blockstack"
 OUT = ROOT / "docs" / "results"
 ARCHIVE = OUT / "blockstack" / "runs"
@@ -64,9 +63,9 @@ def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None
 
 
 def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int, transitions: int) -> None:
-    from torchrl_offhrl.recipes.config import compose
-    from torchrl_offhrl.recipes.train import train
-    from torchrl_offhrl.utils import to_plain
+    from ..recipes.config import compose
+    from ..recipes.train import train
+    from ..utils import to_plain
 
     jobs = [(t, d, a, s, None) for t in tasks for d in datasets for s in seeds for a in algos]
     if ablations:
@@ -97,7 +96,7 @@ def _sac_her_note(groups: dict) -> str:
 
 def archive() -> list[Path]:
     """Archive every finished run under ``outputs/results/blockstack/`` to ``docs/results/blockstack/runs/<run>/``."""
-    from torchrl_offhrl.recipes.report import archive_runs
+    from ..recipes.report import archive_runs
 
     return archive_runs(BASE, ARCHIVE, extra=("option_usage.pt",))
 
@@ -123,13 +122,13 @@ def report() -> str:
     import matplotlib.pyplot as plt
     import torch
 
-    from torchrl_offhrl.recipes.report import plot_goal_success
+    from ..recipes.report import plot_goal_success
 
     archive()
     runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
     legacy = _legacy()
     if not runs and not legacy["sections"]:
-        raise SystemExit(f"no finished runs under {BASE} or {ARCHIVE}: run `python scripts/blockstack_results.py run` first")
+        raise SystemExit(f"no finished runs under {BASE} or {ARCHIVE}: run `offhrl results blockstack run` first")
     fig_dir = OUT / "blockstack"
     fig_dir.mkdir(parents=True, exist_ok=True)
     groups: dict[tuple[str, str], dict[str, list[Path]]] = {}
@@ -142,7 +141,7 @@ def report() -> str:
         dataset = tail[: -len(ab) - 1] if ab else tail
         groups.setdefault((task, dataset), {}).setdefault(algo + (f"-{ab}" if ab else ""), []).append(d)
     lines = ["# Offline UOF on block stacking: per-goal success", "",
-             "Made by `python scripts/blockstack_results.py report` from the finished runs (`python scripts/blockstack_results.py run` "
+             "Made by `offhrl results blockstack report` from the finished runs (`offhrl results blockstack run` "
              "makes them under `outputs/results/blockstack/` and archives each to `docs/results/blockstack/runs/<run>/`). Groups marked "
              "*(earlier page)* are printed as an earlier version of this page gave them: their run directories were lost between sessions "
              "(`docs/results/blockstack/legacy.json`).", "", __doc__.split("Budgets (CPU):")[1].split("``--ablations``")[0].strip(), "",
@@ -191,7 +190,7 @@ def report() -> str:
         uof = algos.get("uof", [])
         usage = [torch.load(d / "option_usage.pt", weights_only=True) for d in uof if (d / "option_usage.pt").is_file()]
         if usage:
-            from torchrl_offhrl.agents.uof import plot_goal_option_usage
+            from ..agents.uof import plot_goal_option_usage
 
             t = min(u.shape[1] for u in usage)
             mean = torch.stack([u[:, :t] for u in usage]).mean(0)
@@ -235,7 +234,7 @@ def _dataset_success(algos: dict) -> list[float] | None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results blockstack", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("--tasks", nargs="+", default=["blockstack2"])
@@ -256,6 +255,3 @@ def main(argv=None) -> int:
         print(report())
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,7 +1,7 @@
 """The paper's model search on hopper-medium, with 1 and with 2 concurrent trials, then its report.
 
-    python scripts/tune_results.py run [--concurrent 1 2] [--steps 2000]   # two searches (Ray Tune, this machine)
-    python scripts/tune_results.py report                                 # docs/results/tune.md
+    offhrl results tune run [--concurrent 1 2] [--steps 2000]   # two searches (Ray Tune, this machine)
+    offhrl results tune report                                 # docs/results/tune.md
 
 ``run`` runs ``offhrl tune models env=hopper dataset=medium`` (the paper's
 search space, ``configs/tune/models.yaml``: 10 random combinations of lr x
@@ -32,7 +32,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
 OUT = ROOT / "docs" / "results" / "tune.md"
 
 
@@ -41,7 +41,7 @@ def name(n: int) -> str:
 
 
 def run(concurrent: list[int], steps: int) -> None:
-    from torchrl_offhrl.utils import cache_dir  # the default cache: where hopper-medium already is, or gets generated once
+    from ..utils import cache_dir  # the default cache: where hopper-medium already is, or gets generated once
 
     datasets = cache_dir() / "datasets"
     datasets.mkdir(parents=True, exist_ok=True)
@@ -57,9 +57,18 @@ def run(concurrent: list[int], steps: int) -> None:
         subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "TORCHRL_OFFHRL_CACHE": str(cache)})
 
 
+def _source(n: int) -> Path | None:
+    """The search's folder: its run under ``outputs/tune/`` where this machine ran it, else the copy the report keeps
+    under ``docs/results/tune/`` (so the page rebuilds from a fresh clone)."""
+    for d in (ROOT / "outputs" / "tune" / name(n), OUT.parent / "tune" / name(n)):
+        if (d / "results.csv").is_file() and (d / "best.json").is_file():
+            return d
+    return None
+
+
 def _read(n: int) -> tuple[list[dict], dict] | None:
-    d = ROOT / "outputs" / "tune" / name(n)
-    if not (d / "results.csv").is_file() or not (d / "best.json").is_file():
+    d = _source(n)
+    if d is None:
         return None
     with open(d / "results.csv") as f:
         rows = list(csv.DictReader(f))
@@ -69,12 +78,12 @@ def _read(n: int) -> tuple[list[dict], dict] | None:
 def report() -> None:
     found = {n: r for n in (1, 2) if (r := _read(n)) is not None}
     if not found:
-        raise SystemExit("no finished search under outputs/tune/: run `python scripts/tune_results.py run` first")
-    trials = json.loads((ROOT / "outputs" / "tune" / name(min(found)) / "offhrl_trials.json").read_text())
-    steps = next((o.split("=")[1] for o in trials[0]["overrides"] if o.startswith("ensemble.fit.max_steps=")), "?")
+        raise SystemExit("no finished search under outputs/tune/ or docs/results/tune/: run `offhrl results tune run` first")
+    # the fits' step bound: an override of every trial, which the winners' command repeats
+    steps = next((o.split("=")[1] for o in shlex.split(found[min(found)][1]["command"]) if o.startswith("ensemble.fit.max_steps=")), "?")
     rows, best = found[min(found)]  # the table: the search with the fewest trials at a time (fit times least disturbed by each other)
     lines = ["# The paper's model search on hopper-medium (Ray Tune)", "",
-             "Made by `python scripts/tune_results.py report` from the searches of `python scripts/tune_results.py run` "
+             "Made by `offhrl results tune report` from the searches of `offhrl results tune run` "
              "(`offhrl tune models env=hopper dataset=medium`, `configs/tune/models.yaml`): 10 random combinations of the paper's "
              f"grid, each trial fitting the ensemble and the CVAE on the 1M-transition hopper-medium dataset for at most {steps} "
              "gradient steps each (batch 256; the fits' default bound is 20k steps, out of reach for 20 models on this 2-core CPU), "
@@ -110,17 +119,19 @@ def report() -> None:
     if notes.is_file():  # what the runs showed, written by hand after looking at them
         lines += ["", notes.read_text().strip()]
     for n in found:  # the searches' own tables next to the report (outputs/ is not kept in git)
-        keep = OUT.parent / "tune" / name(n)
+        keep, src = OUT.parent / "tune" / name(n), _source(n)
+        if src == keep:
+            continue
         keep.mkdir(parents=True, exist_ok=True)
         for f in ("results.csv", "results.md", "best.json"):
-            shutil.copy2(ROOT / "outputs" / "tune" / name(n) / f, keep / f)
+            shutil.copy2(src / f, keep / f)
     lines += ["", "Each search's own table (every column Ray reported) and `best.json`: `docs/results/tune/<search>/`."]
     OUT.write_text("\n".join(lines) + "\n")
     print(f"wrote {OUT}")
 
 
-def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="offhrl results tune", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("--concurrent", type=int, nargs="+", default=[1, 2])
@@ -128,7 +139,5 @@ def main(argv=None) -> None:
     sub.add_parser("report")
     a = p.parse_args(argv)
     run(a.concurrent, a.steps) if a.cmd == "run" else report()
+    return 0
 
-
-if __name__ == "__main__":
-    main()

@@ -1,8 +1,8 @@
 """Small, cached MOC experiments on the demo's setting (100k hopper-medium transitions, demo-size models, 164k frames).
 
-    python scripts/moc_experiments.py run NAME [NAME ...]     # train the named variants (resumable run dirs)
-    python scripts/moc_experiments.py list                     # the variants
-    python scripts/moc_experiments.py table                    # docs/results/moc_demo_experiments.md from the finished runs
+    offhrl results moc-experiments run NAME [NAME ...]     # train the named variants (resumable run dirs)
+    offhrl results moc-experiments list                     # the variants
+    offhrl results moc-experiments table                    # docs/results/moc_demo_experiments.md from the finished runs
 
 Each variant is a list of hydra overrides of configs/demo.yaml as it was before
 issue 13 (LEGACY: CVAE KL weight 0.5, unscaled rewards, 3k-step model fits;
@@ -18,10 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
 OUT = ROOT / "outputs" / "moc_experiments"
 VARIANTS: dict[str, tuple[str, list[str]]] = {
     "joint": ("this project's first MOC (every term in every minibatch; 4 options)", ["algo=moc_joint"]),
@@ -131,9 +129,9 @@ def overrides_of(name: str) -> list[str]:
 
 
 def run(names: list[str]) -> None:
-    from torchrl_offhrl.recipes.config import compose
-    from torchrl_offhrl.recipes.train import train
-    from torchrl_offhrl.utils import to_plain
+    from ..recipes.config import compose
+    from ..recipes.train import train
+    from ..utils import to_plain
 
     for name in names:
         cfg = to_plain(compose("demo", [*overrides_of(name), f"run_dir={OUT / name}"]))
@@ -142,7 +140,7 @@ def run(names: list[str]) -> None:
 
 
 def table() -> str:
-    from torchrl_offhrl.recipes.report import logged_tail_mean
+    from ..recipes.report import logged_tail_mean
 
     lines = [
         "| variant | what | final D4RL | best D4RL (frames) | untrained | model-real gap (final) | " + " | ".join(DIAG) + " |",
@@ -196,7 +194,7 @@ def seed_groups() -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results moc-experiments", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("names", nargs="+", choices=sorted(VARIANTS))
@@ -214,7 +212,7 @@ def main(argv=None) -> int:
     out = ROOT / "docs" / "results" / "moc_demo_experiments.md"
     groups = seed_groups()
     out.write_text("# MOC on the demo's setting (hopper-medium, 100k transitions, 164k frames, development seed 0)\n\n"
-                   "Made by `python scripts/moc_experiments.py table`; 164k frames unless the row says otherwise; diagnostics are the mean "
+                   "Made by `offhrl results moc-experiments table`; 164k frames unless the row says otherwise; diagnostics are the mean "
                    "of the last 5 logged batches. Rows ending in `_s<N>` ran on development seed N (evaluation seed N * 1000 + 7); "
                    "`hc_*` rows on halfcheetah-medium.\n\n" + text + "\n\n"
                    "## The same settings over development seeds (hopper-medium, 164k frames)\n\n"
@@ -225,6 +223,3 @@ def main(argv=None) -> int:
     print(text)
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,8 +1,8 @@
 """Does the demo's method work on any machine? The demo setting on many dataset seeds.
 
-    python scripts/demo_robustness.py run VARIANT --dataset-seeds 4 5 6 7 8 9 10 11 12 13   # resumable
-    python scripts/demo_robustness.py table [VARIANT ...]      # -> docs/results/demo_robustness.md
-    python scripts/demo_robustness.py list
+    offhrl results robustness run VARIANT --dataset-seeds 4 5 6 7 8 9 10 11 12 13   # resumable
+    offhrl results robustness table [VARIANT ...]      # -> docs/results/demo_robustness.md
+    offhrl results robustness list
 
 Data generated on another CPU differs in its floating-point details; a new
 ``dataset_seed`` (its own 100k transitions of the shipped hopper-medium
@@ -24,10 +24,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
 OUT = ROOT / "outputs" / "demo_robustness"
 DOC = ROOT / "docs" / "results" / "demo_robustness.md"
 #: what the table reads: each finished run's config, evals, summary and demo summary (``archive_run``), kept in the repo
@@ -111,7 +109,7 @@ def parse_name(name: str) -> tuple[int, int]:
 
 
 def run(variant: str, seeds: list[int], agent_seeds: list[int] = (0,)) -> None:
-    from torchrl_offhrl.recipes.demo import run_demo
+    from ..recipes.demo import run_demo
 
     for d in seeds:
         for a in agent_seeds:
@@ -131,7 +129,7 @@ def run(variant: str, seeds: list[int], agent_seeds: list[int] = (0,)) -> None:
 
 
 def archive(variant: str, name: str) -> None:
-    from torchrl_offhrl.recipes.report import archive_run
+    from ..recipes.report import archive_run
 
     archive_run(OUT / variant / name, ARCHIVE / variant / name, extra=("demo_summary.json",))
 
@@ -174,7 +172,7 @@ def rows_of(variant: str) -> list[dict]:
 
 def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
     """Every selection criterion scored afterwards on the same runs: the real score of the evaluation its selector picks."""
-    from torchrl_offhrl.recipes.selection import CRITERIA, PolicySelector
+    from ..recipes.selection import CRITERIA, PolicySelector
 
     class _Index:  # stands for the agent: its "state" is the index of the evaluation being considered
         i = 0
@@ -205,7 +203,7 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
 
 def paired_rows(variant: str, baseline: str, rs: list[dict]) -> list[str]:
     """``variant``'s returned policies against ``baseline``'s on the runs both have (same seeds): per run and the paired change."""
-    from torchrl_offhrl.stats import paired_change
+    from ..stats import paired_change
 
     base = {(r["dataset_seed"], r["agent_seed"]): r for r in rows_of(baseline)}
     both = [(r, base[(r["dataset_seed"], r["agent_seed"])]) for r in rs if (r["dataset_seed"], r["agent_seed"]) in base]
@@ -219,10 +217,10 @@ def paired_rows(variant: str, baseline: str, rs: list[dict]) -> list[str]:
 
 
 def table(variants: list[str]) -> str:
-    from torchrl_offhrl.stats import iqm_ci, mean_std
+    from ..stats import iqm_ci, mean_std
 
     lines = ["# The demo on many dataset seeds", "",
-             "Made by `python scripts/demo_robustness.py table` from the runs archived in `docs/results/demo_robustness_runs/` by `python scripts/demo_robustness.py run VARIANT --dataset-seeds ...`.",
+             "Made by `offhrl results robustness table` from the runs archived in `docs/results/demo_robustness_runs/` by `offhrl results robustness run VARIANT --dataset-seeds ...`.",
              "Each dataset seed generates its own 100k hopper-medium transitions and fits its own ensemble and CVAE (what another "
              "machine's floating point does to the demo); agent seed 0 unless a row names another. D4RL-normalised scores, 30 deterministic real-env "
              "episodes per evaluation. *returned*: the policy the run returns (offline policy "
@@ -266,7 +264,7 @@ def table(variants: list[str]) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results robustness", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("variant", choices=sorted(VARIANTS))
@@ -287,6 +285,3 @@ def main(argv=None) -> int:
             print(f"{k:12s} {what}: {' '.join(ov) or '(none)'}")
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,9 +1,9 @@
 """Multi-seed results of the offline recipes: resumable runs, then tables and figures in docs/results/.
 
-    python scripts/results.py run [--scale demo|full] [--envs hopper halfcheetah] [--algos moc ppo iql td3bc bc] [--seeds 4 5 6]
+    offhrl results table1 run [--scale demo|full] [--envs hopper halfcheetah] [--algos moc ppo iql td3bc bc] [--seeds 4 5 6]
                                   [--datasets medium medium-expert]
-    python scripts/results.py report [--scale demo|full]     # docs/results/<scale>/: results.md, curves.png, option usage
-    python scripts/results.py run --tuning --algos moc moc_online --seeds 1 2 3   # tuning seeds, kept apart (see below)
+    offhrl results table1 report [--scale demo|full]     # docs/results/<scale>/: results.md, curves.png, option usage
+    offhrl results table1 run --tuning --algos moc moc_online --seeds 1 2 3   # tuning seeds, kept apart (see below)
 
 Scales:
 
@@ -30,13 +30,13 @@ the config now follows MOReL's official code: a behaviour-cloned start, a
 KL-bounded step, 3 x max, and has not been run at these scales yet).
 
 Seeds 4, 5, 6 by default: seeds 0 and 10 were the development seeds of
-``scripts/moc_experiments.py``, and seeds 1-3 were looked at while choosing
+``torchrl_offhrl/results/moc_experiments.py``, and seeds 1-3 were looked at while choosing
 ``anneal_lr`` (their runs are kept in ``docs/results/demo_seeds1-3/``), so the
 reported seeds' evaluation episodes were never looked at while choosing settings. Every run is an ordinary run
 directory under ``outputs/results/<scale>/``: rerunning resumes from its
 checkpoint, so the runs can go to the background and survive interruptions::
 
-    nohup python scripts/results.py run --scale full > results.log 2>&1 &
+    nohup offhrl results table1 run --scale full > results.log 2>&1 &
 
 ``--tuning`` runs (seeds 1-3 by default; the evaluation seeds 4-6 are refused) go to ``outputs/results/<scale>_tuning/``,
 their archive and report to ``docs/results/<scale>_tuning/``: settings are compared there, never on the page of seeds 4-6.
@@ -59,10 +59,9 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
 CONFIG = {"demo": "demo", "full": "offline_train"}
 # the demo stops MOC at 82k frames and fits its models for 10k steps (its 10-minute budget); the results run
 # twice the frames, to show what longer training does, on models fitted for 20k steps
@@ -74,7 +73,7 @@ BUDGET = {"demo": ["train.total_frames=204800", "eval.every_frames=40960", "ense
 ON_POLICY_MINIBATCH = {"demo": None, "full": 256}  # the demo's minibatch size (configs/demo.yaml sets it for every scale that extends it)
 # what a reader of a scale's report must know about how its seeds were used
 NOTES = {"demo": ("Seeds 4-6 were run once, with the defaults as they stood after the development runs of "
-                  "`scripts/moc_experiments.py` (seeds 0, 10, 20, 30) and the first results seeds 1-3 (`docs/results/demo_seeds1-3/`, "
+                  "`torchrl_offhrl/results/moc_experiments.py` (seeds 0, 10, 20, 30) and the first results seeds 1-3 (`docs/results/demo_seeds1-3/`, "
                   "`docs/results/demo_noanneal/`); nothing was chosen by looking at them. One evaluation is 10 deterministic "
                   "episodes that hardly differ (see the return std), so on Hopper a run's final score is essentially which gait "
                   "its last policy settled in: a fall within a few hundred steps (scores 15-45) or a full episode (80-95). "
@@ -108,7 +107,7 @@ def run_dir(scale: str, env: str, algo: str, seed: int, dataset: str = "medium")
 
 
 EVAL_SEEDS = {4, 5, 6}
-TUNING_NOTE = ("Runs on the tuning seeds (`python scripts/results.py run --tuning ...`), where settings are compared; they are never "
+TUNING_NOTE = ("Runs on the tuning seeds (`offhrl results table1 run --tuning ...`), where settings are compared; they are never "
                "mixed into the page of the evaluation seeds 4-6.")
 
 
@@ -124,7 +123,7 @@ def archive_dir(scale: str) -> Path:
 
 def archive(scale: str) -> list[Path]:
     """Archive every finished run under ``outputs/results/<scale>/`` (:func:`~torchrl_offhrl.recipes.report.archive_run`)."""
-    from torchrl_offhrl.recipes.report import archive_runs
+    from ..recipes.report import archive_runs
 
     return archive_runs(ROOT / "outputs" / "results" / scale, archive_dir(scale))
 
@@ -136,7 +135,7 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
     no curve) with three evaluations: the untrained one (step 0), the best one and the final one, returns back-computed
     from the scores. Also returns the file's MOC diagnostics (mean over seeds, per ``moc-<env>``).
     """
-    from torchrl_offhrl.scores import return_for_score
+    from ..scores import return_for_score
 
     path = archive_dir(scale) / "legacy.json"
     if not path.is_file():
@@ -161,10 +160,10 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
         speed: list[str] = ()) -> None:
     """Every (dataset, env, algo, seed) run in turn. ``speed``: overrides that must not change the run (e.g. ``device=cuda``,
     ``algo.cudagraphs=true``): each run's resume fingerprint is checked to be the same with them and without."""
-    from torchrl_offhrl.agents import agent_defaults
-    from torchrl_offhrl.recipes.config import compose, config_fingerprint
-    from torchrl_offhrl.recipes.train import train
-    from torchrl_offhrl.utils import to_plain
+    from ..agents import agent_defaults
+    from ..recipes.config import compose, config_fingerprint
+    from ..recipes.train import train
+    from ..utils import to_plain
 
     where = folder(scale, tuning)
     for env, dataset in ((e, d) for d in datasets for e in envs):
@@ -205,7 +204,7 @@ MISSING = {"full": {"hopper-medium-expert": _MODEL_ENV_ME, "halfcheetah-medium-e
 
 
 def report(scale: str, tuning: bool = False) -> str:
-    from torchrl_offhrl.recipes.report import aggregate, load_run, paper_table
+    from ..recipes.report import aggregate, load_run, paper_table
 
     name, scale = scale, folder(scale, tuning)  # `name`: the scale (its description); `scale`: the folder from here on
     archive(scale)
@@ -214,10 +213,10 @@ def report(scale: str, tuning: bool = False) -> str:
     runs = [{**load_run(d), "name": d.name} for d in kept] + legacy
     if not runs:
         raise SystemExit(f"no finished runs under {ROOT / 'outputs' / 'results' / scale} or {archive_dir(scale)}: "
-                         f"run `python scripts/results.py run --scale {name}{' --tuning' if tuning else ''}` first")
+                         f"run `offhrl results table1 run --scale {name}{' --tuning' if tuning else ''}` first")
     runs.sort(key=lambda r: r["name"])
     out = ROOT / "docs" / "results" / scale
-    cmd = f"python scripts/results.py report --scale {name}{' --tuning' if tuning else ''}"
+    cmd = f"offhrl results table1 report --scale {name}{' --tuning' if tuning else ''}"
     table = aggregate(runs, out, made_by=cmd)
     paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale", missing_reasons=MISSING.get(scale), made_by=cmd)  # table.md: the paper's Table I layout
     lines = [f"# Offline results, `{name}` scale" + (", tuning seeds" if tuning else ""), "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
@@ -262,7 +261,7 @@ def report(scale: str, tuning: bool = False) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results table1", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("--scale", choices=sorted(CONFIG), default="demo")
@@ -287,6 +286,3 @@ def main(argv=None) -> int:
         print(report(a.scale, a.tuning))
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

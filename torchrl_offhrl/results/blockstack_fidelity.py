@@ -1,6 +1,6 @@
 """Block stacking: the datasets' per-goal success rates and how faithful the learned model env is to the real one.
 
-    python scripts/blockstack_fidelity.py [--envs blockstack2 blockstack3] [--transitions 100000] [--episodes 240]
+    offhrl results blockstack-fidelity [--envs blockstack2 blockstack3] [--transitions 100000] [--episodes 240]
         [--config offline_train] [OVERRIDE ...]          # e.g. ensemble.fit.max_steps=10000
 
 For each task it generates (or loads from the cache) the scripted ``medium`` and ``expert`` datasets of
@@ -21,13 +21,13 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
 OUT = ROOT / "docs" / "results" / "blockstack"
 HOLDOUT_SEED = 7777  # no dataset is collected with it
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results blockstack-fidelity", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--envs", nargs="+", default=["blockstack2", "blockstack3"])
     p.add_argument("--transitions", type=int, default=100_000, help="per dataset part (medium-expert holds twice as many)")
     p.add_argument("--episodes", type=int, default=240, help="held-out episodes replayed per task")
@@ -42,14 +42,14 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchrl_offhrl.data.stacking import SCRIPT_LEVELS, generate_stacking_dataset, scripted_success
-    from torchrl_offhrl.registry import ENV_IDS
-    from torchrl_offhrl.blockstack import goals as G
-    from torchrl_offhrl.envs.calibration import calibrate_threshold
-    from torchrl_offhrl.envs.goal_model import replay_open_loop
-    from torchrl_offhrl.recipes.config import compose, model_config, resolve_dataset
-    from torchrl_offhrl.recipes.pipeline import fit_or_load_models
-    from torchrl_offhrl.utils import to_plain
+    from ..data.stacking import SCRIPT_LEVELS, generate_stacking_dataset, scripted_success
+    from ..registry import ENV_IDS
+    from ..blockstack import goals as G
+    from ..envs.calibration import calibrate_threshold
+    from ..envs.goal_model import replay_open_loop
+    from ..recipes.config import compose, model_config, resolve_dataset
+    from ..recipes.pipeline import fit_or_load_models
+    from ..utils import to_plain
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     fig.tight_layout()
     fig.savefig(out / "fidelity.png", dpi=110)
     md = ["# Block stacking: datasets and model-env fidelity", "",
-          f"Made by `python scripts/blockstack_fidelity.py {' '.join(argv if argv is not None else sys.argv[1:])}`.", "",
+          f"Made by `offhrl results blockstack-fidelity {' '.join(argv if argv is not None else sys.argv[1:])}`.", "",
           "## The scripted controller without noise", "",
           f"Fraction of {a.script_episodes} episodes per goal (goal set at reset, reset seeds 1000 onwards) reaching the goal at some step:", "",
           "| task | horizon | success per goal |", "|---|---|---|", *script_rows, "",
@@ -138,6 +138,3 @@ def main(argv=None) -> int:
     print("\n".join(md))
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,9 +1,9 @@
 """The paper's route to its block-stacking data: UOF trained online in the real env, its 20- and 50-epoch policies shipped.
 
-    python scripts/uof_online.py run [--env blockstack2] [--epochs 20 50] [--seed 0]    # resumable; outputs/uof_online/
-    python scripts/uof_online.py ship [--env blockstack2] [--epochs 20 50]              # torchrl_offhrl/data/policies/<env>-uof-epoch<N>
-    python scripts/uof_online.py collect [--env blockstack2] [--epochs 20 50] [-n 100000]  # a dataset per shipped policy
-    python scripts/uof_online.py report [--env blockstack2]                             # docs/results/uof_online/ + figure
+    offhrl results uof-online run [--env blockstack2] [--epochs 20 50] [--seed 0]    # resumable; outputs/uof_online/
+    offhrl results uof-online ship [--env blockstack2] [--epochs 20 50]              # torchrl_offhrl/data/policies/<env>-uof-epoch<N>
+    offhrl results uof-online collect [--env blockstack2] [--epochs 20 50] [-n 100000]  # a dataset per shipped policy
+    offhrl results uof-online report [--env blockstack2]                             # docs/results/uof_online/ + figure
 
 ``run`` is ``offhrl train algo=uof env=<env> dataset=medium-expert train.online=true``
 with UOF's schedule: epochs of 50 cycles x 16 episodes x 25 steps (20k
@@ -31,9 +31,8 @@ import shlex
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from torchrl_offhrl.recipes.uof_policies import EPOCH_FRAMES as EPOCH  # noqa: E402  (frames of one UOF epoch)
+from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
+from ..recipes.uof_policies import EPOCH_FRAMES as EPOCH  # noqa: E402  (frames of one UOF epoch)
 
 
 def run_dir(env: str, seed: int) -> Path:
@@ -47,19 +46,19 @@ def overrides(env: str, epochs: list[int], seed: int) -> list[str]:
 
 
 def run(env: str, epochs: list[int], seed: int) -> None:
-    from torchrl_offhrl.recipes.config import compose
-    from torchrl_offhrl.recipes.train import train
-    from torchrl_offhrl.utils import to_plain
+    from ..recipes.config import compose
+    from ..recipes.train import train
+    from ..utils import to_plain
 
     train(to_plain(compose("offline_train", overrides(env, epochs, seed))))
 
 
 def ship(env: str, epochs: list[int], seed: int) -> None:
-    from torchrl_offhrl.recipes.uof_policies import ship_uof_policy
+    from ..recipes.uof_policies import ship_uof_policy
 
     cfg = json.loads((run_dir(env, seed) / "config.json").read_text())  # the run's own epochs, whatever is shipped now
     ran = sorted({*(int(f) // EPOCH for f in cfg["train"]["snapshot_frames"]), int(cfg["train"]["total_frames"]) // EPOCH})
-    cmd = "python scripts/uof_online.py run " + shlex.join(["--env", env, "--epochs", *map(str, ran), "--seed", str(seed)])
+    cmd = "offhrl results uof-online run " + shlex.join(["--env", env, "--epochs", *map(str, ran), "--seed", str(seed)])
     for e in epochs:
         pt = ship_uof_policy(run_dir(env, seed), e * EPOCH, command=cmd)
         card = json.loads(pt.with_suffix(".json").read_text())
@@ -69,17 +68,18 @@ def ship(env: str, epochs: list[int], seed: int) -> None:
 def collect(env: str, epochs: list[int], transitions: int) -> None:
     """Collect ``transitions`` with each shipped policy (greedy, as `offhrl collect --policy`); their per-goal success goes to
     ``docs/results/uof_online/datasets.json`` (the datasets stay in the cache: `offhrl train dataset=<file>` trains on them)."""
-    from torchrl_offhrl.cli import main as offhrl
+    import subprocess
 
     record = ROOT / "docs" / "results" / "uof_online" / "datasets.json"
     done = json.loads(record.read_text()) if record.is_file() else {}
-    from torchrl_offhrl.data import load_dataset
-    from torchrl_offhrl.recipes.uof_policies import uof_dataset_path
+    from ..data import load_dataset
+    from ..recipes.uof_policies import uof_dataset_path
 
     for e in epochs:
         name = f"{env}-uof-epoch{e}"
         out = uof_dataset_path(name, transitions)  # where `offhrl collect --policy` writes it by default
-        if offhrl(["collect", env, "--policy", name, "-n", str(transitions)]) != 0:
+        # the command a user types, in its own process (this module sits below the command line)
+        if subprocess.run([sys.executable, "-m", "torchrl_offhrl.cli", "collect", env, "--policy", name, "-n", str(transitions)]).returncode != 0:
             raise SystemExit(f"collecting with {name} failed")
         meta = load_dataset(out).metadata
         done[name] = {"transitions": transitions, "goal_success": meta["goal_success"], "goal_episodes": meta["goal_episodes"],
@@ -89,7 +89,7 @@ def collect(env: str, epochs: list[int], transitions: int) -> None:
 
 
 def report(env: str, seed: int) -> str:
-    from torchrl_offhrl.recipes.report import archive_run, load_run, plot_goal_success
+    from ..recipes.report import archive_run, load_run, plot_goal_success
 
     out = ROOT / "docs" / "results" / "uof_online"
     src = run_dir(env, seed)
@@ -106,7 +106,7 @@ def report(env: str, seed: int) -> str:
                       xlabel="real-env frames")
     lines = [f"# UOF trained online in the real env ({env})", "",
              "The paper's route to its block-stacking data: UOF trained online, its 20- and 50-epoch policies collect the task-1 datasets "
-             "(task 2: 200 epochs). Made by `python scripts/uof_online.py report` from the run of `python scripts/uof_online.py run` "
+             "(task 2: 200 epochs). Made by `offhrl results uof-online report` from the run of `offhrl results uof-online run` "
              f"(seed {seed}; one epoch = 50 cycles x 16 episodes x 25 steps = {EPOCH} frames; 30 evaluation episodes per goal, "
              "deterministic, success within 25 and 50 steps).", "",
              f"![success per goal](success_{env}.png)", "",
@@ -117,7 +117,7 @@ def report(env: str, seed: int) -> str:
     record = out / "datasets.json"
     data = {k: v for k, v in (json.loads(record.read_text()) if record.is_file() else {}).items() if k.startswith(f"{env}-")}
     if data:
-        lines += ["", "Datasets collected with the shipped policies (`python scripts/uof_online.py collect`: greedy options and actions, "
+        lines += ["", "Datasets collected with the shipped policies (`offhrl results uof-online collect`: greedy options and actions, "
                   "no added noise; the share of episodes of each goal that reached it within 25 steps):", "",
                   "| policy | transitions | success per goal | return | command |", "|---|---|---|---|---|"]
         for k, v in sorted(data.items()):
@@ -131,7 +131,7 @@ def report(env: str, seed: int) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="offhrl results uof-online", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("cmd", choices=["run", "ship", "collect", "report"])
     p.add_argument("-n", "--transitions", type=int, default=100_000, help="collect: transitions per policy")
     p.add_argument("--env", default="blockstack2", choices=["blockstack2", "blockstack3"])
@@ -148,6 +148,3 @@ def main(argv=None) -> int:
         print(report(a.env, a.seed))
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

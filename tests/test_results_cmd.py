@@ -1,0 +1,98 @@
+"""``offhrl results``: one command for every page under docs/results/ (issue 40).
+
+Every page names the command that makes it (or says it is a hand-written or
+frozen record), every such command names a preset that exists and a
+sub-command that preset accepts, and ``offhrl results rebuild`` remakes the
+committed pages byte for byte from the committed archives.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from torchrl_offhrl.cli import main
+from torchrl_offhrl.results import PRESETS
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "docs" / "results"
+#: what a page must say about where it comes from: a command that makes it, or that no command does
+MARKERS = ("offhrl results ", "offhrl tune ", "Not rebuilt by any command", "Hand-written record")
+
+
+def pages() -> list[Path]:
+    """The markdown pages under docs/results/, archived run folders (``runs/``) aside."""
+    return sorted(p for p in RESULTS.rglob("*.md") if "runs" not in p.relative_to(RESULTS).parts[:-1]
+                  and not p.relative_to(RESULTS).parts[0].endswith("_runs"))
+
+
+def test_every_results_page_says_what_makes_it():
+    missing = [str(p.relative_to(ROOT)) for p in pages() if not any(m in p.read_text() for m in MARKERS)]
+    assert pages() and not missing, f"pages that name no command and are not marked as records: {missing}"
+
+
+def _commands(text: str) -> list[list[str]]:
+    out = []
+    for m in re.finditer(r"`(offhrl results [^`]+)`", text):
+        words = [w for w in m.group(1).split() if w != "..."]
+        out.append(words[2:])
+    return out
+
+
+def test_every_results_command_on_a_page_names_a_preset_and_a_subcommand_it_accepts(capsys):
+    seen = set()
+    for p in [*pages(), ROOT / "README.md", *sorted((ROOT / "docs" / "guides").glob("*.md"))]:
+        for words in _commands(p.read_text()):
+            assert words, f"{p}: a bare `offhrl results`"
+            if words[0] in ("list", "rebuild"):
+                continue
+            assert words[0] in PRESETS, f"{p.relative_to(ROOT)}: unknown preset {words[0]!r} in `offhrl results {' '.join(words)}`"
+            if len(words) > 1 and not words[1].startswith("-") and "/" not in words[1]:
+                seen.add((words[0], words[1]))
+    assert ("table1", "report") in seen and ("robustness", "table") in seen
+    for preset, sub in sorted(seen):
+        with pytest.raises(SystemExit) as e:  # --help after the sub-command: argparse exits 0 where the sub-command exists
+            PRESETS[preset].main([sub, "--help"])
+        assert e.value.code == 0, f"offhrl results {preset} {sub}: not a command of the preset"
+    capsys.readouterr()
+
+
+def test_list_and_unknown_preset(capsys):
+    assert main(["results", "list"]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in PRESETS)
+    assert main(["results", "tabel1", "report"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown results preset 'tabel1'" in err and "table1" in err
+    assert main(["results", "rebuild", "nope"]) == 2
+    assert "unknown preset(s) ['nope']" in capsys.readouterr().err
+
+
+def test_a_folder_that_is_no_checkout_is_refused(tmp_path):
+    from torchrl_offhrl.results.paths import require_checkout
+
+    with pytest.raises(FileNotFoundError, match="run it from the repository root"):
+        require_checkout(tmp_path)
+    (tmp_path / "docs" / "results").mkdir(parents=True)
+    assert require_checkout(tmp_path) == tmp_path
+
+
+def test_rebuild_remakes_the_committed_pages_exactly(tmp_path):
+    """The committed archives give back the committed pages (in a copy of docs/results/, via $TORCHRL_OFFHRL_ROOT)."""
+    shutil.copytree(RESULTS, tmp_path / "docs" / "results")
+    env = {**os.environ, "TORCHRL_OFFHRL_ROOT": str(tmp_path), "MPLBACKEND": "Agg"}
+    res = subprocess.run([sys.executable, "-m", "torchrl_offhrl.cli", "results", "rebuild"], env=env, capture_output=True, text=True,
+                         cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rebuilt = [line.split("rebuilt: ", 1)[1] for line in res.stdout.splitlines() if line.startswith("rebuilt: ")]
+    assert len(rebuilt) == sum(len(p.rebuild) for p in PRESETS.values())
+    changed = [str(p.relative_to(tmp_path)) for p in sorted((tmp_path / "docs" / "results").rglob("*.md"))
+               if p.read_text() != (ROOT / p.relative_to(tmp_path)).read_text()]
+    assert not changed, f"pages the rebuild changed: {changed} (rerun `offhrl results rebuild` and commit)"
+    assert all(shlex.split(c)[2] in PRESETS for c in rebuilt)
