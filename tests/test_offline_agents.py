@@ -252,16 +252,17 @@ def test_aggregate_counts_dataset_runs_in_gradient_steps(tmp_path):
     assert height > width  # one row of panels per unit (frames, gradient steps), one column per env
 
 
-def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, ablation=None):
+def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, ablation=None, algo_cfg=None, timing=None):
     d = base / f"{algo}-{env_id}-{dataset}-seed{seed}"
     d.mkdir(parents=True)
     steps = (0, 100, 200)
     (d / "evals.json").write_text(json.dumps([{"frames": s, "updates": s, "step": s, "return_mean": 10 * v, "return_std": 0.0, "normalized_d4rl": v}
                                               for s, v in zip(steps, scores)]))
-    cfg = {"algo": {"name": "ppo" if algo == "morel" else algo, **({"label": "morel"} if algo == "morel" else {})}, "env": {"env_id": env_id},
+    cfg = {"algo": {"name": "ppo" if algo == "morel" else algo, **({"label": "morel"} if algo == "morel" else {}), **(algo_cfg or {})},
+           "env": {"env_id": env_id},
            "dataset": dataset, "ablation": ablation or {}, "unit": unit, "seed": seed}
     (d / "config.json").write_text(json.dumps(cfg))
-    (d / "summary.json").write_text(json.dumps({"unit": unit, "behaviour_normalized_d4rl": behaviour}))
+    (d / "summary.json").write_text(json.dumps({"unit": unit, "behaviour_normalized_d4rl": behaviour, **(timing or {})}))
     return d
 
 
@@ -280,11 +281,12 @@ def test_paper_table_layout(tmp_path):
     text = paper_table(runs, tmp_path / "t")
     final = text.split("## Final evaluation")[1].split("## Best")[0]
     best = text.split("## Best")[1].split("## Published")[0]
-    header = "| dataset | MOC | PPO | SAC | MOReL-style | IQL | CQL | TD3+BC | BC | ppo [no_cvae] | behaviour data |"
+    # a MOReL run without the behaviour-cloned start (the config before it followed MOReL's code) has a column of its own
+    header = "| dataset | MOC | PPO | SAC | MOReL | MOPO | IQL | CQL | TD3+BC | BC | MOReL-style (old) | ppo [no_cvae] | behaviour data |"
     assert header in final and header in best
     # MOC hopper: finals 40, 60 -> IQM 50.0, bootstrap CI [40, 60]; best after step 0: 50, 60 -> 55.0 [50, 60]
-    assert "| hopper-medium | 50.0 [40.0, 60.0] (2) | — | — | 25.0 (1) | 42.0 (1) | — | — | — | 7.0 (1) | 37.0 |" in final
-    assert "| hopper-medium | 55.0 [50.0, 60.0] (2) | — | — | 25.0 (1) | 45.0 (1) | — | — | — | 9.0 (1) | 37.0 |" in best
+    assert "| hopper-medium | 50.0 [40.0, 60.0] (2) | — | — | — | — | 42.0 (1) | — | — | — | 25.0 (1) | 7.0 (1) | 37.0 |" in final
+    assert "| hopper-medium | 55.0 [50.0, 60.0] (2) | — | — | — | — | 45.0 (1) | — | — | — | 25.0 (1) | 9.0 (1) | 37.0 |" in best
     # per seed: final / selected / last-5 mean / best / untrained; MOC's change over its start: +30 and +50
     assert "- hopper-medium, MOC: s0: 40.0 / n/a / 45.0 / 50.0 / 10.0; s1: 60.0 / n/a / 45.0 / 60.0 / 10.0; change over untrained +40.0" in text
     assert (tmp_path / "t" / "performance_profile.png").is_file()
@@ -299,13 +301,32 @@ def test_paper_table_layout(tmp_path):
     text = paper_table(runs, tmp_path / "m", min_seeds=2, missing_reasons={"hopper-medium:cql": "CQL needs a GPU.", "hopper-medium": "Not run yet."})
     missing = text.split("## Missing cells (fewer than 2 seeds)")[1].split("## Published")[0]
     assert "- hopper-medium: CQL (no run). CQL needs a GPU." in missing
-    assert "- hopper-medium: PPO (no run), SAC (no run), MOReL-style (1 seed), IQL (1 seed), TD3+BC (no run), BC (no run). Not run yet." in missing
+    assert ("- hopper-medium: PPO (no run), SAC (no run), MOReL (no run), MOPO (no run), IQL (1 seed), TD3+BC (no run), BC (no run). "
+            "Not run yet.") in missing
     cheetah = next(line for line in missing.splitlines() if line.startswith("- halfcheetah-medium:"))
     assert cheetah.startswith("- halfcheetah-medium: MOC (1 seed), PPO (no run)") and cheetah.endswith("BC (no run). No reason given.")
     assert "MOC (2" not in missing  # hopper's MOC has its 2 seeds
-    every = [_fake_run(tmp_path / "all", a, 0, "Hopper-v5", "medium", "frames", (1.0, 2.0, 3.0), ablation={"no_cvae": True} if a == "morel" else None)
-             for a in ("moc", "ppo", "sac", "morel", "iql", "cql", "td3bc", "bc")]
+    every = [_fake_run(tmp_path / "all", a, 0, "Hopper-v5", "medium", "frames", (1.0, 2.0, 3.0), algo_cfg={"bc_init_steps": 10} if a == "morel" else None)
+             for a in ("moc", "ppo", "sac", "morel", "mopo", "iql", "cql", "td3bc", "bc")]
     assert "None: every column has its seeds." in paper_table(every, tmp_path / "n", min_seeds=1).split("## Missing")[1]
+
+
+def test_missing_cells_say_what_a_seed_cost_on_the_page_s_runs(tmp_path):
+    """A missing cell's line gives the measured cost of one more seed: the median over that column's timed runs (any row) of
+    their total time less the data and the model fits, with the device and threads they ran on."""
+    from torchrl_offhrl.recipes.report import paper_table
+
+    runs = [_fake_run(tmp_path, "cql", s, "Hopper-v5", "medium", "updates", (1.0, 2.0, 3.0), behaviour=36.0,
+                      timing={"total_s": t, "models_s": 0.0, "data_s": 0.0}) for s, t in ((4, 7200.0), (5, 10800.0), (6, 36000.0))]
+    runs.append(_fake_run(tmp_path, "cql", 4, "Hopper-v5", "medium-expert", "updates", (1.0, 2.0, 3.0), behaviour=53.0,
+                          timing={"total_s": 5000.0, "models_s": 1400.0, "data_s": 0.0}))
+    text = paper_table(runs, tmp_path / "t", min_seeds=3, missing_reasons={"hopper-medium-expert:cql": "Needs a GPU."})
+    missing = text.split("## Missing cells")[1].split("## Published")[0]
+    line = next(x for x in missing.splitlines() if x.startswith("- hopper-medium-expert: CQL"))
+    # timed runs: 7200, 10800, 36000 and 5000 - 1400 = 3600 s -> median (7200 + 10800) / 2 = 9000 s = 2.5 h
+    assert line == ("- hopper-medium-expert: CQL (1 seed). Needs a GPU. Measured on this page's runs: CQL 2.5 h per seed "
+                    "(cpu, default threads; median of 4 timed runs).")
+    assert not any(x.startswith("- hopper-medium: CQL") for x in missing.splitlines())  # 3 seeds: not missing
 
 
 def test_archived_run_reads_like_its_run_directory(tmp_path):
@@ -480,8 +501,8 @@ def test_offhrl_report_on_real_runs(hopper_file, cache, tmp_path, capsys):
     table = (tmp_path / "t" / "table.md").read_text()
     row = next(line for line in table.split("## Best")[0].splitlines() if line.startswith("| hopper-hopper_random"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[2].endswith("(1)") and cells[8].endswith("(1)") and cells[1] == "—"  # PPO and BC filled, MOC missing
-    assert f"{bc['final']['normalized_d4rl']:.1f} (1)" == cells[8]  # one seed: no spread shown
+    assert cells[2].endswith("(1)") and cells[9].endswith("(1)") and cells[1] == "—"  # PPO and BC filled, MOC missing
+    assert f"{bc['final']['normalized_d4rl']:.1f} (1)" == cells[9]  # one seed: no spread shown
     assert "BC: 4 updates" in table and "PPO: 64 frames" in table
     assert "- hopper-hopper_random: MOC (no run), PPO (1 seed)" in table  # --min-seeds defaults to 3
     assert main(["report", bc["run_dir"], ppo["run_dir"], "--out", str(tmp_path / "t1"), "--min-seeds", "1"]) == 0

@@ -291,7 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_aggregate)
 
     s = sub.add_parser("report", help="the paper's Table I from run directories: env x dataset rows, one column per algorithm "
-                                      "(MOC, PPO, SAC, MOReL-style, IQL, CQL, TD3+BC, BC), the behaviour data, published scores apart")
+                                      "(MOC, PPO, SAC, MOReL, MOPO, IQL, CQL, TD3+BC, BC), the behaviour data, published scores apart")
     s.add_argument("runs", nargs="+", help="run directories (every algorithm and seed), or folders of them (e.g. an `offhrl sweep` folder)")
     s.add_argument("--out", default="outputs/report")
     s.add_argument("--min-seeds", type=int, default=3, help="cells with fewer seeds are listed under 'Missing cells' (default 3)")

@@ -304,8 +304,37 @@ def aggregate(run_dirs: Sequence, out_dir, made_by: str | None = None) -> str:
 
 #: Table I's columns: run label -> column title, in the paper's order (ours on the P-MDP, then the peers)
 TABLE_COLUMNS: dict[str, str] = {
-    "moc": "MOC", "ppo": "PPO", "sac": "SAC", "morel": "MOReL-style", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC",
+    "moc": "MOC", "ppo": "PPO", "sac": "SAC", "morel": "MOReL", "mopo": "MOPO", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC",
 }
+#: columns outside Table I's standard ones that have a title of their own
+EXTRA_COLUMNS: dict[str, str] = {"morel_style": "MOReL-style (old)"}
+
+
+def table_column(run: dict) -> str:
+    """A run's Table I column: its label, with its ablations in brackets. MOReL runs from before the config followed MOReL's
+    official code (no behaviour-cloned start: PPO in real actions from a random policy, threshold max / 3) are
+    ``morel_style``, apart from ``morel``."""
+    label, _, _, abl = group_key(run)
+    if label == "morel":
+        return "morel" if (run["config"].get("algo") or {}).get("bc_init_steps") else "morel_style"
+    return label if abl == "-" else f"{label} [{abl}]"
+
+
+def column_title(column: str) -> str:
+    return TABLE_COLUMNS.get(column) or EXTRA_COLUMNS.get(column) or column
+
+
+def seed_cost(runs: Sequence[dict]) -> str | None:
+    """What one seed of these runs cost, measured: the median of their ``total_s`` less the data and model fits (cached and
+    shared by every seed of a dataset), with the device and thread count they ran on; None without a timed run."""
+    times = sorted(float(s["total_s"]) - float(s.get("models_s") or 0) - float(s.get("data_s") or 0)
+                   for r in runs if (s := r.get("summary")) and s.get("total_s") is not None)
+    if not times:
+        return None
+    med = times[len(times) // 2] if len(times) % 2 else (times[len(times) // 2 - 1] + times[len(times) // 2]) / 2
+    where = sorted({f"{r['config'].get('device', 'cpu')}, {r['config'].get('torch_threads') or 'default'} threads" for r in runs
+                    if r.get("summary") and r["summary"].get("total_s") is not None})
+    return f"{med / 3600:.1f} h per seed ({'; '.join(where)}; median of {len(times)} timed run{'s' if len(times) != 1 else ''})"
 
 
 def _env_name(env_id: str) -> str:
@@ -349,15 +378,14 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         raise ValueError("paper_table: every run given is a transfer run (transfer.task set); report those with `offhrl aggregate`")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
-        label, env_id, dataset, abl = group_key(r)
-        column = label if abl == "-" or label == "morel" else f"{label} [{abl}]"
-        groups[(env_id, dataset, column)].append(r)
+        _, env_id, dataset, _ = group_key(r)
+        groups[(env_id, dataset, table_column(r))].append(r)
     stats = {key: group_stats(rs) for key, rs in groups.items()}
     datasets = sorted({(k[0], k[1]) for k in groups})
     row_name = {(e, d): f"{_env_name(e)}-{_dataset_name(d)}" for e, d in datasets}  # "hopper-medium": table rows, missing cells, figures
     present = {k[2] for k in groups}
     columns = [*TABLE_COLUMNS, *sorted(present - set(TABLE_COLUMNS))]  # every standard column (missing ones shown as —), then others
-    titles = [TABLE_COLUMNS.get(c, c) for c in columns]
+    titles = [column_title(c) for c in columns]
 
     def table(kind: str) -> list[str]:
         lines = ["| dataset | " + " | ".join(titles) + " | behaviour data |", "|" + "---|" * (len(columns) + 2)]
@@ -375,7 +403,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             lines.append(f"| {row_name[env_id, dataset]} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
         return lines
 
-    budgets = sorted({f"{TABLE_COLUMNS.get(k[2], k[2])}: {st['budget']}" for k, st in stats.items()})
+    budgets = sorted({f"{column_title(k[2])}: {st['budget']}" for k, st in stats.items()})
     reasons = dict(missing_reasons or {})
     short: list[str] = []
     for env_id, dataset in datasets:
@@ -385,8 +413,12 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             n = stats[(env_id, dataset, c)]["seeds"] if (env_id, dataset, c) in stats else 0
             if n < min_seeds:
                 why = reasons.get(f"{row}:{c}", reasons.get(row, "No reason given."))
-                by_reason[why].append(f"{TABLE_COLUMNS[c]} ({n} seed{'s' if n != 1 else ''})" if n else f"{TABLE_COLUMNS[c]} (no run)")
-        short += [f"- {row}: {', '.join(cells)}. {why}" for why, cells in by_reason.items()]
+                by_reason[why].append(c)
+        for why, cols in by_reason.items():
+            cells = [f"{TABLE_COLUMNS[c]} ({n} seed{'s' if n != 1 else ''})" if (n := len(groups.get((env_id, dataset, c), []))) else
+                     f"{TABLE_COLUMNS[c]} (no run)" for c in cols]
+            costs = [f"{TABLE_COLUMNS[c]} {cost}" for c in cols if (cost := seed_cost([r for k, rs in groups.items() if k[2] == c for r in rs]))]
+            short.append(f"- {row}: {', '.join(cells)}. {why}" + (f" Measured on this page's runs: {'; '.join(costs)}." if costs else ""))
     missing = [f"## Missing cells (fewer than {min_seeds} seeds)", "", *(short or ["None: every column has its seeds."]), ""]
     def has(key: str) -> bool:  # a table only where some run has that score
         return any(p[key] is not None for st in stats.values() for p in st["per_seed"])
@@ -403,7 +435,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                              for p in sorted(st["per_seed"], key=lambda p: (p["seed"] is None, p["seed"] or 0)))
             change = "" if st["change_mean"] is None else (f"; change over untrained {st['change_mean']:+.1f} "
                                                            f"[{st['change_ci'][0]:+.1f}, {st['change_ci'][1]:+.1f}], {st['change_up']} runs up")
-            per_seed.append(f"- {row_name[env_id, dataset]}, {TABLE_COLUMNS.get(c, c)}: {vals}{change}")
+            per_seed.append(f"- {row_name[env_id, dataset]}, {column_title(c)}: {vals}{change}")
     per_seed.append("")
     md = [f"# {title}", "", *([f"Made by `{made_by}`.", ""] if made_by else []),
           "D4RL-normalised real-env return, deterministic evaluation: interquartile mean over seeds with its 95% stratified-bootstrap "
@@ -428,7 +460,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     plt = pyplot()  # performance profiles: one panel per dataset row, one curve per column (its runs' final scores)
     fig, axes = plt.subplots(1, len(datasets), figsize=(5.5 * len(datasets), 4), squeeze=False)
     for ax, (env_id, dataset) in zip(axes[0], datasets):
-        curves = {TABLE_COLUMNS.get(c, c): [p["final"] for p in stats[(e, d, c)]["per_seed"] if p["final"] is not None]
+        curves = {column_title(c): [p["final"] for p in stats[(e, d, c)]["per_seed"] if p["final"] is not None]
                   for (e, d, c) in sorted(stats) if (e, d) == (env_id, dataset)}
         beh = next((stats[k]["behaviour_score"] for k in stats if k[:2] == (env_id, dataset) and stats[k]["behaviour_score"] is not None), None)
         plot_performance_profiles({k: v for k, v in curves.items() if v}, ax=ax, title=f"{row_name[env_id, dataset]}: final scores",
@@ -450,7 +482,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             for k in keys:
                 whole = [r for r in groups[k] if not r.get("partial")]
                 if whole and run_unit(groups[k][0]) == unit:
-                    plot_curve([r["evals"] for r in whole], None, label=TABLE_COLUMNS.get(k[2], k[2]), key="normalized_d4rl", ax=ax,
+                    plot_curve([r["evals"] for r in whole], None, label=column_title(k[2]), key="normalized_d4rl", ax=ax,
                                title=row_name[env_id, dataset], xlabel=UNIT_LABELS.get(unit, unit))
             ax.set_ylabel("D4RL-normalised score")
         fig.tight_layout()
