@@ -388,7 +388,8 @@ def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_ea
     text = mod.report()
     assert (tmp_path / "docs" / "blockstack" / "runs" / "bc-blockstack2-medium-seed4" / "evals.json").is_file()
     medium = text.split("## blockstack2, medium\n")[1].split("## ")[0]
-    assert "| BC | 2 | 1.00 ± 0.00 / 0.60 ± 0.14 / 0.10 ± 0.14 | 1.00 ± 0.00 / 0.60 ± 0.14 / 0.10 ± 0.14 | 0.57 ± 0.09 |" in medium and "| data (behaviour) | | 0.90 / 0.60 / 0.30 |" in medium
+    assert ("| BC | 2 | 1.00 [1.00, 1.00] / 0.60 [0.50, 0.70] / 0.10 [0.00, 0.20] | 1.00 [1.00, 1.00] / 0.60 [0.50, 0.70] / 0.10 [0.00, 0.20] | "
+            "0.57 [0.50, 0.63] |") in medium and "| data (behaviour) | | 0.90 / 0.60 / 0.30 |" in medium
     assert "## blockstack2, medium-expert *(earlier page)*" in text and "| BC | 3 | 1.00 / 1.00 / 0.69 |" in text
     assert "- `bc-blockstack2-medium-expert-seed4`: 1.00 / 1.00 / 0.40 at 20000 updates (earlier page)" in text
     assert "0.50 / 0.00 / 0.00" not in text  # a lost run rerun since: the archived run's line replaces it

@@ -107,12 +107,21 @@ def _legacy() -> dict:
 
 
 def _fmt(xs) -> str:
-    import statistics
+    """Success rates over seeds: their interquartile mean with its 95% bootstrap confidence interval (one value as it is).
+
+    Examples:
+        >>> _fmt([1.0, 1.0, 1.0]), _fmt([0.5]), _fmt([float("nan")])
+        ('1.00 [1.00, 1.00]', '0.50', 'n/a')
+    """
+    from ..stats import iqm_ci
 
     xs = [x for x in xs if x == x]
     if not xs:
         return "n/a"
-    return f"{statistics.mean(xs):.2f}" + (f" ± {statistics.stdev(xs):.2f}" if len(xs) > 1 else "")
+    if len(xs) == 1:
+        return f"{xs[0]:.2f}"
+    m, lo, hi = iqm_ci(xs)
+    return f"{m:.2f} [{lo:.2f}, {hi:.2f}]"
 
 
 def report() -> str:
@@ -146,7 +155,7 @@ def report() -> str:
              "*(earlier page)* are printed as an earlier version of this page gave them: their run directories were lost between sessions "
              "(`docs/results/blockstack/legacy.json`).", "", __doc__.split("Budgets (CPU):")[1].split("``--ablations``")[0].strip(), "",
              "Success: the share of an evaluation's episodes of that goal whose success flags equalled the goal at some step (the "
-             "env's high-level reward 0), for every agent the same test; mean ± std over seeds. *Final*: the last evaluation; *best*: "
+             "env's high-level reward 0), for every agent the same test; interquartile mean over seeds with its 95% bootstrap confidence interval [lower, upper] (groups of the earlier page: mean ± std), per-seed values at the end. *Final*: the last evaluation; *best*: "
              "the best mean success over the evaluations after training began, per seed (never the reported result). *Data*: the "
              "behaviour data's own per-goal success at horizon 25.", ""]
     if note := _sac_her_note(groups):
