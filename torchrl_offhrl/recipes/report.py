@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import json
+import statistics
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -327,14 +328,13 @@ def column_title(column: str) -> str:
 def seed_cost(runs: Sequence[dict]) -> str | None:
     """What one seed of these runs cost, measured: the median of their ``total_s`` less the data and model fits (cached and
     shared by every seed of a dataset), with the device and thread count they ran on; None without a timed run."""
-    times = sorted(float(s["total_s"]) - float(s.get("models_s") or 0) - float(s.get("data_s") or 0)
-                   for r in runs if (s := r.get("summary")) and s.get("total_s") is not None)
-    if not times:
+    timed = [r for r in runs if r.get("summary") and r["summary"].get("total_s") is not None]
+    if not timed:
         return None
-    med = times[len(times) // 2] if len(times) % 2 else (times[len(times) // 2 - 1] + times[len(times) // 2]) / 2
-    where = sorted({f"{r['config'].get('device', 'cpu')}, {r['config'].get('torch_threads') or 'default'} threads" for r in runs
-                    if r.get("summary") and r["summary"].get("total_s") is not None})
-    return f"{med / 3600:.1f} h per seed ({'; '.join(where)}; median of {len(times)} timed run{'s' if len(times) != 1 else ''})"
+    med = statistics.median(float(r["summary"]["total_s"]) - float(r["summary"].get("models_s") or 0) - float(r["summary"].get("data_s") or 0)
+                            for r in timed)
+    where = sorted({f"{r['config'].get('device', 'cpu')}, {r['config'].get('torch_threads') or 'default'} threads" for r in timed})
+    return f"{med / 3600:.1f} h per seed ({'; '.join(where)}; median of {len(timed)} timed run{'s' if len(timed) != 1 else ''})"
 
 
 def _env_name(env_id: str) -> str:
@@ -406,18 +406,19 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     budgets = sorted({f"{column_title(k[2])}: {st['budget']}" for k, st in stats.items()})
     reasons = dict(missing_reasons or {})
     short: list[str] = []
+    # what one seed of a column cost, over all its runs on the page (the same for every row it is missing from)
+    cost_of = {c: seed_cost([r for k, rs in groups.items() if k[2] == c for r in rs]) for c in TABLE_COLUMNS}
     for env_id, dataset in datasets:
         row = row_name[env_id, dataset]
-        by_reason: dict[str, list[str]] = defaultdict(list)
+        by_reason: dict[str, list[tuple[str, int]]] = defaultdict(list)
         for c in TABLE_COLUMNS:
             n = stats[(env_id, dataset, c)]["seeds"] if (env_id, dataset, c) in stats else 0
             if n < min_seeds:
                 why = reasons.get(f"{row}:{c}", reasons.get(row, "No reason given."))
-                by_reason[why].append(c)
+                by_reason[why].append((c, n))
         for why, cols in by_reason.items():
-            cells = [f"{TABLE_COLUMNS[c]} ({n} seed{'s' if n != 1 else ''})" if (n := len(groups.get((env_id, dataset, c), []))) else
-                     f"{TABLE_COLUMNS[c]} (no run)" for c in cols]
-            costs = [f"{TABLE_COLUMNS[c]} {cost}" for c in cols if (cost := seed_cost([r for k, rs in groups.items() if k[2] == c for r in rs]))]
+            cells = [f"{TABLE_COLUMNS[c]} ({n} seed{'s' if n != 1 else ''})" if n else f"{TABLE_COLUMNS[c]} (no run)" for c, n in cols]
+            costs = [f"{TABLE_COLUMNS[c]} {cost_of[c]}" for c, _ in cols if cost_of[c]]
             short.append(f"- {row}: {', '.join(cells)}. {why}" + (f" Measured on this page's runs: {'; '.join(costs)}." if costs else ""))
     missing = [f"## Missing cells (fewer than {min_seeds} seeds)", "", *(short or ["None: every column has its seeds."]), ""]
     def has(key: str) -> bool:  # a table only where some run has that score

@@ -172,8 +172,9 @@ def report() -> str:
         lines += [f"## {task}, {dataset}", "", "| agent | seeds | final, horizon 25 | final, horizon 50 | best (mean over goals) |", "|---|---|---|---|---|"]
         if meta:
             lines.append(f"| data (behaviour) | | {' / '.join(f'{x:.2f}' for x in meta)} | | |")
+        evals_of = {algo: [json.loads((d / "evals.json").read_text()) for d in ds] for algo, ds in algos.items()}  # read once per group
         for algo, ds in sorted(algos.items(), key=lambda kv: list(LABELS).index(kv[0]) if kv[0] in LABELS else 99):
-            evs = [json.loads((d / "evals.json").read_text()) for d in ds]
+            evs = evals_of[algo]
             last = [e[-1] for e in evs]
             n = len(last[0]["success_per_goal"])
             h50 = next((k for k in last[0] if k.startswith("success_per_goal_h")), None)
@@ -182,14 +183,13 @@ def report() -> str:
             best = _fmt([max(e2["success_rate"] for e2 in e if e2.get("step", e2["frames"]) > 0) for e in evs])
             lines.append(f"| {LABELS.get(algo, algo)} | {len(ds)} | {c25} | {c50} | {best} |")
         lines.append("")
-        if verdict := _last_goal_verdict(algos):
+        if verdict := _last_goal_verdict(evals_of):
             lines += [verdict, ""]
         fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 3.3), sharey=True, squeeze=False)
-        for algo, ds in sorted(algos.items()):
+        for algo in sorted(algos):
             if algo == "bc":
                 continue  # another x-axis (gradient steps); its final numbers are in the table
-            recs = [json.loads((d / "evals.json").read_text()) for d in ds]
-            plot_goal_success(recs, None, label=LABELS.get(algo, algo), axes=axes[0], xlabel="model-env frames")
+            plot_goal_success(evals_of[algo], None, label=LABELS.get(algo, algo), axes=axes[0], xlabel="model-env frames")
         if axes[0][0].get_legend_handles_labels()[0]:  # BC alone draws no curve
             axes[0][0].legend(fontsize=7)
         fig.suptitle(f"{task}, {dataset}: success per goal (horizon 25), mean ± std over seeds", fontsize=9)
@@ -254,11 +254,12 @@ def last_goal_comparison(uof: list[float], bc: list[float]) -> str:
             f"{verdict}")
 
 
-def _last_goal_verdict(algos: dict) -> str | None:
-    """:func:`last_goal_comparison` for a (task, dataset) group with 2+ seeds of UOF and of BC, else None."""
-    if len(algos.get("uof", [])) < 2 or len(algos.get("bc", [])) < 2:
+def _last_goal_verdict(evals_of: dict) -> str | None:
+    """:func:`last_goal_comparison` for a (task, dataset) group (``algo -> each seed's evaluations``) with 2+ seeds of UOF
+    and of BC, else None."""
+    if len(evals_of.get("uof", [])) < 2 or len(evals_of.get("bc", [])) < 2:
         return None
-    last = {a: [json.loads((d / "evals.json").read_text())[-1]["success_per_goal"][-1] for d in algos[a]] for a in ("uof", "bc")}
+    last = {a: [evs[-1]["success_per_goal"][-1] for evs in evals_of[a]] for a in ("uof", "bc")}
     return last_goal_comparison(last["uof"], last["bc"])
 
 
