@@ -311,6 +311,43 @@ def test_paper_table_layout(tmp_path):
     assert "None: every column has its seeds." in paper_table(every, tmp_path / "n", min_seeds=1).split("## Missing")[1]
 
 
+def test_paper_table_reports_the_sampled_policy_apart_where_runs_evaluated_it(tmp_path):
+    """Runs with ``eval.sampled``: a table of the sampled policy's final scores and a sampled value per seed; pages without it keep their layout."""
+    from torchrl_offhrl.recipes.report import paper_table
+
+    runs = []
+    for seed, final, sampled in ((4, 80.0, 30.0), (5, 40.0, 34.0)):
+        d = _fake_run(tmp_path, "moc", seed, "Hopper-v5", "medium", "frames", (20.0, 50.0, final), behaviour=36.0)
+        evals = json.loads((d / "evals.json").read_text())
+        for e, s in zip(evals, (29.0, 31.0, sampled)):
+            e["normalized_d4rl_sampled"] = s
+        (d / "evals.json").write_text(json.dumps(evals))
+        runs.append(d)
+    text = paper_table(runs, tmp_path / "t")
+    table = text.split("## Final evaluation of the sampled policy")[1].split("## Best")[0]
+    assert "| hopper-medium | 32.0 [30.0, 34.0] (2) |" in table  # the last evaluation's sampled scores, 30 and 34
+    assert "| hopper-medium | 60.0 [40.0, 80.0] (2) |" in text.split("## Final evaluation")[1]  # the deterministic ones unchanged
+    assert "(final / selected / last-5 mean / best / untrained / final sampled)" in text
+    assert "s4: 80.0 / n/a / 65.0 / 80.0 / 20.0 / 30.0; s5: 40.0 / n/a / 45.0 / 50.0 / 20.0 / 34.0" in text
+    plain = paper_table([_fake_run(tmp_path / "p", "moc", 4, "Hopper-v5", "medium", "frames", (20.0, 50.0, 80.0))], tmp_path / "q")
+    assert "sampled" not in plain and "(final / selected / last-5 mean / best / untrained)" in plain
+
+
+def test_one_option_moc_runs_get_their_own_column(tmp_path):
+    """configs/algo/moc_1opt.yaml (MOC with one option, the options ablation) is labelled apart: never averaged with MOC's two options."""
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.report import paper_table
+
+    algo = compose("demo", ["algo=moc_1opt"]).algo
+    assert algo.name == "moc" and algo.num_options == 1 and algo.label == "moc_1opt"
+    runs = [_fake_run(tmp_path, "moc", 4, "Hopper-v5", "medium", "frames", (20.0, 50.0, 80.0), behaviour=36.0),
+            _fake_run(tmp_path / "one", "moc", 4, "Hopper-v5", "medium", "frames", (20.0, 30.0, 40.0), behaviour=36.0,
+                      algo_cfg={"label": "moc_1opt", "num_options": 1})]
+    final = paper_table(runs, tmp_path / "t").split("## Final evaluation")[1].split("## Best")[0]
+    assert "| dataset | MOC | PPO | SAC | MOReL | MOPO | IQL | CQL | TD3+BC | BC | MOC, 1 option | behaviour data |" in final
+    assert "| hopper-medium | 80.0 (1) | — | — | — | — | — | — | — | — | 40.0 (1) | 36.0 |" in final
+
+
 def test_missing_cells_say_what_a_seed_cost_on_the_page_s_runs(tmp_path):
     """A missing cell's line gives the measured cost of one more seed: the median over that column's timed runs (any row) of
     their total time less the data and the model fits, with the device and threads they ran on."""

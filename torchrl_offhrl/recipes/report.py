@@ -95,7 +95,9 @@ def run_scores(run: dict, last_n: int = 5) -> dict:
     mean of the last ``last_n`` evaluations after step 0 (a run that
     swings between evaluations is not judged by one of them); ``selected``:
     the policy the run returned by offline policy selection
-    (``summary["selected"]``, chosen without the real env), else None.
+    (``summary["selected"]``, chosen without the real env), else None;
+    ``sampled``: the last evaluation of the *sampled* policy (actions and
+    options drawn, ``eval.sampled``) on the same start states, else None.
     """
     evals = run["evals"]
     trained = [e for e in evals if record_step(e) > 0 and _score(e) is not None]
@@ -109,6 +111,7 @@ def run_scores(run: dict, last_n: int = 5) -> dict:
         # a run known only by a few evaluations (``partial``: start, best, final) has no last five to average
         "last5": sum(_score(e) for e in tail) / len(tail) if tail and not run.get("partial") else None,
         "selected": _score(summary.get("selected")),
+        "sampled": evals[-1].get("normalized_d4rl_sampled"),
         "rebuilt": bool(run.get("partial")),
     }
 
@@ -155,6 +158,7 @@ def group_stats(rs: Sequence[dict]) -> dict:
         **_stat(scores, "score"),
         **_stat([p["last5"] for p in per], "last5"),
         **_stat([p["selected"] for p in per], "selected"),
+        **_stat([p["sampled"] for p in per], "sampled"),
         "behaviour_score": float(sum(beh) / len(beh)) if beh else None,
         "best_score_mean": float(bt.mean()) if bt.numel() else None,
         "best_score_std": float(bt.std()) if bt.numel() > 1 else 0.0,
@@ -308,7 +312,7 @@ TABLE_COLUMNS: dict[str, str] = {
     "moc": "MOC", "ppo": "PPO", "sac": "SAC", "morel": "MOReL", "mopo": "MOPO", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC",
 }
 #: columns outside Table I's standard ones that have a title of their own
-EXTRA_COLUMNS: dict[str, str] = {"morel_style": "MOReL-style (old)"}
+EXTRA_COLUMNS: dict[str, str] = {"moc_1opt": "MOC, 1 option", "morel_style": "MOReL-style (old)"}
 
 
 def table_column(run: dict) -> str:
@@ -347,7 +351,7 @@ def _dataset_name(dataset: str) -> str:
 
 
 #: the :func:`run_scores` key behind each kind of table cell
-PER_SEED_KEY = {"score": "final", "best_score": "best", "last5": "last5", "selected": "selected"}
+PER_SEED_KEY = {"score": "final", "best_score": "best", "last5": "last5", "selected": "selected", "sampled": "sampled"}
 
 
 def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets", min_seeds: int = 3,
@@ -424,7 +428,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     def has(key: str) -> bool:  # a table only where some run has that score
         return any(p[key] is not None for st in stats.values() for p in st["per_seed"])
 
-    per_seed = ["## Per-seed values (final / selected / last-5 mean / best / untrained)", "",
+    sampled = has("sampled")  # the sampled policy's final score, on pages whose runs evaluated it
+    per_seed = [f"## Per-seed values (final / selected / last-5 mean / best / untrained{' / final sampled' if sampled else ''})", "",
                 "`*`: a run known only from an earlier page (start, best and final: no last five, no selection).", ""]
     for env_id, dataset in datasets:
         for c in columns:
@@ -432,7 +437,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             if st is None:
                 continue
             vals = "; ".join(f"s{p['seed']}{'*' if p['rebuilt'] else ''}: {fmt_number(p['final'])} / {fmt_number(p['selected'])} / {fmt_number(p['last5'])} / "
-                             f"{fmt_number(p['best'])} / {fmt_number(p['start'])}"
+                             f"{fmt_number(p['best'])} / {fmt_number(p['start'])}" + (f" / {fmt_number(p['sampled'])}" if sampled else "")
                              for p in sorted(st["per_seed"], key=lambda p: (p["seed"] is None, p["seed"] or 0)))
             change = "" if st["change_mean"] is None else (f"; change over untrained {st['change_mean']:+.1f} "
                                                            f"[{st['change_ci'][0]:+.1f}, {st['change_ci'][1]:+.1f}], {st['change_up']} runs up")
@@ -444,6 +449,10 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
           "## Final evaluation", "", *table("score"), "",
           *(["## Selected policy (offline policy selection, without the real env)", "", *table("selected"), ""] if has("selected") else []),
           *(["## Mean of the last 5 evaluations", "", *table("last5"), ""] if has("last5") else []),
+          *(["## Final evaluation of the sampled policy (actions and options drawn, on the same start states as the deterministic one)", "",
+             "The deterministic evaluation runs each policy's mode; what the agents' losses train is the sampled policy. "
+             "Where the two differ, the row says which one the method improved.", "",
+             *table("sampled"), ""] if sampled else []),
           "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
           *table("best_score"), "",
           "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing,
