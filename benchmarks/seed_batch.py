@@ -1,6 +1,6 @@
 """Seeds as a batch dimension: N seeds of a dataset agent as one vmapped update (SeedBatch) against one seed alone.
 
-    .venv/bin/python benchmarks/seed_batch.py [--algos bc td3bc iql] [--seeds 1 5 10] [--threads 1 2] [--updates 100] [--device cpu]
+    .venv/bin/python benchmarks/seed_batch.py [--algos bc td3bc iql cql] [--seeds 1 5 10] [--threads 1 2] [--updates 100] [--device cpu]
 
 For each algorithm and thread count, in one run: the time of one update of
 one agent alone, of N agents updated one after the other (what N separate
@@ -42,7 +42,7 @@ def timed(fn, updates: int) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--algos", nargs="+", default=["bc", "td3bc", "iql"])
+    ap.add_argument("--algos", nargs="+", default=["bc", "td3bc", "iql", "cql"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[1, 5, 10])
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     ap.add_argument("--updates", type=int, default=100)

@@ -113,8 +113,66 @@ def test_seed_batch_sampling_streams_and_refusals(env):
         SeedBatch([build(env, "bc", 4), build(env, "iql", 5)])
     with pytest.raises(ValueError, match="share one config"):
         SeedBatch([build(env, "bc", 4), make_agent("bc", env, {"hidden_sizes": [8], "batch_size": B}, action_key="action")])
+    from torchrl.objectives import CQLLoss
+
+    plain = [build(env, "cql", 4), build(env, "cql", 5)]
+    for a in plain:
+        a.loss.__class__ = CQLLoss  # TorchRL's own loss reads .data: refused, with the reason
     with pytest.raises(NotImplementedError, match="vmap forbids"):
-        SeedBatch([build(env, "cql", 4), build(env, "cql", 5)])
+        SeedBatch(plain)
+
+
+def test_batchable_cql_loss_is_torchrl_s_cql_loss_on_the_same_draws(env):
+    """BatchableCQLLoss changes how the loss detaches (``.detach()`` for ``.data``), not what it computes: TorchRL's CQLLoss,
+    from the same weights and the same RNG state, gives the same outputs and, after an update, the same weights."""
+    from torchrl.objectives import CQLLoss
+
+    class TorchRLCQLLoss(CQLLoss):  # TorchRL's loss as it is, with the agent's post-step hook as a no-op (no alpha bounds here)
+        def clamp_log_alpha(self):
+            pass
+
+    ours, theirs = build(env, "cql", 4, policy_eval_start=1), build(env, "cql", 4, policy_eval_start=1)
+    theirs.loss.__class__ = TorchRLCQLLoss
+    data = batches()
+    for t in range(3):  # a behaviour-cloning update, then two SAC-style ones
+        outs = []
+        for a in (ours, theirs):
+            torch.manual_seed(7 + t)
+            outs.append(a.update(data[t, 0]))
+        for k in outs[1]:
+            torch.testing.assert_close(torch.as_tensor(outs[0][k]), torch.as_tensor(outs[1][k]), rtol=0, atol=0)
+    for k, v in float_state(theirs).items():
+        torch.testing.assert_close(float_state(ours)[k], v, rtol=0, atol=0)
+
+
+def test_seed_batch_trains_cql_seeds_as_separate_agents_on_the_same_draws(env):
+    """CQL batched (its random actions and policy samples drawn once for all seeds, ``randomness="same"``) equals N separate
+    agents that each draw from the same RNG state; with ``randomness="different"`` (the default) each seed draws its own."""
+    seeds, data = [4, 5, 6], batches()
+    separate = [build(env, "cql", s, policy_eval_start=2) for s in seeds]
+    batched = SeedBatch([build(env, "cql", s, policy_eval_start=2) for s in seeds], randomness="same")
+    for t in range(T):  # two behaviour-cloning updates, then SAC-style ones with the CQL penalty and the Lagrange weight
+        sep = []
+        for i, a in enumerate(separate):
+            torch.manual_seed(100 + t)
+            sep.append(a.update(data[t, i]))
+        torch.manual_seed(100 + t)
+        bat = batched.update(data[t])
+        for m_sep, m_bat in zip(sep, bat):
+            for k in m_sep:
+                torch.testing.assert_close(torch.as_tensor(m_bat[k], dtype=torch.float32), torch.as_tensor(m_sep[k], dtype=torch.float32),
+                                           rtol=1e-4, atol=1e-5)
+    batched.sync()
+    moved = 0.0
+    for a, b, fresh in zip(separate, batched.agents, [build(env, "cql", s) for s in seeds]):
+        for k, v in float_state(a).items():
+            torch.testing.assert_close(float_state(b)[k], v, rtol=1e-4, atol=1e-5)
+            moved = max(moved, float((v - float_state(fresh)[k]).abs().max()))
+    assert moved > 1e-4  # trained weights were compared, not initial ones
+    own = SeedBatch([build(env, "cql", s) for s in seeds])  # each seed its own draws: the seeds' losses differ even on one minibatch
+    m = own.update(torch.stack([data[0, 0]] * 3))
+    losses = [float(x["train/loss_cql"]) for x in m]
+    assert all(torch.isfinite(torch.tensor(losses))) and len(set(losses)) == 3
 
 
 def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cache, tmp_path):

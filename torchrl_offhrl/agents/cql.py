@@ -9,7 +9,59 @@ from torchrl.objectives import CQLLoss, SoftUpdate, group_optimizers
 from .base import DatasetAgent, adam, backward, compile_setting, gaussian_actor, q_network, scalar_metrics
 from .registry import register_agent
 
-__all__ = ["CQLAgent"]
+__all__ = ["BatchableCQLLoss", "CQLAgent"]
+
+
+class _DataIsDetach:
+    """A view of a parameter TensorDict whose ``.data`` is ``.detach()``: the same values, cut from the graph, and allowed under
+    ``torch.vmap`` (``.data`` is not). Everything else is the TensorDict's own."""
+
+    def __init__(self, params):
+        self._params = params
+
+    @property
+    def data(self):
+        return self._params.detach()
+
+    def __getattr__(self, name):
+        return getattr(self._params, name)
+
+
+class BatchableCQLLoss(CQLLoss):
+    """TorchRL's :class:`~torchrl.objectives.CQLLoss`, the same maths, runnable under ``torch.vmap`` (seeds as a batch dimension).
+
+    TorchRL's loss reads ``.data`` of its parameters in three places: the
+    actor's weights for the sampled actions of the CQL penalty and of the
+    TD target, the target critics' weights for that target, and
+    ``log_alpha`` for the temperature (where it also clamps ``log_alpha`` in
+    place when ``min_alpha`` / ``max_alpha`` are set). ``torch.vmap``
+    refuses ``.data``; here the first two are given ``.detach()`` instead
+    (the same values, also outside the graph) and the temperature is
+    ``exp(log_alpha.detach())``, clamped out of place. The in-place clamp of
+    the parameter itself, where bounds are set, is :meth:`clamp_log_alpha`,
+    which :class:`CQLAgent` calls after each optimiser step (outside any
+    vmap). ``tests/test_seed_batch.py`` checks that its outputs equal
+    ``CQLLoss``'s on the same draws.
+    """
+
+    def _get_policy_actions(self, data, actor_params, num_actions=10):
+        return super()._get_policy_actions(data, _DataIsDetach(actor_params), num_actions=num_actions)
+
+    def _get_value_v(self, tensordict, _alpha, actor_params, qval_params):
+        return super()._get_value_v(tensordict, _alpha, _DataIsDetach(actor_params), _DataIsDetach(qval_params))
+
+    @property
+    def _alpha(self):
+        log_alpha = self.log_alpha.detach()
+        if self.min_log_alpha is not None or self.max_log_alpha is not None:
+            log_alpha = log_alpha.clamp(self.min_log_alpha, self.max_log_alpha)
+        return log_alpha.exp()
+
+    def clamp_log_alpha(self) -> None:
+        """Keep the ``log_alpha`` parameter within ``[min_log_alpha, max_log_alpha]`` (nothing when no bound is set)."""
+        if self.min_log_alpha is not None or self.max_log_alpha is not None:
+            with torch.no_grad():
+                self.log_alpha.clamp_(self.min_log_alpha, self.max_log_alpha)
 
 
 @register_agent("cql")
@@ -68,7 +120,7 @@ class CQLAgent(DatasetAgent):
         self.cudagraphs = bool(cudagraphs)
         self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
-        self.loss = CQLLoss(
+        self.loss = BatchableCQLLoss(
             self.policy, qvalue, loss_function=loss_function, temperature=temperature, min_q_weight=min_q_weight, max_q_backup=max_q_backup,
             deterministic_backup=deterministic_backup, num_random=num_random, with_lagrange=with_lagrange, lagrange_thresh=lagrange_thresh,
             action_spec=env.full_action_spec_unbatched[action_key],
@@ -101,6 +153,7 @@ class CQLAgent(DatasetAgent):
         self.optimizer.zero_grad()
         backward(total)
         self.optimizer.step()
+        self.loss.clamp_log_alpha()
         self.target_updater.step()
         metrics = scalar_metrics(out)
         metrics["bc_phase"] = torch.full(metrics.batch_size, float(bc_phase), device=total.device)  # [N] under a SeedBatch

@@ -20,19 +20,25 @@ seed's slice (weights, optimiser states, step count) back into its own agent,
 which is what evaluations act with and checkpoints save, so every seed is
 still a run of its own.
 
-Batched: BC, TD3+BC and IQL. CQL is refused: TorchRL's ``CQLLoss`` reads
-its parameters' ``.data`` inside the loss, which ``vmap`` forbids.
+Batched: BC, TD3+BC, IQL and CQL. TorchRL's own ``CQLLoss`` is refused: it
+reads its parameters' ``.data`` inside the loss, which ``vmap`` forbids; the
+CQL agent's :class:`~torchrl_offhrl.agents.cql.BatchableCQLLoss` is the same
+loss with ``.detach()`` there (``tests/test_seed_batch.py`` checks that it
+computes what ``CQLLoss`` computes).
 
 What is identical to N separate runs: a deterministic update rule (BC,
 IQL, TD3+BC without target-policy noise) gives each seed the same weights as
 its own run up to floating-point rounding of the batched matrix products
 (``tests/test_seed_batch.py``). Randomness inside a loss (TD3+BC's
-target-policy noise, CQL's random actions) is drawn per seed
-(``randomness="different"``), from other draws than a separate run's: the
-same distribution, not the same numbers.
+target-policy noise, CQL's random actions and policy samples) is drawn per
+seed (``randomness="different"``), from other draws than a separate run's:
+the same distribution, not the same numbers. With ``randomness="same"`` the
+draws are shared by the seeds and equal a separate run's from the same RNG
+state: CQL's seeds then match separate agents update for update (the test).
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 from collections.abc import Sequence
 
@@ -46,7 +52,8 @@ __all__ = ["SeedBatch"]
 
 #: TorchRL losses that cannot run under ``torch.vmap``, and why
 _NOT_VMAPPABLE = {"CQLLoss": "reads its parameters' .data inside the loss (log_alpha, the actor's and critics' weights for its "
-                             "sampled actions), which torch.vmap forbids"}
+                             "sampled actions), which torch.vmap forbids (torchrl_offhrl.agents.cql.BatchableCQLLoss is the same "
+                             "loss without it: the CQL agent's)"}
 
 
 def _flat_params(opt: torch.optim.Optimizer) -> list:
@@ -87,6 +94,29 @@ def _with_seed_dim(td: TensorDict, n: int, loss) -> TensorDict:
         extra = own.batch_size if isinstance(own, TensorDictBase) else torch.Size([])
         out.set(k, tree(v, torch.Size([n, *extra])) if isinstance(v, TensorDictBase) else v)
     return out
+
+
+@contextlib.contextmanager
+def _batched_normal_draws(active: bool):
+    """Within the seeds' ``vmap``, ``Normal.rsample`` draws its noise with ``torch.randn(shape)``, not ``torch.empty(shape).normal_()``.
+
+    The in-place draw on a fresh (unbatched) tensor is refused by ``vmap``
+    under ``randomness="different"``; the out-of-place one is batched, so each
+    seed draws its own noise (a policy's reparameterised samples: CQL's
+    actions for its penalty and its TD target). The same distribution;
+    nothing changes outside the seeds' vmapped loss.
+    """
+    import torch.distributions.normal as normal_mod
+
+    if not active:
+        yield
+        return
+    own = normal_mod._standard_normal
+    normal_mod._standard_normal = lambda shape, dtype=None, device=None: torch.randn(shape, dtype=dtype, device=device)
+    try:
+        yield
+    finally:
+        normal_mod._standard_normal = own
 
 
 class SeedBatch:
@@ -239,7 +269,8 @@ class SeedBatch:
                         loss.__dict__.pop(a, None)
 
         def call(batch):
-            return torch.vmap(one_seed, (0, 0), randomness=self.randomness)(self._params, batch)
+            with _batched_normal_draws(self.randomness == "different"):
+                return torch.vmap(one_seed, (0, 0), randomness=self.randomness)(self._params, batch)
 
         return call
 

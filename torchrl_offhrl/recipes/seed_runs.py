@@ -12,9 +12,8 @@ happen with that stream in place: the records match those of separate runs
 up to the floating-point rounding of the batched products
 (``tests/test_seed_batch.py``).
 
-For now the agents that learn from the dataset (BC, TD3+BC, IQL; CQL is
-refused by :class:`SeedBatch`); model-env agents run one seed per run
-(``offhrl sweep``).
+For now the agents that learn from the dataset (BC, TD3+BC, IQL, CQL);
+model-env agents run one seed per run (``offhrl sweep``).
 """
 from __future__ import annotations
 
@@ -74,7 +73,7 @@ def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> li
     for c in configs:
         validate_config(c)
     if not learns_from_dataset(configs[0]):
-        raise NotImplementedError(f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql) for now; algo="
+        raise NotImplementedError(f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) for now; algo="
                                   f"{configs[0]['algo']['name']} trains on an env: run one seed per run (offhrl train seed=S, or offhrl sweep)")
     with ExitStack() as stack:
         lanes = []
