@@ -73,16 +73,15 @@ BUDGET = {"demo": ["train.total_frames=204800", "eval.every_frames=40960", "ense
           "full": ["train.total_frames=204800", "eval.every_frames=40960", *UPDATES]}
 ON_POLICY_MINIBATCH = {"demo": None, "full": 256}  # the demo's minibatch size (configs/demo.yaml sets it for every scale that extends it)
 # what a reader of a scale's report must know about how its seeds were used
-NOTES = {"demo": ("Seeds 4-6 were run once, with the defaults as they stood after the development runs of "
-                  "`torchrl_offhrl/results/moc_experiments.py` (seeds 0, 10, 20, 30) and the first results seeds 1-3 (`docs/results/demo_seeds1-3/`, "
-                  "`docs/results/demo_noanneal/`); nothing was chosen by looking at them. One evaluation is 10 deterministic "
-                  "episodes that hardly differ (see the return std), so on Hopper a run's final score is essentially which gait "
-                  "its last policy settled in: a fall within a few hundred steps (scores 15-45) or a full episode (80-95). "
-                  "`morel` (MOReL-style: PPO in real actions, max-pairwise discrepancy, threshold max / 3, the env group's penalty) "
-                  "was first run on hopper seeds 4-5 with a HALT penalty of 100 (scores 2.2 at the end of seed 4: it learned to end "
-                  "episodes at once; those runs are kept in `outputs/results/demo_morel_penalty100/`); the penalty was set to the "
-                  "env group's, so that MOReL's discrepancy and threshold are its only differences from PPO without the CVAE, and "
-                  "all its seeds were run again.")}
+NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the config as it stands (`configs/demo.yaml`: 100-step model "
+                  "episodes branched from any dataset state, the last policy returned), each evaluation 30 deterministic and 30 sampled "
+                  "episodes from the same start states, on one 100k dataset per env (dataset seed 0) generated on this machine: they "
+                  "replace the rows that were rebuilt from an earlier page (`runs/legacy.json`, measured on an earlier dataset, "
+                  "behaviour 37.0) and nothing was chosen by looking at them. `MOC, 1 option` (`algo=moc_1opt`) is the options "
+                  "ablation on the same data and seeds. The `MOReL-style (old)` column is still the earlier page's record "
+                  "(`*`): a config that no longer exists (PPO in real actions from a random policy, threshold max / 3; "
+                  "`configs/algo/morel.yaml` now follows MOReL's code), first run on hopper seeds 4-5 with a HALT penalty of 100 "
+                  "and then with the env group's penalty.")}
 NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
                  "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
