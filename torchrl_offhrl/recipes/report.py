@@ -451,7 +451,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
           *(["## Mean of the last 5 evaluations", "", *table("last5"), ""] if has("last5") else []),
           *(["## Final evaluation of the sampled policy (actions and options drawn, on the same start states as the deterministic one)", "",
              "The deterministic evaluation runs each policy's mode; what the agents' losses train is the sampled policy. "
-             "Where the two differ, the row says which one the method improved.", "",
+             "Read a row beside the same row of the final evaluation above: where the sampled score stays at the data's and the "
+             "deterministic one rises, training moved the mode, not the policy it trains.", "",
              *table("sampled"), ""] if sampled else []),
           "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
           *table("best_score"), "",
