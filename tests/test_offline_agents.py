@@ -348,6 +348,23 @@ def test_one_option_moc_runs_get_their_own_column(tmp_path):
     assert "| hopper-medium | 80.0 (1) | — | — | — | — | — | — | — | — | 40.0 (1) | 36.0 |" in final
 
 
+def test_ppoc_is_moc_with_eta_zero_in_a_column_of_its_own(tmp_path):
+    """configs/algo/ppoc.yaml (MOC's multi-updates off: eta 0, the second options ablation) is MOC with only eta changed, labelled apart."""
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.report import paper_table
+    from torchrl_offhrl.utils import to_plain
+
+    moc, ppoc = to_plain(compose("demo", ["algo=moc"]).algo), to_plain(compose("demo", ["algo=ppoc"]).algo)
+    assert ppoc["name"] == "moc" and ppoc["eta"] == 0.0 and moc["eta"] == 0.7
+    assert {k for k in moc.keys() | ppoc.keys() if moc.get(k) != ppoc.get(k)} == {"eta", "label"}
+    runs = [_fake_run(tmp_path, "moc", 4, "Hopper-v5", "medium", "frames", (20.0, 50.0, 80.0), behaviour=36.0),
+            _fake_run(tmp_path / "ppoc", "moc", 4, "Hopper-v5", "medium", "frames", (20.0, 30.0, 45.0), behaviour=36.0,
+                      algo_cfg={"label": "ppoc", "eta": 0.0})]
+    final = paper_table(runs, tmp_path / "t").split("## Final evaluation")[1].split("## Best")[0]
+    assert "| BC | PPOC (eta 0) | behaviour data |" in final
+    assert "| hopper-medium | 80.0 (1) | — | — | — | — | — | — | — | — | 45.0 (1) | 36.0 |" in final
+
+
 def test_missing_cells_say_what_a_seed_cost_on_the_page_s_runs(tmp_path):
     """A missing cell's line gives the measured cost of one more seed: the median over that column's timed runs (any row) of
     their total time less the data and the model fits, with the device and threads they ran on."""

@@ -213,4 +213,149 @@ def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cac
     with pytest.raises(ValueError, match="distinct"):
         seed_configs({}, [4, 4])
     with pytest.raises(NotImplementedError, match="one seed per run"):
-        train_seeds(compose("offline_train", ["algo=moc", f"dataset={hopper_file}"]), [4, 5])
+        train_seeds(compose("offline_train", ["algo=sac", f"dataset={hopper_file}"]), [4, 5])
+
+
+# ------------------------------------------------------------------ on-policy agents (PPO, MOC) on an env
+E_ON, T_ON = 2, 16
+ON_POLICY = {"ppo": {"max_grad_norm": 0.5}, "moc": {"max_grad_norm": 0.5, "eta": 0.5}}
+
+
+def build_on_policy(env, name, seed, dtype=torch.float32):
+    torch.manual_seed(seed)
+    agent = make_agent(name, env, {"hidden_sizes": [16, 16], "frames_per_batch": E_ON * T_ON, "minibatch_size": 8, "epochs": 2,
+                                   "fused_adam": False, **ON_POLICY[name]}, action_key="action")
+    if dtype != torch.float32:  # the same initial weights, in double precision
+        agent.loss.to(dtype)
+        for opt in agent.optimizers():
+            opt.state.clear()
+    return agent
+
+
+def as_double(td):
+    return td.apply(lambda x: x.double() if x.is_floating_point() else x)
+
+
+def on_policy_batch(env, agents, seed=0):
+    """``[N, E, T]``: each seed's own rollouts (E episodes of T steps) with its own policy, in its own transformed env."""
+    from torchrl.envs import TransformedEnv
+
+    out = []
+    for i, a in enumerate(agents):
+        e = a.attach(TransformedEnv(env.base_env if isinstance(env, TransformedEnv) else env))
+        runs = []
+        for j in range(E_ON):
+            e.set_seed(seed + 10 * i + j)
+            torch.manual_seed(seed + 10 * i + j)
+            with torch.no_grad():
+                runs.append(e.rollout(T_ON, a.policy, break_when_any_done=False))
+        out.append(torch.stack(runs))
+    return torch.stack(out)
+
+
+@pytest.mark.parametrize("name", ["ppo", "moc"])
+def test_on_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
+    # the same per-seed batches and shuffles, and (randomness="same") the same draws inside the loss (MOC's z): each seed's
+    # weights and Adam moments after two batched updates are its separate agent's, with gradients clipped per seed. In
+    # double precision: Adam's first steps are about lr * sign(gradient), so float32's rounding of the batched products
+    # would move weights whose gradient is near 0 by up to lr, and the check could not tell that from a wrong update
+    from torchrl_offhrl.agents.seeds import OnPolicySeedBatch
+
+    seeds = [4, 5, 6]
+    actors = [build_on_policy(env, name, s) for s in seeds]  # float32: they collect the batches
+    separate = [build_on_policy(env, name, s, torch.float64) for s in seeds]
+    batched = OnPolicySeedBatch([build_on_policy(env, name, s, torch.float64) for s in seeds], randomness="same",
+                                generators=[torch.Generator().manual_seed(i) for i in range(3)])
+    for i, a in enumerate(separate):
+        a.generator = torch.Generator().manual_seed(i)
+    for step in range(2):
+        data = as_double(on_policy_batch(env, actors, seed=step))
+        state = torch.get_rng_state()
+        got = batched.update(data.reshape(-1, T_ON))  # the collector's [N * E, T]
+        want = []
+        for i, a in enumerate(separate):
+            torch.set_rng_state(state)
+            want.append(a.update(data[i].clone()))
+        for g, w in zip(got, want):
+            assert g["updates"] == w["updates"] == 2 * (E_ON * T_ON // 8)
+            for k in ("train/loss_objective", "train/loss_critic"):
+                assert g[k] == pytest.approx(w[k], rel=1e-6, abs=1e-9), (k, g[k], w[k])
+    batched.sync()
+    moved = 0.0
+    for a, b, fresh in zip(separate, batched.agents, [build_on_policy(env, name, s, torch.float64) for s in seeds]):
+        sa, sb, s0 = float_state(a), float_state(b), float_state(fresh)
+        for k in sa:
+            torch.testing.assert_close(sb[k], sa[k], rtol=1e-9, atol=1e-11)
+            moved = max(moved, float((sa[k] - s0[k]).abs().max()))
+        for oa, ob in zip(a.optimizers(), b.optimizers()):
+            for pa, pb in zip((p for g in oa.param_groups for p in g["params"]), (p for g in ob.param_groups for p in g["params"])):
+                if pa in oa.state:
+                    torch.testing.assert_close(ob.state[pb]["exp_avg"], oa.state[pa]["exp_avg"], rtol=1e-8, atol=1e-12)
+    assert moved > 1e-4
+    assert any(not torch.allclose(float_state(batched.agents[0])[k], float_state(batched.agents[1])[k]) for k in float_state(batched.agents[0]))
+
+
+@pytest.mark.parametrize("name", ["ppo", "moc"])
+def test_seed_batched_policy_acts_as_each_seed_s_policy(env, name):
+    # deterministic: each seed's envs get exactly its own policy's actions; sampled, each seed draws its own noise
+    from torchrl.envs import TransformedEnv
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from torchrl_offhrl.agents.seeds import OnPolicySeedBatch
+
+    agents = [build_on_policy(env, name, s) for s in (4, 5, 6)]
+    data = on_policy_batch(env, agents)  # [N, E, T]: states each seed's policy meets
+    step = data[..., 3].exclude("next").reshape(-1)  # one step of the N * E envs, as a collector hands it over
+    batched = OnPolicySeedBatch(agents)
+    keys = ["action"] + (["option"] if name == "moc" else [])
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        out = batched.policy(step.clone()).reshape(3, E_ON)
+        for i, a in enumerate(agents):
+            mine = a.policy(step.reshape(3, E_ON)[i].clone())
+            for k in keys:
+                torch.testing.assert_close(out[i][k], mine[k], rtol=1e-5, atol=1e-6)
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        same_state = step.reshape(3, E_ON)[0:1].expand(3, E_ON).reshape(-1).clone()
+        a1 = batched.policy(same_state.clone())["action"].reshape(3, E_ON, -1)
+    assert not torch.allclose(a1[0], a1[1])  # seeds 4 and 5 at the same states: their own draws (and weights)
+    with pytest.raises(ValueError, match="seeds' envs"):
+        batched.policy(step[:4].clone())
+    with pytest.raises(TypeError, match="on-policy agents"):
+        OnPolicySeedBatch([build(env, "bc", 4), build(env, "bc", 5)])
+    assert isinstance(env, TransformedEnv) or True
+
+
+def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path):
+    # `offhrl train algo=moc --seeds 4 5`: one model env of 2 x 4 envs, each seed's 4 envs its own; each run directory
+    # has its seed's records at the same frames as a separate run's, its own checkpoint, and resumes batched
+    import json
+    from pathlib import Path
+
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.seed_runs import train_seeds
+    from torchrl_offhrl.recipes.train import train
+
+    def cfg(out, *extra):
+        return compose("offline_train", ["algo=moc", f"dataset={hopper_file}", f"out_root={out}", "algo.hidden_sizes=[16,16]",
+                                         "algo.frames_per_batch=64", "algo.minibatch_size=32", "algo.epochs=2",
+                                         "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16,16]",
+                                         "cvae.fit.max_steps=20", "collector.num_envs=4", "train.total_frames=128", "eval.every_frames=64",
+                                         "eval.episodes=2", "eval.max_steps=20", *extra])
+
+    separate = train(cfg(tmp_path / "sep", "seed=4"), progress=False)
+    batched = train_seeds(cfg(tmp_path / "bat"), [4, 5], progress=False)
+    ra = json.loads((Path(separate["run_dir"]) / "evals.json").read_text())
+    runs = [json.loads((Path(b["run_dir"]) / "evals.json").read_text()) for b in batched]
+    assert Path(batched[0]["run_dir"]).name == Path(separate["run_dir"]).name
+    for r in runs:
+        assert [x["frames"] for x in r] == [x["frames"] for x in ra] == [0, 64, 128]
+        assert [x["updates"] for x in r] == [x["updates"] for x in ra] == [0, 4, 8]  # 2 epochs x 2 minibatches per 64-frame batch
+    assert runs[0][0]["return_mean"] == pytest.approx(ra[0]["return_mean"], rel=1e-4)  # the same untrained seed-4 agent
+    w = [torch.load(Path(b["run_dir"]) / "checkpoint.pt", weights_only=True)["agent"]["loss"] for b in batched]
+    k = next(k for k, v in w[0].items() if torch.is_tensor(v) and v.is_floating_point() and v.dim() == 2)
+    assert not torch.equal(w[0][k], w[1][k])  # two seeds, two agents
+    logs = [json.loads((Path(b["run_dir"]) / "summary.json").read_text()) for b in batched]
+    assert [s["frames"] for s in logs] == [128, 128]
+    more = train_seeds(cfg(tmp_path / "bat", "train.total_frames=192"), [4, 5], progress=False)
+    assert [s["frames"] for s in more] == [192, 192]
+    assert [x["frames"] for x in json.loads((Path(more[1]["run_dir"]) / "evals.json").read_text())] == [0, 64, 128, 192]

@@ -151,6 +151,11 @@ class Agent:
             compiled[method] = torch.compile(fn, mode=self.compile)
         return compiled[method]
 
+    def batch_loss(self, td: TensorDictBase):
+        """:attr:`loss` on a whole batch, never compiled (steps taken once per batch, whose shapes differ from the minibatches').
+        Under a seeds' batch the worker answers it with the seeds' vmapped loss."""
+        return self.loss(td)
+
     def optimizers(self) -> list[torch.optim.Optimizer]:
         """Every optimiser the agent owns (its attributes that are optimisers, :attr:`optimizer` first)."""
         found = [self.optimizer] + [v for k, v in vars(self).items() if isinstance(v, torch.optim.Optimizer) and k != "optimizer"]
@@ -281,8 +286,21 @@ class OnPolicyAgent(Agent):
         """Annotate the ``[envs, time]`` batch before it is shuffled (default: the loss's value estimator writes the advantage)."""
         self.loss.value_estimator(batch)
 
+    #: where the minibatches' shuffles are drawn from (None: torch's global RNG); a seeds' batch gives each seed its own
+    generator: torch.Generator | None = None
+
+    def minibatch_objective(self, out: TensorDictBase) -> torch.Tensor:
+        """What each minibatch step of :attr:`optimizer` minimises, from the loss's output (default: every ``loss_*`` term)."""
+        return sum_losses(out)
+
+    def finish_update(self, flat: TensorDictBase) -> None:
+        """Called after the minibatch epochs with the whole prepared batch, flattened (``[envs * time]``; under a seeds' batch
+        ``[N, envs * time]``): steps taken once per batch (MOC's termination and pi_O). Default: nothing."""
+
     def update(self, batch: TensorDictBase) -> dict[str, float]:
-        return self.minibatch_epochs(batch, self.optimizer, sum_losses)
+        metrics = self.minibatch_epochs(batch, self.optimizer, self.minibatch_objective)
+        self.finish_update(batch.reshape(-1))
+        return metrics
 
     def minibatch_epochs(self, batch: TensorDictBase, optim: torch.optim.Optimizer, objective) -> dict[str, float]:
         """:meth:`prepare` the batch, then ``epochs`` passes of shuffled minibatches, each one step of ``optim`` on ``objective(loss(minibatch))``.
@@ -295,7 +313,9 @@ class OnPolicyAgent(Agent):
         flat = batch.reshape(-1)
         metrics = MetricMeans()
         for _ in range(self.epochs):
-            for idx in torch.randperm(flat.numel(), device=flat.device).split(self.minibatch_size):
+            perm = (torch.randperm(flat.numel(), device=flat.device) if self.generator is None
+                    else torch.randperm(flat.numel(), generator=self.generator).to(flat.device))
+            for idx in perm.split(self.minibatch_size):
                 out = self.minibatch_loss(flat[idx])
                 optim.zero_grad()
                 objective(out).backward()

@@ -19,7 +19,7 @@ from ..modules import OptionCriticActor, OptionHeads, make_option_critic
 from ..objectives import OptionCriticLoss
 from ..rollouts import first_episode_mask
 from ..utils import import_class
-from .base import OnPolicyAgent, action_box, adam
+from .base import OnPolicyAgent, action_box, adam, backward
 from .registry import register_agent
 
 __all__ = ["MOCAgent", "option_usage", "plot_option_usage"]
@@ -294,17 +294,24 @@ class MOCAgent(OnPolicyAgent):
         return metrics
 
     def _update(self, batch) -> dict:
+        return super().update(batch)
+
+    def minibatch_objective(self, out):
+        """``joint``: every loss term; ``per_term``: the intra-option policies' and the critic's terms (:attr:`MINIBATCH_TERMS`)."""
         if self.update_schedule == "joint":
-            return super().update(batch)
-        metrics = self.minibatch_epochs(batch, self.optimizer, lambda out: sum(out[k] for k in self.MINIBATCH_TERMS if k in out.keys()))
-        # termination and pi_O: one step each on the whole batch (official MOC), with the updated critic
-        out = self.loss(batch.reshape(-1))
+            return super().minibatch_objective(out)
+        return sum(out[k] for k in self.MINIBATCH_TERMS if k in out.keys())
+
+    def finish_update(self, flat) -> None:
+        """``per_term``: termination and pi_O, one step each on the whole batch (official MOC), with the updated critic."""
+        if self.update_schedule == "joint":
+            return
+        out = self.batch_loss(flat)
         self.termination_optimizer.zero_grad()
         self.option_optimizer.zero_grad()
-        (out["loss_termination"] + out["loss_option"] + out["loss_option_entropy"]).backward()
+        backward(out["loss_termination"] + out["loss_option"] + out["loss_option_entropy"])
         self.termination_optimizer.step()
         self.option_optimizer.step()
-        return metrics
 
     def state_dict(self) -> dict:
         state = super().state_dict()

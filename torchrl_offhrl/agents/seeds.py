@@ -20,7 +20,12 @@ seed's slice (weights, optimiser states, step count) back into its own agent,
 which is what evaluations act with and checkpoints save, so every seed is
 still a run of its own.
 
-Batched: BC, TD3+BC, IQL and CQL. TorchRL's own ``CQLLoss`` is refused: it
+Batched: BC, TD3+BC, IQL and CQL (:class:`SeedBatch`); PPO and MOC
+(:class:`OnPolicySeedBatch`: their policies act as one
+:class:`SeedBatchedPolicy` on an env of ``N * E`` envs, their updates
+vmapped as above, minibatches shuffled per seed, gradients clipped per
+seed). Constants every seed holds alike (buffers such as an action box or
+the data's observation statistics) stay one unstacked tensor. TorchRL's own ``CQLLoss`` is refused: it
 reads its parameters' ``.data`` inside the loss, which ``vmap`` forbids; the
 CQL agent's :class:`~torchrl_offhrl.agents.cql.BatchableCQLLoss` is the same
 loss with ``.detach()`` there (``tests/test_seed_batch.py`` checks that it
@@ -45,9 +50,11 @@ from collections.abc import Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from .base import DatasetAgent
+from tensordict.nn import TensorDictModuleBase
 
-__all__ = ["SeedBatch"]
+from .base import DatasetAgent, OnPolicyAgent, backward
+
+__all__ = ["OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_norm_per_seed_"]
 
 
 #: TorchRL losses that cannot run under ``torch.vmap``, and why
@@ -119,6 +126,30 @@ def _batched_normal_draws(active: bool):
         normal_mod._standard_normal = own
 
 
+@contextlib.contextmanager
+def _vmap_safe_reduction(loss):
+    """TorchRL's PPO and A2C losses reduce each ``loss_*`` term and then ``.squeeze(-1)`` it: on a 0-dim tensor a no-op,
+    but refused inside ``torch.vmap`` (PyTorch 2.13: "Dimension is out of range"). Within the seeds' vmap their
+    reduction returns ``[1]`` instead, which the squeeze makes 0-dim again: the same values, per seed."""
+    from torchrl.objectives import A2CLoss, PPOLoss
+
+    if not isinstance(loss, (PPOLoss, A2CLoss)):
+        yield
+        return
+
+    own = type(loss)._reduce_loss
+
+    def reduce(*args, **kwargs):
+        out = own(loss, *args, **kwargs)
+        return out.unsqueeze(-1) if out.dim() == 0 else out
+
+    loss.__dict__["_reduce_loss"] = reduce
+    try:
+        yield
+    finally:
+        loss.__dict__.pop("_reduce_loss", None)
+
+
 class SeedBatch:
     """N dataset agents of one config, one per seed, trained as one vmapped computation (see the module's docstring).
 
@@ -146,13 +177,17 @@ class SeedBatch:
         (['train/loss_bc', 'updates'], 3)
     """
 
+    #: the agents it batches (and how its errors name them)
+    agent_base: type = DatasetAgent
+    agent_kinds: str = "dataset agents (BC, TD3+BC, IQL, CQL)"
+
     def __init__(self, agents: Sequence[DatasetAgent], randomness: str = "different", generators: Sequence[torch.Generator] | None = None):
         agents = list(agents)
         if len(agents) < 1:
             raise ValueError("SeedBatch needs at least one agent")
         kinds = {type(a) for a in agents}
-        if len(kinds) != 1 or not isinstance(agents[0], DatasetAgent):
-            raise TypeError(f"SeedBatch batches dataset agents of one class (BC, TD3+BC, IQL, CQL), got {sorted(k.__name__ for k in kinds)}")
+        if len(kinds) != 1 or not isinstance(agents[0], self.agent_base):
+            raise TypeError(f"{type(self).__name__} batches {self.agent_kinds} of one class, got {sorted(k.__name__ for k in kinds)}")
         if type(agents[0].loss).__name__ in _NOT_VMAPPABLE:
             raise NotImplementedError(f"SeedBatch: {type(agents[0]).__name__}'s loss ({type(agents[0].loss).__name__}) "
                                       f"{_NOT_VMAPPABLE[type(agents[0].loss).__name__]}; train its seeds as separate runs")
@@ -201,7 +236,7 @@ class SeedBatch:
     def _rebind_target_updater(self) -> None:
         """Point the worker's target updater (TorchRL's ``SoftUpdate``, which caches its source and target tensors) at the
         worker's own loss, with the same pairs agent 0's updater steps."""
-        u = self.worker.target_updater
+        u = getattr(self.worker, "target_updater", None)
         if u is None:
             return
         u.loss_module = self.worker.loss
@@ -216,10 +251,22 @@ class SeedBatch:
         """Stack the agents' tensors, optimiser states and step counts into the worker (at the start, and after loading checkpoints)."""
         w = TensorDict.from_module(self.worker.loss, as_module=False)
         per = [TensorDict.from_module(a.loss, as_module=False) for a in self.agents]
+        # constants every seed holds alike (an action box, the data's observation statistics: buffers, no target network)
+        # stay one unstacked tensor, outside the vmapped tree: the same values, and checks such as TorchRL's
+        # ``(high > low).all()`` in a distribution stay plain Python control flow inside the vmap
+        self._shared = set()
         with torch.no_grad():
             for k in self._keys:
-                w.get(k).data = torch.stack([p.get(k).detach() for p in per])
-        self._params = _with_seed_dim(w, self.n, self.agents[0].loss)  # agent 0's batch sizes: the worker's hold stacked tensors
+                ts = [p.get(k).detach() for p in per]
+                name = k if isinstance(k, str) else ".".join(k)
+                if (not isinstance(per[0].get(k), torch.nn.Parameter) and "target_" not in name
+                        and all(t.shape == ts[0].shape and torch.equal(t, ts[0]) for t in ts[1:])):
+                    self._shared.add(k)
+                    w.get(k).data = ts[0].clone()
+                else:
+                    w.get(k).data = torch.stack(ts)
+        # agent 0's batch sizes: the worker's hold stacked tensors
+        self._params = _with_seed_dim(w.exclude(*self._shared) if self._shared else w, self.n, self.agents[0].loss)
         for w_opt, opts in zip(self.worker.optimizers(), zip(*(a.optimizers() for a in self.agents))):
             own = [_flat_params(o) for o in opts]
             w_opt.state.clear()
@@ -229,9 +276,10 @@ class SeedBatch:
                     continue
                 w_opt.state[wp] = {name: (torch.stack([s[name] for s in states]) if torch.is_tensor(v) and v.dim() > 0 else v.clone() if torch.is_tensor(v) else v)
                                    for name, v in states[0].items()}
-        self.worker.steps = self.agents[0].steps
-        if any(a.steps != self.worker.steps for a in self.agents):
-            raise ValueError(f"SeedBatch: the agents have taken different numbers of updates {[a.steps for a in self.agents]}")
+        if hasattr(self.agents[0], "steps"):
+            self.worker.steps = self.agents[0].steps
+            if any(a.steps != self.worker.steps for a in self.agents):
+                raise ValueError(f"SeedBatch: the agents have taken different numbers of updates {[a.steps for a in self.agents]}")
 
     def sync(self) -> None:
         """Write each seed's slice (weights, target networks, optimiser states, step count) into its own agent."""
@@ -240,7 +288,8 @@ class SeedBatch:
             for i, a in enumerate(self.agents):
                 mine = TensorDict.from_module(a.loss, as_module=False)
                 for k in self._keys:
-                    mine.get(k).data.copy_(w.get(k).data[i])
+                    if k not in self._shared:
+                        mine.get(k).data.copy_(w.get(k).data[i])
                 for w_opt, opt in zip(self.worker.optimizers(), a.optimizers()):
                     own = _flat_params(opt)
                     for j, wp in enumerate(_flat_params(w_opt)):
@@ -248,14 +297,17 @@ class SeedBatch:
                             continue
                         opt.state[own[j]] = {name: (v[i].clone() if torch.is_tensor(v) and v.dim() > 0 else v.clone() if torch.is_tensor(v) else v)
                                              for name, v in w_opt.state[wp].items()}
-                a.steps = self.worker.steps
+                if hasattr(a, "steps"):
+                    a.steps = self.worker.steps
 
     # -------------------------------------------------------------- updates
     def _vmapped_loss_fn(self, method: str | None = None):
+        """The loss (or its ``method``) of every seed on ``[N, ...]`` data, in one vmap; extra arguments are passed as they are."""
         loss = self.worker.loss
+        extra = ((), {})
 
         def one_seed(params, batch):
-            with params.to_module(loss):
+            with params.to_module(loss), _vmap_safe_reduction(loss):
                 # a loss without a target copy of a network reads its detached weights as the target (TorchRL's
                 # LossModule.__getattr__ takes ``.data``, which vmap forbids): the same values, detached here instead
                 aliases = [f"target_{name}" for name, m in loss._modules.items() if name.endswith("_params") and not name.startswith("target_")
@@ -263,12 +315,14 @@ class SeedBatch:
                 for a in aliases:
                     loss.__dict__[a] = loss._modules[a[len("target_"):]].detach()
                 try:
-                    return (loss if method is None else getattr(loss, method))(batch)
+                    return (loss if method is None else getattr(loss, method))(batch, *extra[0], **extra[1])
                 finally:
                     for a in aliases:
                         loss.__dict__.pop(a, None)
 
-        def call(batch):
+        def call(batch, *args, **kwargs):
+            nonlocal extra
+            extra = (args, kwargs)
             with _batched_normal_draws(self.randomness == "different"):
                 return torch.vmap(one_seed, (0, 0), randomness=self.randomness)(self._params, batch)
 
@@ -293,3 +347,214 @@ class SeedBatch:
         for i in range(self.n):
             out.append({k: (v[i] if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in metrics.items()})
         return out
+
+
+def clip_grad_norm_per_seed_(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """``torch.nn.utils.clip_grad_norm_`` for each seed of stacked parameters (leading dimension: the seeds).
+
+    Each seed's gradients are scaled by ``min(1, max_norm / (norm + 1e-6))``
+    with ``norm`` the 2-norm over all of *its* gradients, as its own run's
+    ``clip_grad_norm_`` would; returns the norms (``[N]``, before clipping).
+
+    Examples:
+        >>> import torch
+        >>> w = torch.zeros(2, 3, requires_grad=True)
+        >>> w.grad = torch.tensor([[3.0, 4.0, 0.0], [0.3, 0.4, 0.0]])
+        >>> clip_grad_norm_per_seed_([w], 1.0).tolist()
+        [5.0, 0.5]
+        >>> [round(x, 4) for x in w.grad.flatten().tolist()]
+        [0.6, 0.8, 0.0, 0.3, 0.4, 0.0]
+    """
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return torch.zeros(0)
+    n = grads[0].shape[0]
+    norms = torch.stack([g.reshape(n, -1).pow(2).sum(1) for g in grads]).sum(0).sqrt()
+    coef = (float(max_norm) / (norms + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(coef.reshape(n, *([1] * (g.dim() - 1))))
+    return norms
+
+
+class SeedBatchedPolicy(TensorDictModuleBase):
+    """The policy of N seeds acting in one batched env: env ``i * E .. (i + 1) * E - 1`` is seed ``i``'s.
+
+    A TensorDict module for TorchRL's collectors: the input's leading batch
+    dimension (``N * E`` envs) is split into ``[N, E]``, and the seeds'
+    policy (one module whose weights are stacked along a leading seed
+    dimension, e.g. an :class:`OnPolicySeedBatch`'s worker policy) runs once
+    under ``torch.vmap``, each seed with its own weights and, with
+    ``randomness="different"``, its own draws (actions, options). The
+    exploration type is the caller's (``set_exploration_type``), as for
+    any policy.
+
+    Args:
+        module: the policy module whose weights ``params`` holds.
+        params: ``TensorDict.from_module(module)`` with batch size ``[N]``.
+        randomness: ``torch.vmap``'s (``"different"``: each seed its own draws).
+    """
+
+    def __init__(self, module, params: TensorDictBase, randomness: str = "different"):
+        super().__init__()
+        self.module = module
+        self.in_keys, self.out_keys = list(module.in_keys), list(module.out_keys)
+        self.__dict__["params"] = params  # the worker's tensors, not registered again here
+        self.n = params.batch_size[0]
+        self.randomness = randomness
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        shape = tensordict.batch_size
+        if not shape or shape[0] % self.n:
+            raise ValueError(f"SeedBatchedPolicy: the envs' batch {tuple(shape)} must be the {self.n} seeds' envs, E each (N * E leading)")
+        seeds = tensordict.reshape(self.n, shape[0] // self.n, *shape[1:])
+        module = self.module
+
+        def one_seed(params, td):
+            with params.to_module(module):
+                return module(td)
+
+        with _batched_normal_draws(self.randomness == "different"):
+            out = torch.vmap(one_seed, (0, 0), randomness=self.randomness)(self.params, seeds)
+        return tensordict.update(out.reshape(shape))
+
+
+class OnPolicySeedBatch(SeedBatch):
+    """N on-policy agents of one config (PPO, MOC), one per seed, updated as one vmapped computation and acting as one policy.
+
+    The collector runs :attr:`policy` (a :class:`SeedBatchedPolicy`) on
+    an env of ``N * E`` envs, seed ``i`` owning envs ``i * E .. (i + 1) * E - 1``; :meth:`update`
+    takes that ``[N * E, T]`` batch (or ``[N, E, T]``) and runs each seed's own
+    update rule on its own ``[E, T]`` part: the advantage from its own critic
+    (TorchRL's value estimators: the critic per seed under ``vmap``, the
+    recursion on all seeds at once; other agents' :meth:`prepare` runs under
+    ``vmap`` whole), then ``epochs`` passes of minibatches, each seed's
+    shuffled by its own generator, one optimiser step for all seeds (Adam is
+    elementwise), gradients clipped per seed
+    (:func:`clip_grad_norm_per_seed_`), and the agent's once-per-batch steps
+    (:meth:`~torchrl_offhrl.agents.base.OnPolicyAgent.finish_update`, MOC's
+    termination and pi_O) on each seed's whole batch. Given the same batch and
+    shuffles, each seed's weights follow its own agent's update up to
+    floating-point rounding (``tests/test_seed_batch.py``); draws inside a
+    loss (MOC's ``z``) are each seed's own under ``randomness="different"``.
+    """
+
+    agent_base = OnPolicyAgent
+    agent_kinds = "on-policy agents (PPO, MOC)"
+
+    def __init__(self, agents: Sequence[OnPolicyAgent], randomness: str = "different", generators: Sequence[torch.Generator] | None = None):
+        if any(getattr(a, "averaged_policy", None) is not None for a in agents):
+            raise NotImplementedError("OnPolicySeedBatch: MOC's policy_ema (an averaged copy of the policy) is not batched yet; train its "
+                                      "seeds as separate runs")
+        super().__init__(agents, randomness=randomness, generators=generators)
+        w = self.worker
+        w.batch_loss = self._vmapped_loss_fn()
+        if w.epochs < 1 or w.minibatch_size < 1:
+            raise ValueError("OnPolicySeedBatch: the agents need epochs >= 1 and minibatch_size >= 1")
+        self._estimator = None
+        if type(w).prepare is OnPolicyAgent.prepare:  # TorchRL's value estimator (PPO's GAE): an unstacked copy runs the recursion
+            est = copy.deepcopy(self.agents[0].loss.value_estimator)
+            est.value_network = None
+            self._estimator = est
+        self._policy = None
+
+    @property
+    def policy(self) -> SeedBatchedPolicy:
+        """The seeds' policy for a collector on an env of ``N * E`` envs (built on first use)."""
+        if self._policy is None:
+            self._policy = SeedBatchedPolicy(self.worker.policy, self._module_params(self.worker.policy), randomness=self.randomness)
+        return self._policy
+
+    def _module_params(self, module) -> TensorDictBase:
+        """The worker's stacked loss tensors in ``module``'s layout (batch size ``[N]``): each of agent 0's policy tensors is
+        matched to the loss tensor that shares its memory (a functional TorchRL loss keeps its own tensor objects, e.g.
+        buffers, over the policy's storage), and the worker's stacked tensor at that key stands in for it."""
+        a0_loss = TensorDict.from_module(self.agents[0].loss, as_module=False)
+        where = {}
+        for k in a0_loss.keys(True, True):
+            t = a0_loss.get(k)
+            where.setdefault((t.data_ptr(), tuple(t.shape)), k)
+        a0_policy = TensorDict.from_module(self.agents[0].policy, as_module=False)
+        worker_loss = TensorDict.from_module(self.worker.loss, as_module=False)
+        out, foreign = TensorDict(), []
+        for k in a0_policy.keys(True, True):
+            t = a0_policy.get(k)
+            lk = where.get((t.data_ptr(), tuple(t.shape)))
+            if lk is None:
+                foreign.append(k if isinstance(k, str) else ".".join(k))
+            elif lk not in self._shared:  # a constant of every seed stays the module's own
+                out.set(k, worker_loss.get(lk))
+        if foreign:
+            raise ValueError(f"OnPolicySeedBatch: the policy holds tensors outside its agent's loss ({foreign[:3]}): they would not be "
+                             "stacked per seed")
+        return _with_seed_dim(out, self.n, module)
+
+    def _prepare(self, batch: TensorDictBase) -> None:
+        """Each seed's advantage (and whatever else its agent's :meth:`prepare` writes) into the ``[N, E, T]`` batch."""
+        w = self.worker
+        if self._estimator is None:
+            est = w.loss.value_estimator
+            if hasattr(est, "gae_inputs"):  # an estimator split in two (OptionGAE): networks per seed, one recursion for all
+                loss = w.loss
+
+                def inputs(params, td):
+                    with params.to_module(loss):
+                        return est.gae_inputs(td)
+
+                est.write(batch, *est.advantage_from_inputs(torch.vmap(inputs, (0, 0))(self._params, batch), time_dim=batch.ndim - 1))
+                prepare = self._vmapped_loss_fn("prepare_batch")
+                new = prepare(batch.copy(), False)
+            else:
+                new = self._vmapped_loss_fn("prepare_batch")(batch.copy())
+            batch.update(new.exclude(*batch.keys()))
+            return
+        est = w.loss.value_estimator
+        critic, key = est.value_network, est.tensor_keys.value
+        loss = w.loss
+
+        def values(params, td):
+            with params.to_module(loss):
+                return (critic(td.select(*critic.in_keys).copy()).get(key),
+                        critic(td.get("next").select(*critic.in_keys).copy()).get(key))
+
+        value, next_value = torch.vmap(values, (0, 0))(self._params, batch)
+        batch.set(key, value)
+        batch.set(("next", key), next_value)
+        self._estimator(batch)
+
+    def update(self, batch: TensorDictBase) -> list[dict]:
+        """One on-policy update of every seed on its part of ``batch``; each seed's metrics (``train/...`` means and ``updates``)."""
+        n, w = self.n, self.worker
+        if batch.batch_size[:1] != torch.Size([n]):
+            if not batch.batch_dims or batch.batch_size[0] % n:
+                raise ValueError(f"OnPolicySeedBatch.update: a batch of the {n} seeds' envs ([N * E, T] or [N, E, T]), got {tuple(batch.batch_size)}")
+            batch = batch.reshape(n, batch.batch_size[0] // n, *batch.batch_size[1:])
+        with torch.no_grad():
+            self._prepare(batch)
+        flat = batch.reshape(n, -1)
+        size = flat.batch_size[1]
+        rows = torch.arange(n, device=flat.device).unsqueeze(1)
+        params = [p for g in w.optimizer.param_groups for p in g["params"]]
+        sums: dict[str, torch.Tensor] = {}
+        count = 0
+        for _ in range(w.epochs):
+            perms = torch.stack([torch.randperm(size, generator=g) for g in self.generators]).to(flat.device)
+            for idx in perms.split(w.minibatch_size, dim=1):
+                out = w.minibatch_loss(flat[rows, idx])
+                w.optimizer.zero_grad()
+                backward(w.minibatch_objective(out))
+                if w.max_grad_norm:
+                    clip_grad_norm_per_seed_(params, w.max_grad_norm)
+                w.optimizer.step()
+                for k, v in out.items():
+                    if isinstance(v, torch.Tensor) and v.shape == torch.Size([n]):
+                        v = v.detach().double()
+                        sums[k] = sums[k] + v if k in sums else v
+                count += 1
+        w.finish_update(flat)
+        means = {k: (v / max(count, 1)).tolist() for k, v in sums.items()}
+        return [{**{f"train/{k}": vals[i] for k, vals in means.items()}, "updates": count} for i in range(n)]
+
+
+def _tensors(module) -> list[torch.Tensor]:
+    td = TensorDict.from_module(module, as_module=False)
+    return [td.get(k) for k in td.keys(True, True)]

@@ -115,11 +115,17 @@ class OptionGAE(ValueEstimatorBase):
         obs = self.loss.tensor_keys.observation
         return [k.option, obs, ("next", obs), ("next", k.reward), ("next", k.done), ("next", k.terminated)]
 
-    def _advantage_and_target(self, tensordict: TensorDictBase, time_dim: int | None):
+    def gae_inputs(self, tensordict: TensorDictBase) -> TensorDict:
+        """What the recursion needs, from the networks: ``value`` ``Q(s_t, o_t)`` and ``next_value`` ``U(s_{t+1}, o_t)``
+        with ``reward``, ``done`` and ``terminated``, each ``[*, T, 1]`` (batch size: the data's).
+
+        The networks' part alone, so that a seeds' batch can run it per seed
+        under ``torch.vmap`` and the recursion (:meth:`advantage_from_inputs`)
+        on all seeds at once.
+        """
         keys = self.tensor_keys
         if tensordict.ndim < 1:
             raise ValueError("OptionGAE needs data with a time dimension (the last batch dimension)")
-        time_dim = tensordict.ndim - 1 if time_dim is None and self.time_dim is None else self._get_time_dim(time_dim, tensordict)
         with torch.set_grad_enabled(self.differentiable):
             option = tensordict.get(keys.option).long()
             q = self.loss.option_values(tensordict.copy()).get(keys.value)
@@ -132,19 +138,31 @@ class OptionGAE(ValueEstimatorBase):
             u_n = (1 - b) * q_n.gather(-1, o).squeeze(-1) + b * v_n
             q_t = q.gather(-1, o).squeeze(-1)
             shape = q_t.shape + (1,)
-            reward = tensordict.get(("next", keys.reward)).reshape(shape)
-            done = tensordict.get(("next", keys.done)).reshape(shape)
-            terminated = tensordict.get(("next", keys.terminated)).reshape(shape)
+            return TensorDict(value=q_t.unsqueeze(-1), next_value=u_n.unsqueeze(-1),
+                              reward=tensordict.get(("next", keys.reward)).reshape(shape),
+                              done=tensordict.get(("next", keys.done)).reshape(shape),
+                              terminated=tensordict.get(("next", keys.terminated)).reshape(shape), batch_size=tensordict.batch_size)
+
+    def advantage_from_inputs(self, inputs: TensorDictBase, time_dim: int | None = None):
+        """GAE's recursion on :meth:`gae_inputs` (any leading dimensions; time: the last batch dimension unless given)."""
+        time_dim = inputs.ndim - 1 if time_dim is None and self.time_dim is None else self._get_time_dim(time_dim, inputs)
+        with torch.set_grad_enabled(self.differentiable):
             return generalized_advantage_estimate(
-                self.gamma, self.lmbda, q_t.unsqueeze(-1), u_n.unsqueeze(-1), reward, done, terminated, time_dim=time_dim
+                self.gamma, self.lmbda, inputs.get("value"), inputs.get("next_value"), inputs.get("reward"), inputs.get("done"),
+                inputs.get("terminated"), time_dim=time_dim,
             )
 
-    def forward(self, tensordict: TensorDictBase, *, time_dim: int | None = None) -> TensorDictBase:
-        """Write ``advantage`` and ``value_target`` (``[*, T, 1]``) into ``tensordict`` and return it."""
-        adv, target = self._advantage_and_target(tensordict, time_dim)
+    def _advantage_and_target(self, tensordict: TensorDictBase, time_dim: int | None):
+        return self.advantage_from_inputs(self.gae_inputs(tensordict), time_dim)
+
+    def write(self, tensordict: TensorDictBase, adv: torch.Tensor, target: torch.Tensor) -> TensorDictBase:
         tensordict.set(self.tensor_keys.advantage, adv)
         tensordict.set(self.tensor_keys.value_target, target)
         return tensordict
+
+    def forward(self, tensordict: TensorDictBase, *, time_dim: int | None = None) -> TensorDictBase:
+        """Write ``advantage`` and ``value_target`` (``[*, T, 1]``) into ``tensordict`` and return it."""
+        return self.write(tensordict, *self._advantage_and_target(tensordict, time_dim))
 
     def value_estimate(self, tensordict: TensorDictBase, *, time_dim: int | None = None, **kwargs) -> torch.Tensor:
         """The value target ``advantage + Q(s_t, o_t)``, ``[*, T, 1]``, without writing into ``tensordict``."""
@@ -567,15 +585,20 @@ class OptionCriticLoss(LossModule):
         return tensordict
 
     @torch.no_grad()
-    def prepare_batch(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Everything a ``[envs, time]`` batch needs before it is split into minibatches: the advantage (and the next-step ratio)."""
-        self.value_estimator(tensordict)
+    def prepare_batch(self, tensordict: TensorDictBase, advantage: bool = True) -> TensorDictBase:
+        """Everything a ``[envs, time]`` batch needs before it is split into minibatches: the advantage (and the next-step ratio).
+
+        ``advantage=False``: the rest only (a seeds' batch writes the advantage itself: the estimator's networks per
+        seed, its recursion on all seeds at once).
+        """
+        if advantage:
+            self.value_estimator(tensordict)
         if self.importance_correction == "next_step":
             self.annotate_next_assignment(tensordict)
         return tensordict
 
     # ----------------------------------------------------------------- terms
-    def option_weights(self, td: TensorDictBase) -> tuple[torch.Tensor, float]:
+    def option_weights(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Multi-updates weights ``w_t(o) = z P_t(o) + (1 - z) [o == o_t]`` (detached, ``[B, n]``) and ``z``.
 
         ``z ~ Bernoulli(eta)`` is drawn here (one ``torch.rand(())``, only when
@@ -585,7 +608,8 @@ class OptionCriticLoss(LossModule):
         option = td.get(k.option).long().reshape(-1)
         log_assign = td.get(k.assignment_log_prob)
         onehot = F.one_hot(option, self.num_options).to(log_assign.dtype)
-        z = float(torch.rand(()) < self.eta) if 0.0 < self.eta < 1.0 else self.eta
+        # a tensor, not a Python float: the draw stays on the device and the loss can run under torch.vmap (a seeds' batch)
+        z = (torch.rand(()) < self.eta).to(log_assign) if 0.0 < self.eta < 1.0 else log_assign.new_tensor(self.eta)
         weights = z * log_assign.exp() + (1.0 - z) * onehot
         return weights.detach(), z
 
@@ -716,11 +740,10 @@ class OptionCriticLoss(LossModule):
         cont = ~td.get(k.is_init).reshape(-1).bool()
         q = td.get(k.option_value).detach()
         v = (torch.softmax(td.get(k.option_logits).detach(), -1) * q).sum(-1)
-        adv = (q.gather(-1, p).squeeze(-1) - v)[cont]
-        if adv.numel() == 0:
-            nan = torch.tensor(float("nan"))
-            return {"termination_advantage": nan, "termination_advantage_positive": nan}
-        return {"termination_advantage": adv.mean(), "termination_advantage_positive": (adv > 0).to(q.dtype).mean()}
+        adv = q.gather(-1, p).squeeze(-1) - v
+        c = cont.to(q.dtype)
+        n = c.sum()  # means over the non-start steps as masked sums (no data-dependent shapes: vmappable); 0 / 0 = nan when none
+        return {"termination_advantage": (adv * c).sum() / n, "termination_advantage_positive": ((adv > 0).to(q.dtype) * c).sum() / n}
 
     @torch.no_grad()
     def option_metrics(self, td: TensorDictBase) -> dict:
@@ -731,7 +754,7 @@ class OptionCriticLoss(LossModule):
         is_init = td.get(k.is_init).reshape(-1).bool()
         data_beta = td.get(k.termination_prob, None)
         cont = (~is_init).to(data_beta.dtype if data_beta is not None else torch.float32)
-        if data_beta is not None and cont.sum() > 0:
+        if data_beta is not None:  # 0 / 0 = nan without non-start steps
             termination_rate = (data_beta.reshape(-1) * cont).sum() / cont.sum()
         else:
             termination_rate = torch.tensor(float("nan"))
@@ -763,7 +786,7 @@ class OptionCriticLoss(LossModule):
             entries.update(metrics)
         entries.update(self.option_metrics(td))
         entries.update(self.termination_diagnostics(td))
-        entries["z"] = torch.tensor(z)
+        entries["z"] = z
         out = {key: entries.pop(key) for key in self.out_keys if key in entries}
         out.update(entries)
         return TensorDict(out, batch_size=[])

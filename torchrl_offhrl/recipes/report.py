@@ -312,7 +312,7 @@ TABLE_COLUMNS: dict[str, str] = {
     "moc": "MOC", "ppo": "PPO", "sac": "SAC", "morel": "MOReL", "mopo": "MOPO", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC",
 }
 #: columns outside Table I's standard ones that have a title of their own
-EXTRA_COLUMNS: dict[str, str] = {"moc_1opt": "MOC, 1 option", "morel_style": "MOReL-style (old)"}
+EXTRA_COLUMNS: dict[str, str] = {"moc_1opt": "MOC, 1 option", "ppoc": "PPOC (eta 0)", "morel_style": "MOReL-style (old)"}
 
 
 def table_column(run: dict) -> str:

@@ -1,4 +1,4 @@
-"""Several seeds of one config trained as one computation: ``offhrl train algo=iql seeds=[4,5,6,7,8]``.
+"""Several seeds of one config trained as one computation: ``offhrl train algo=iql --seeds 4 5 6 7 8``.
 
 Each seed is still a run of its own: its own run directory (the config's
 default directory with that seed, or ``run_dir/seed<s>``), setting, agent,
@@ -12,8 +12,17 @@ happen with that stream in place: the records match those of separate runs
 up to the floating-point rounding of the batched products
 (``tests/test_seed_batch.py``).
 
-For now the agents that learn from the dataset (BC, TD3+BC, IQL, CQL);
-model-env agents run one seed per run (``offhrl sweep``).
+The agents that learn from the dataset (BC, TD3+BC, IQL, CQL), and the
+on-policy agents on the model env (PPO, MOC; an offline run of one phase):
+their seeds collect from one model env of ``N x E`` envs (``E =
+collector.num_envs`` per seed, seed ``i`` owning envs ``i E .. (i + 1) E - 1``)
+with their policies run as one, and each seed's part of a batch is its run's
+batch (:class:`~torchrl_offhrl.agents.seeds.OnPolicySeedBatch`). There the
+collection's random draws come from one stream for all seeds, so a seed's
+run is a run of its config, not a replay of its separate run (its
+untrained evaluation is the same; ``tests/test_seed_batch.py``). SAC,
+MOPO, MOReL-style and the transfer and online settings run one seed per run
+(``offhrl sweep``).
 """
 from __future__ import annotations
 
@@ -72,9 +81,12 @@ def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> li
     configs = seed_configs(cfg, seeds)
     for c in configs:
         validate_config(c)
-    if not learns_from_dataset(configs[0]):
-        raise NotImplementedError(f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) for now; algo="
-                                  f"{configs[0]['algo']['name']} trains on an env: run one seed per run (offhrl train seed=S, or offhrl sweep)")
+    on_dataset = learns_from_dataset(configs[0])
+    if not on_dataset and not _on_policy_model_env(configs[0]):
+        raise NotImplementedError(f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) and the on-policy "
+                                  f"agents on the model env (ppo, moc; offline, one phase) for now; algo={configs[0]['algo']['name']} "
+                                  f"{'in this setting ' if configs[0]['algo']['name'] in ON_POLICY else ''}runs one seed per run "
+                                  "(offhrl train seed=S, or offhrl sweep)")
     with ExitStack() as stack:
         lanes = []
         for c in configs:
@@ -94,7 +106,7 @@ def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> li
                              "(offhrl train seed=S) to the same step, or start the batch in new run directories")
         remaining = steps.pop()
         if remaining > 0:
-            _train_batched(lanes, remaining)
+            (_train_batched if on_dataset else _train_batched_on_model_env)(lanes, remaining)
         summaries = []
         for lane in lanes:
             with lane:
@@ -129,6 +141,78 @@ def _train_batched(lanes: list[_Lane], remaining: int) -> None:
             if all(done):
                 break
     finally:
+        batch.sync()
+        for st in progress:
+            st.bar.close()
+
+
+#: the on-policy agents whose seeds batch on the model env (OnPolicySeedBatch)
+ON_POLICY = ("ppo", "moc")
+
+
+def _on_policy_model_env(cfg: Mapping) -> bool:
+    from .setting import ModelEnvSetting, setting_of
+
+    return cfg["algo"]["name"] in ON_POLICY and isinstance(setting_of(cfg), ModelEnvSetting)
+
+
+def _train_batched_on_model_env(lanes: list[_Lane], remaining: int) -> None:
+    """The seeds' on-policy agents on one model env of ``N * E`` envs (seed ``i``'s: ``i * E .. (i + 1) * E - 1``), their
+    policies run as one (:class:`~torchrl_offhrl.agents.seeds.SeedBatchedPolicy`), their updates as one
+    (:class:`~torchrl_offhrl.agents.seeds.OnPolicySeedBatch`); each seed's part of a batch is accounted to its own run.
+
+    The collection's draws (actions, options, the env's start states and members) come from one stream for all seeds,
+    not from each seed's own: the seeds' runs are runs of the same config, not replays of separate ones.
+    """
+    from ..agents.seeds import OnPolicySeedBatch
+    from .config import acts_in_latent_space
+    from .pipeline import make_model_env
+    from .sources import env_collector
+
+    n = len(lanes)
+    hashes = {lane.r.run.data_hash for lane in lanes}
+    if len(hashes) != 1:
+        raise ValueError("the seeds' runs read different data; they cannot share one model env")
+    dirs = {lane.r.setting.model_info["model_dir"] for lane in lanes}
+    if len(dirs) != 1:
+        raise ValueError(f"the seeds' runs use different models ({sorted(map(str, dirs))}); they cannot share one model env")
+    p = lanes[0].r.setting.parts
+    agents = [lane.r.setting.agent for lane in lanes]
+    batch = OnPolicySeedBatch(agents, generators=[lane.rng for lane in lanes])
+    latent = acts_in_latent_space(p.cfg)
+    per_seed = int(p.rc.collector.num_envs)
+    env = make_model_env(p.pcfg, p.ensemble, p.cvae if latent else None, p.data, batch_size=n * per_seed, latent=latent)
+    p.add_reward_transforms(agents[0].attach(env))
+    env.set_seed(p.rc.seed + lanes[0].r.run.frames)
+
+    class _Collects:  # what env_collector reads of an agent
+        policy = batch.policy
+        frames_per_batch = n * agents[0].frames_per_batch
+        init_random_frames = 0
+
+    phases = [lane.r.setting.phases[0] for lane in lanes]
+    progress = [lane.r.loop.start(phase) for lane, phase in zip(lanes, phases)]
+    collector = env_collector(env, _Collects, n * remaining, frames_done=lanes[0].r.run.frames, device=p.device)
+    try:
+        for data in collector:
+            t0 = time.time()
+            run0 = lanes[0].r.run
+            batch.worker.set_progress((run0.step - phases[0].start) / phases[0].total)
+            metrics = batch.update(data)
+            dt = (time.time() - t0) / n
+            parts = data.reshape(n, per_seed, *data.batch_size[1:])
+            if any(lane.r.loop.evaluation_due(st, phase, parts[0].numel()) for lane, st, phase in zip(lanes, progress, phases)):
+                batch.sync()  # the evaluations and checkpoints act with each seed's own agent
+            done = []
+            for i, (lane, st, phase) in enumerate(zip(lanes, progress, phases)):
+                lane.r.loop.timing["update_time_s"] += dt
+                with lane:
+                    done.append(lane.r.loop.account(st, phase, parts[i], metrics[i]))
+            if all(done):
+                break
+    finally:
+        collector.shutdown()
+        env.close()
         batch.sync()
         for st in progress:
             st.bar.close()

@@ -62,6 +62,7 @@ class Setting:
     t_models: float
     device: torch.device
     closers: list = field(default_factory=list)  # the real envs to close at the end
+    parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
 
     def close(self) -> None:
         for e in self.closers:
@@ -408,4 +409,6 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
     parts = Parts(cfg=cfg, rc=rc, run_path=Path(run_path), device=torch.device(cfg.get("device", "cpu")), stacking=stacking, data=data, n_goals=n_goals,
                   level=data.metadata.get("level"), pcfg=pcfg, ensemble=ensemble, cvae=cvae, model_info=model_info, t_data=t_data, t_models=t_models,
                   snapshots=snapshots)
-    return kind.build(parts)
+    setting = kind.build(parts)
+    setting.parts = parts
+    return setting
