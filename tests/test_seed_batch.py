@@ -359,3 +359,13 @@ def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path):
     more = train_seeds(cfg(tmp_path / "bat", "train.total_frames=192"), [4, 5], progress=False)
     assert [s["frames"] for s in more] == [192, 192]
     assert [x["frames"] for x in json.loads((Path(more[1]["run_dir"]) / "evals.json").read_text())] == [0, 64, 128, 192]
+    # a results script's own per-seed configs (run directories it names) batch alike; configs that differ otherwise do not
+    from torchrl_offhrl.recipes.seed_runs import RunsApart, train_seed_configs
+    from torchrl_offhrl.utils import to_plain
+
+    named = [to_plain(cfg(tmp_path / "named", f"seed={s}", f"run_dir={tmp_path / 'named' / f'moc-seed{s}'}")) for s in (4, 5)]
+    with pytest.raises(ValueError, match=r"differ beyond seed and run_dir \(\['algo'\]\)"):
+        train_seed_configs([named[0], {**named[1], "algo": {**named[1]["algo"], "lr": 1e-3}}])
+    train(named[0], progress=False)  # seed 4 finished alone: the two runs stand apart
+    with pytest.raises(RunsApart, match="different steps"):
+        train_seed_configs(named, progress=False)

@@ -38,7 +38,11 @@ from .config import learns_from_dataset
 from .schema import validate_config
 from .sources import dataset_replay_buffer
 
-__all__ = ["seed_configs", "train_seeds"]
+__all__ = ["RunsApart", "batchable", "seed_configs", "train_seed_configs", "train_seeds"]
+
+
+class RunsApart(ValueError):
+    """The seeds' runs stand at different steps (resumed from different points): they cannot take one batch."""
 
 
 def seed_configs(cfg: Mapping, seeds: Sequence[int]) -> list[dict]:
@@ -76,9 +80,28 @@ class _Lane:
 
 def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> list[dict]:
     """Train one run per seed, the updates of all seeds batched (:class:`~torchrl_offhrl.agents.seeds.SeedBatch`); each run's summary."""
+    return train_seed_configs(seed_configs(cfg, seeds), progress=progress)
+
+
+def batchable(cfg: Mapping) -> bool:
+    """Whether a config's seeds can train as one batch (:func:`train_seed_configs`)."""
+    return learns_from_dataset(cfg) or _on_policy_model_env(cfg)
+
+
+def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> list[dict]:
+    """:func:`train_seeds` on given per-seed configs (e.g. each with the run directory a results script names): they must
+    be one config but for ``seed`` and ``run_dir``."""
     from .train import PreparedRun, run_directory  # the one-run steps, shared
 
-    configs = seed_configs(cfg, seeds)
+    configs = [to_plain(c) for c in configs]
+    if not configs:
+        raise ValueError("train_seed_configs: no configs")
+    rest = [{k: v for k, v in c.items() if k not in ("seed", "run_dir")} for c in configs]
+    if any(r != rest[0] for r in rest[1:]):
+        differ = sorted({k for r in rest[1:] for k in r.keys() | rest[0].keys() if r.get(k) != rest[0].get(k)})
+        raise ValueError(f"the seeds' configs differ beyond seed and run_dir ({differ}): they cannot train as one batch")
+    if len({c.get("seed") for c in configs}) != len(configs):
+        raise ValueError(f"the seeds' configs need distinct seeds, got {[c.get('seed') for c in configs]}")
     for c in configs:
         validate_config(c)
     on_dataset = learns_from_dataset(configs[0])
@@ -102,7 +125,7 @@ def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> li
             lanes.append(lane)
         steps = {lane.remaining for lane in lanes}
         if len(steps) != 1:
-            raise ValueError(f"the seeds' runs stand at different steps ({[lane.r.run.step for lane in lanes]}): resume them one by one "
+            raise RunsApart(f"the seeds' runs stand at different steps ({[lane.r.run.step for lane in lanes]}): resume them one by one "
                              "(offhrl train seed=S) to the same step, or start the batch in new run directories")
         remaining = steps.pop()
         if remaining > 0:

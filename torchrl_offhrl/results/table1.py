@@ -157,36 +157,57 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
 
 
 def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",), tuning: bool = False,
-        speed: list[str] = ()) -> None:
+        speed: list[str] = (), batch_seeds: bool = False) -> None:
     """Every (dataset, env, algo, seed) run in turn. ``speed``: overrides that must not change the run (e.g. ``device=cuda``,
-    ``algo.cudagraphs=true``): each run's resume fingerprint is checked to be the same with them and without."""
-    from ..agents import agent_defaults
-    from ..recipes.config import compose, config_fingerprint
+    ``algo.cudagraphs=true``): each run's resume fingerprint is checked to be the same with them and without.
+    ``batch_seeds``: the seeds of an (env, dataset, algo) whose seeds can batch (:func:`~torchrl_offhrl.recipes.seed_runs.batchable`)
+    train as one computation, each still its own run directory; the others go seed by seed."""
+    from ..recipes.seed_runs import RunsApart, batchable, train_seed_configs
     from ..recipes.train import train
-    from ..utils import to_plain
 
     where = folder(scale, tuning)
     for env, dataset in ((e, d) for d in datasets for e in envs):
         for algo in algos:
-            for seed in seeds:
-                overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
-                             f"run_dir={run_dir(where, env, algo, seed, dataset)}", *BUDGET[scale]]
-                cfg = compose(CONFIG[scale], overrides)
-                if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
-                    overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
-                elif "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
-                    overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
-                cfg = to_plain(compose(CONFIG[scale], overrides))
-                if speed:
-                    fast = to_plain(compose(CONFIG[scale], [*overrides, *speed]))
-                    if config_fingerprint(fast) != config_fingerprint(cfg):
-                        raise SystemExit(f"--speed {' '.join(speed)}: these overrides change the run itself (its resume fingerprint), "
-                                         "not only how fast it goes; only settings such as device=cuda, algo.compile, algo.cudagraphs, "
-                                         "torch_threads belong there")
-                    cfg = fast
-                s = train(cfg)
-                archive(where)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
+            configs = [_run_config(scale, where, env, dataset, algo, seed, speed) for seed in seeds]
+            summaries = None
+            if batch_seeds and len(configs) > 1 and batchable(configs[0]):
+                try:
+                    summaries = train_seed_configs(configs)
+                except RunsApart as e:  # some seeds' runs stand further than others (e.g. finished): seed by seed
+                    print(f"{where} {env}-{dataset} {algo}: {e}; seed by seed instead", flush=True)
+                else:
+                    archive(where)
+            if summaries is None:
+                summaries = []
+                for cfg in configs:
+                    summaries.append(train(cfg))
+                    archive(where)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
+            for seed, s in zip(seeds, summaries):
                 print(f"{where} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
+
+
+def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed: int, speed: list[str]) -> dict:
+    """The config of one Table I run (``speed``: checked not to change it)."""
+    from ..agents import agent_defaults
+    from ..recipes.config import compose, config_fingerprint
+    from ..utils import to_plain
+
+    overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
+                 f"run_dir={run_dir(where, env, algo, seed, dataset)}", *BUDGET[scale]]
+    cfg = compose(CONFIG[scale], overrides)
+    if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
+        overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
+    elif "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
+        overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
+    cfg = to_plain(compose(CONFIG[scale], overrides))
+    if speed:
+        fast = to_plain(compose(CONFIG[scale], [*overrides, *speed]))
+        if config_fingerprint(fast) != config_fingerprint(cfg):
+            raise SystemExit(f"--speed {' '.join(speed)}: these overrides change the run itself (its resume fingerprint), "
+                             "not only how fast it goes; only settings such as device=cuda, algo.compile, algo.cudagraphs, "
+                             "torch_threads belong there")
+        cfg = fast
+    return cfg
 
 
 # why a cell of the full-scale table has fewer than 3 seeds (paper_table's "Missing cells"; keys "<row>" or "<row>:<algo>")
@@ -293,6 +314,10 @@ def main(argv=None) -> int:
     r.add_argument("--tuning", action="store_true", help="runs on tuning seeds (default 1 2 3), kept apart: outputs/results/<scale>_tuning/")
     r.add_argument("--speed", nargs="+", default=[], metavar="KEY=VALUE",
                    help="overrides that change how fast, not what, a run trains (refused otherwise): e.g. device=cuda algo.cudagraphs=true")
+    r.add_argument("--batch-seeds", action="store_true",
+                   help="train the seeds of an algorithm as one computation where they batch (the dataset agents; ppo and moc on the "
+                        "model env: one env of N x E envs), each seed still its own run; a batch resumes only when its runs stand at "
+                        "the same step, else they go seed by seed")
     g = sub.add_parser("report")
     g.add_argument("--scale", choices=sorted(CONFIG), default="demo")
     g.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/<scale>_tuning/README.md")
@@ -301,7 +326,7 @@ def main(argv=None) -> int:
         seeds = a.seeds if a.seeds is not None else [1, 2, 3] if a.tuning else [4, 5, 6, 7, 8]
         if a.tuning and any(s >= FIRST_EVAL_SEED for s in seeds):
             raise SystemExit("--tuning runs use the tuning seeds; seeds 4 and up are the evaluation seeds of docs/results/<scale>/")
-        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning, a.speed)
+        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning, a.speed, batch_seeds=a.batch_seeds)
     else:
         print(report(a.scale, a.tuning))
     return 0
