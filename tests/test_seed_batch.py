@@ -214,6 +214,14 @@ def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cac
         seed_configs({}, [4, 4])
     with pytest.raises(NotImplementedError, match="one seed per run"):
         train_seeds(compose("offline_train", ["algo=sac", f"dataset={hopper_file}"]), [4, 5])
+    from torchrl_offhrl.recipes.seed_runs import batchable, refusal
+    from torchrl_offhrl.utils import to_plain
+
+    # refused from the config, before any run is prepared: MOReL's KL-penalised PPO, MOC's policy average, a compiled loss
+    assert "loss_type=kl" in refusal(to_plain(compose("offline_train", ["algo=morel", f"dataset={hopper_file}"])))
+    assert "policy_ema" in refusal(to_plain(compose("offline_train", ["algo=moc", "algo.policy_ema=0.1", f"dataset={hopper_file}"])))
+    assert "compile" in refusal(to_plain(compose("offline_train", ["algo=iql", "algo.compile=true", f"dataset={hopper_file}"])))
+    assert batchable(to_plain(compose("offline_train", ["algo=ppo", f"dataset={hopper_file}"])))
 
 
 # ------------------------------------------------------------------ on-policy agents (PPO, MOC) on an env
@@ -277,6 +285,7 @@ def test_on_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
             torch.set_rng_state(state)
             want.append(a.update(data[i].clone()))
         for g, w in zip(got, want):
+            assert set(g) == set(w)  # every metric a single run logs (PPO's explained_variance is [1] per seed)
             assert g["updates"] == w["updates"] == 2 * (E_ON * T_ON // 8)
             for k in ("train/loss_objective", "train/loss_critic"):
                 assert g[k] == pytest.approx(w[k], rel=1e-6, abs=1e-9), (k, g[k], w[k])
@@ -322,6 +331,11 @@ def test_seed_batched_policy_acts_as_each_seed_s_policy(env, name):
         batched.policy(step[:4].clone())
     with pytest.raises(TypeError, match="on-policy agents"):
         OnPolicySeedBatch([build(env, "bc", 4), build(env, "bc", 5)])
+    if name == "ppo":  # PPO's adaptive KL penalty (MOReL's trust region) adapts its coefficient with data-dependent control flow
+        torch.manual_seed(0)
+        kl = [make_agent("ppo", env, {"hidden_sizes": [16, 16], "loss_type": "kl"}, action_key="action") for _ in range(2)]
+        with pytest.raises(NotImplementedError, match="KLPENPPOLoss"):
+            OnPolicySeedBatch(kl)
     assert isinstance(env, TransformedEnv) or True
 
 

@@ -60,7 +60,13 @@ __all__ = ["OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_nor
 #: TorchRL losses that cannot run under ``torch.vmap``, and why
 _NOT_VMAPPABLE = {"CQLLoss": "reads its parameters' .data inside the loss (log_alpha, the actor's and critics' weights for its "
                              "sampled actions), which torch.vmap forbids (torchrl_offhrl.agents.cql.BatchableCQLLoss is the same "
-                             "loss without it: the CQL agent's)"}
+                             "loss without it: the CQL agent's)",
+                 "KLPENPPOLoss": "adapts its KL coefficient with data-dependent control flow (if kl > 1.5 x target: beta *= 2), which "
+                                 "torch.vmap refuses (algo.loss_type=kl, MOReL's trust region)"}
+
+#: leaf names of buffers that are constants of a run, kept unstacked when every seed holds the same values (an action
+#: box, the data's observation statistics); any other tensor is stacked per seed, even when the seeds hold it alike
+_CONSTANT_LEAVES = ("low", "high", "loc", "scale")
 
 
 def _flat_params(opt: torch.optim.Optimizer) -> list:
@@ -192,7 +198,8 @@ class SeedBatch:
             raise NotImplementedError(f"SeedBatch: {type(agents[0]).__name__}'s loss ({type(agents[0].loss).__name__}) "
                                       f"{_NOT_VMAPPABLE[type(agents[0].loss).__name__]}; train its seeds as separate runs")
         if any(getattr(a, "compile", False) or getattr(a, "cudagraphs", False) for a in agents):
-            raise ValueError("SeedBatch: build the agents with compile=False and cudagraphs=False (the vmapped update is not compiled yet)")
+            raise ValueError(f"{type(self).__name__}: build the agents with compile=False and cudagraphs=False (the vmapped update is "
+                             "not compiled yet)")
         self.agents, self.n = agents, len(agents)
         self.randomness = randomness
         self.generators = list(generators) if generators is not None else [torch.Generator().manual_seed(i) for i in range(self.n)]
@@ -259,7 +266,8 @@ class SeedBatch:
             for k in self._keys:
                 ts = [p.get(k).detach() for p in per]
                 name = k if isinstance(k, str) else ".".join(k)
-                if (not isinstance(per[0].get(k), torch.nn.Parameter) and "target_" not in name
+                leaf = k if isinstance(k, str) else k[-1]
+                if (leaf in _CONSTANT_LEAVES and not isinstance(per[0].get(k), torch.nn.Parameter) and "target_" not in name
                         and all(t.shape == ts[0].shape and torch.equal(t, ts[0]) for t in ts[1:])):
                     self._shared.add(k)
                     w.get(k).data = ts[0].clone()
@@ -442,9 +450,10 @@ class OnPolicySeedBatch(SeedBatch):
     agent_kinds = "on-policy agents (PPO, MOC)"
 
     def __init__(self, agents: Sequence[OnPolicyAgent], randomness: str = "different", generators: Sequence[torch.Generator] | None = None):
-        if any(getattr(a, "averaged_policy", None) is not None for a in agents):
-            raise NotImplementedError("OnPolicySeedBatch: MOC's policy_ema (an averaged copy of the policy) is not batched yet; train its "
-                                      "seeds as separate runs")
+        if agents:
+            why = self.refusal(agents[0])
+            if why:
+                raise NotImplementedError(f"OnPolicySeedBatch: {why}; train its seeds as separate runs")
         super().__init__(agents, randomness=randomness, generators=generators)
         w = self.worker
         w.batch_loss = self._vmapped_loss_fn()
@@ -456,6 +465,28 @@ class OnPolicySeedBatch(SeedBatch):
             est.value_network = None
             self._estimator = est
         self._policy = None
+
+    @staticmethod
+    def refusal(agent) -> str | None:
+        """Why ``agent``'s seeds cannot batch here (None: they can): what this batch does not reproduce of its update."""
+        from .moc import MOCAgent
+
+        if not isinstance(agent, OnPolicyAgent):
+            return None  # not this batch's kind at all: the class check says so
+        loss = getattr(agent, "loss", None)
+        if type(loss).__name__ in _NOT_VMAPPABLE:
+            return f"its loss ({type(loss).__name__}) {_NOT_VMAPPABLE[type(loss).__name__]}"
+        if getattr(agent, "averaged_policy", None) is not None:
+            return "MOC's policy_ema (an averaged copy of the policy) is not batched yet"
+        if getattr(loss, "functional", False) and type(agent).prepare is OnPolicyAgent.prepare:
+            return "a functional TorchRL loss (algo.functional=true) swaps its critic's weights in only inside its own call"
+        if type(agent).update not in (OnPolicyAgent.update, MOCAgent.update):
+            return f"{type(agent).__name__} overrides update(), which the batch would skip"
+        if type(agent).prepare not in (OnPolicyAgent.prepare, MOCAgent.prepare):
+            return f"{type(agent).__name__} overrides prepare(), which the batch would skip"
+        if getattr(agent, "compile", False):
+            return "algo.compile is set (the vmapped update is not compiled yet)"
+        return None
 
     @property
     def policy(self) -> SeedBatchedPolicy:
@@ -505,7 +536,7 @@ class OnPolicySeedBatch(SeedBatch):
                 new = prepare(batch.copy(), False)
             else:
                 new = self._vmapped_loss_fn("prepare_batch")(batch.copy())
-            batch.update(new.exclude(*batch.keys()))
+            batch.update(new)  # every entry the preparation wrote, nested ones included
             return
         est = w.loss.value_estimator
         critic, key = est.value_network, est.tensor_keys.value
@@ -545,9 +576,9 @@ class OnPolicySeedBatch(SeedBatch):
                 if w.max_grad_norm:
                     clip_grad_norm_per_seed_(params, w.max_grad_norm)
                 w.optimizer.step()
-                for k, v in out.items():
-                    if isinstance(v, torch.Tensor) and v.shape == torch.Size([n]):
-                        v = v.detach().double()
+                for k, v in out.items():  # one element per seed, as a single run's MetricMeans keeps one element
+                    if isinstance(v, torch.Tensor) and v.numel() == n and v.shape[:1] == torch.Size([n]):
+                        v = v.detach().reshape(n).double()
                         sums[k] = sums[k] + v if k in sums else v
                 count += 1
         w.finish_update(flat)

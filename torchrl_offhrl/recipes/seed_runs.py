@@ -38,7 +38,7 @@ from .config import learns_from_dataset
 from .schema import validate_config
 from .sources import dataset_replay_buffer
 
-__all__ = ["RunsApart", "batchable", "seed_configs", "train_seed_configs", "train_seeds"]
+__all__ = ["RunsApart", "batchable", "refusal", "seed_configs", "train_seed_configs", "train_seeds"]
 
 
 class RunsApart(ValueError):
@@ -84,8 +84,28 @@ def train_seeds(cfg: Mapping, seeds: Sequence[int], progress: bool = True) -> li
 
 
 def batchable(cfg: Mapping) -> bool:
-    """Whether a config's seeds can train as one batch (:func:`train_seed_configs`)."""
-    return learns_from_dataset(cfg) or _on_policy_model_env(cfg)
+    """Whether a config's seeds can train as one batch (:func:`train_seed_configs`; :func:`refusal` says why not)."""
+    return refusal(cfg) is None
+
+
+def refusal(cfg: Mapping) -> str | None:
+    """Why a config's seeds cannot train as one batch (None: they can), known from the config before any run is prepared."""
+    algo = cfg["algo"]
+    if algo.get("compile") or algo.get("cudagraphs"):
+        return "algo.compile / algo.cudagraphs are set (the vmapped update is not compiled yet)"
+    if learns_from_dataset(cfg):
+        return None
+    if not _on_policy_model_env(cfg):
+        return (f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) and the on-policy agents on the "
+                f"model env (ppo, moc; offline, one phase) for now; algo={algo['name']} "
+                f"{'in this setting ' if algo['name'] in ON_POLICY else ''}runs one seed per run")
+    if algo.get("loss_type", "clip") != "clip":
+        return f"algo.loss_type={algo.get('loss_type')} (PPO's adaptive KL penalty adapts its coefficient with data-dependent control flow)"
+    if algo.get("policy_ema") is not None:
+        return "algo.policy_ema (MOC's averaged copy of the policy) is not batched yet"
+    if algo.get("functional"):
+        return "algo.functional=true (a functional TorchRL loss swaps its critic's weights in only inside its own call)"
+    return None
 
 
 def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> list[dict]:
@@ -105,11 +125,9 @@ def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> lis
     for c in configs:
         validate_config(c)
     on_dataset = learns_from_dataset(configs[0])
-    if not on_dataset and not _on_policy_model_env(configs[0]):
-        raise NotImplementedError(f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) and the on-policy "
-                                  f"agents on the model env (ppo, moc; offline, one phase) for now; algo={configs[0]['algo']['name']} "
-                                  f"{'in this setting ' if configs[0]['algo']['name'] in ON_POLICY else ''}runs one seed per run "
-                                  "(offhrl train seed=S, or offhrl sweep)")
+    why = refusal(configs[0])
+    if why:
+        raise NotImplementedError(f"{why}: train its seeds one per run (offhrl train seed=S, or offhrl sweep)")
     with ExitStack() as stack:
         lanes = []
         for c in configs:
@@ -129,6 +147,9 @@ def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> lis
                              "(offhrl train seed=S) to the same step, or start the batch in new run directories")
         remaining = steps.pop()
         if remaining > 0:
+            # the batch's own stream (draws inside the vmapped losses, the collection), seeded from the seeds and the step:
+            # not the last lane's stream, which its own bookkeeping reads
+            torch.manual_seed(_batch_seed([c["seed"] for c in configs], lanes[0].r.run.step))
             (_train_batched if on_dataset else _train_batched_on_model_env)(lanes, remaining)
         summaries = []
         for lane in lanes:
@@ -173,6 +194,18 @@ def _train_batched(lanes: list[_Lane], remaining: int) -> None:
 ON_POLICY = ("ppo", "moc")
 
 
+def _batch_seed(seeds: Sequence[int], step: int) -> int:
+    """A seed for a batch's shared random stream, from its runs' seeds and the step it (re)starts at.
+
+    Examples:
+        >>> _batch_seed([4, 5], 0) == _batch_seed([4, 5], 0) != _batch_seed([4, 5], 2048)
+        True
+    """
+    import numpy as np
+
+    return int(np.random.SeedSequence([*map(int, seeds), int(step)]).generate_state(1)[0])
+
+
 def _on_policy_model_env(cfg: Mapping) -> bool:
     from .setting import ModelEnvSetting, setting_of
 
@@ -204,7 +237,8 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int) -> None:
     batch = OnPolicySeedBatch(agents, generators=[lane.rng for lane in lanes])
     latent = acts_in_latent_space(p.cfg)
     per_seed = int(p.rc.collector.num_envs)
-    env = make_model_env(p.pcfg, p.ensemble, p.cvae if latent else None, p.data, batch_size=n * per_seed, latent=latent)
+    env = make_model_env(p.pcfg, p.ensemble, p.cvae if latent else None, p.data, batch_size=n * per_seed, latent=latent,
+                         threshold=lanes[0].r.setting.threshold)  # the runs' own threshold, not calibrated again
     p.add_reward_transforms(agents[0].attach(env))
     env.set_seed(p.rc.seed + lanes[0].r.run.frames)
 

@@ -77,8 +77,10 @@ NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the conf
                   "episodes branched from any dataset state, the last policy returned), each evaluation 30 deterministic and 30 sampled "
                   "episodes from the same start states, on one 100k dataset per env (dataset seed 0) generated on this machine: they "
                   "replace the rows that were rebuilt from an earlier page (`runs/legacy.json`, measured on an earlier dataset, "
-                  "behaviour 37.0) and nothing was chosen by looking at them. `MOC, 1 option` (`algo=moc_1opt`), the options "
-                  "ablation, has no runs yet: `offhrl results table1 run --scale demo --envs hopper --algos moc_1opt`. The `MOReL-style (old)` column is still the earlier page's record "
+                  "behaviour 37.0) and nothing was chosen by looking at them. The options ablations ran on hopper-medium, "
+                  "seeds 4-8, the same day, data and budget: `MOC, 1 option` (`algo=moc_1opt`: no choice between options) and `PPOC "
+                  "(eta 0)` (`algo=ppoc`: MOC updating only the option that ran), `offhrl results table1 run --scale demo --envs hopper "
+                  "--algos moc_1opt ppoc`. The `MOReL-style (old)` column is still the earlier page's record "
                   "(`*`): a config that no longer exists (PPO in real actions from a random policy, threshold max / 3; "
                   "`configs/algo/morel.yaml` now follows MOReL's code), first run on hopper seeds 4-5 with a HALT penalty of 100 "
                   "and then with the env group's penalty.")}
@@ -173,7 +175,7 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
             if batch_seeds and len(configs) > 1 and batchable(configs[0]):
                 try:
                     summaries = train_seed_configs(configs)
-                except RunsApart as e:  # some seeds' runs stand further than others (e.g. finished): seed by seed
+                except (RunsApart, NotImplementedError) as e:  # runs standing apart (e.g. some finished), or a batch it cannot take
                     print(f"{where} {env}-{dataset} {algo}: {e}; seed by seed instead", flush=True)
                 else:
                     archive(where)
