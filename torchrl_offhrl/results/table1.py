@@ -80,7 +80,8 @@ NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the conf
                   "behaviour 37.0) and nothing was chosen by looking at them. The options ablations ran on hopper-medium, "
                   "seeds 4-8, the same day, data and budget: `MOC, 1 option` (`algo=moc_1opt`: no choice between options) and `PPOC "
                   "(eta 0)` (`algo=ppoc`: MOC updating only the option that ran), `offhrl results table1 run --scale demo --envs hopper "
-                  "--algos moc_1opt ppoc`. The `MOReL-style (old)` column is still the earlier page's record "
+                  "--algos moc_1opt ppoc`; on halfcheetah-medium with `--batch-seeds` (each algorithm's five seeds as one computation "
+                  "on one model env of 5 x 64 envs, each seed still its own run: the same untrained agents, other collection draws). The `MOReL-style (old)` column is still the earlier page's record "
                   "(`*`): a config that no longer exists (PPO in real actions from a random policy, threshold max / 3; "
                   "`configs/algo/morel.yaml` now follows MOReL's code), first run on hopper seeds 4-5 with a HALT penalty of 100 "
                   "and then with the env group's penalty.")}
