@@ -473,9 +473,8 @@ class OnPolicySeedBatch(SeedBatch):
 
         if not isinstance(agent, OnPolicyAgent):
             return None  # not this batch's kind at all: the class check says so
+        # (a loss torch.vmap cannot run, and compiled agents, are refused by SeedBatch's own checks)
         loss = getattr(agent, "loss", None)
-        if type(loss).__name__ in _NOT_VMAPPABLE:
-            return f"its loss ({type(loss).__name__}) {_NOT_VMAPPABLE[type(loss).__name__]}"
         if getattr(agent, "averaged_policy", None) is not None:
             return "MOC's policy_ema (an averaged copy of the policy) is not batched yet"
         if getattr(loss, "functional", False) and type(agent).prepare is OnPolicyAgent.prepare:
@@ -484,8 +483,6 @@ class OnPolicySeedBatch(SeedBatch):
             return f"{type(agent).__name__} overrides update(), which the batch would skip"
         if type(agent).prepare not in (OnPolicyAgent.prepare, MOCAgent.prepare):
             return f"{type(agent).__name__} overrides prepare(), which the batch would skip"
-        if getattr(agent, "compile", False):
-            return "algo.compile is set (the vmapped update is not compiled yet)"
         return None
 
     @property
@@ -522,25 +519,22 @@ class OnPolicySeedBatch(SeedBatch):
     def _prepare(self, batch: TensorDictBase) -> None:
         """Each seed's advantage (and whatever else its agent's :meth:`prepare` writes) into the ``[N, E, T]`` batch."""
         w = self.worker
+        loss = w.loss
+        est = loss.value_estimator
         if self._estimator is None:
-            est = w.loss.value_estimator
+            prepare = self._vmapped_loss_fn("prepare_batch")
             if hasattr(est, "gae_inputs"):  # an estimator split in two (OptionGAE): networks per seed, one recursion for all
-                loss = w.loss
-
                 def inputs(params, td):
                     with params.to_module(loss):
                         return est.gae_inputs(td)
 
                 est.write(batch, *est.advantage_from_inputs(torch.vmap(inputs, (0, 0))(self._params, batch), time_dim=batch.ndim - 1))
-                prepare = self._vmapped_loss_fn("prepare_batch")
                 new = prepare(batch.copy(), False)
             else:
-                new = self._vmapped_loss_fn("prepare_batch")(batch.copy())
+                new = prepare(batch.copy())
             batch.update(new)  # every entry the preparation wrote, nested ones included
             return
-        est = w.loss.value_estimator
         critic, key = est.value_network, est.tensor_keys.value
-        loss = w.loss
 
         def values(params, td):
             with params.to_module(loss):
@@ -585,7 +579,3 @@ class OnPolicySeedBatch(SeedBatch):
         means = {k: (v / max(count, 1)).tolist() for k, v in sums.items()}
         return [{**{f"train/{k}": vals[i] for k, vals in means.items()}, "updates": count} for i in range(n)]
 
-
-def _tensors(module) -> list[torch.Tensor]:
-    td = TensorDict.from_module(module, as_module=False)
-    return [td.get(k) for k in td.keys(True, True)]

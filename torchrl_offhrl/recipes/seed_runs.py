@@ -165,30 +165,39 @@ def _train_batched(lanes: list[_Lane], remaining: int) -> None:
         raise ValueError("the seeds' runs read different data; they cannot share updates")
     batch = SeedBatch([lane.r.setting.agent for lane in lanes], generators=[lane.rng for lane in lanes])
     rb = dataset_replay_buffer(first.data, first.agent, first.device)
+    _drive(lanes, batch, (batch.sample(rb) for _ in range(remaining)), lambda data: data)
+
+
+def _drive(lanes: list[_Lane], batch, source, split) -> None:
+    """The seeds' training loop: each batch of ``source`` is one update of ``batch`` (a seeds' batch), and ``split(data)[i]``
+    is accounted to lane ``i``'s run (its counters, logs, evaluations and checkpoints, with its own RNG stream in place);
+    the agents are synced before any evaluation and at the end. Timed as the single-run loop times an update: from the
+    batch's arrival."""
     phases = [lane.r.setting.phases[0] for lane in lanes]
     progress = [lane.r.loop.start(phase) for lane, phase in zip(lanes, phases)]
+    per_update = lanes[0].r.run.unit == "updates"
     try:
-        for _ in range(remaining):
+        for data in source:
             t0 = time.time()
             run0 = lanes[0].r.run
             batch.worker.set_progress((run0.step - phases[0].start) / phases[0].total)
-            data = batch.sample(rb)
             metrics = batch.update(data)
             dt = (time.time() - t0) / len(lanes)
-            if any(lane.r.loop.evaluation_due(st, phase) for lane, st, phase in zip(lanes, progress, phases)):
+            parts = split(data)
+            steps = 1 if per_update else parts[0].numel()
+            if any(lane.r.loop.evaluation_due(st, phase, steps) for lane, st, phase in zip(lanes, progress, phases)):
                 batch.sync()  # the evaluations and checkpoints act with each seed's own agent
             done = []
             for i, (lane, st, phase) in enumerate(zip(lanes, progress, phases)):
                 lane.r.loop.timing["update_time_s"] += dt
                 with lane:
-                    done.append(lane.r.loop.account(st, phase, data[i], metrics[i]))
+                    done.append(lane.r.loop.account(st, phase, parts[i], metrics[i]))
             if all(done):
                 break
     finally:
         batch.sync()
         for st in progress:
             st.bar.close()
-
 
 #: the on-policy agents whose seeds batch on the model env (OnPolicySeedBatch)
 ON_POLICY = ("ppo", "moc")
@@ -247,29 +256,9 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int) -> None:
         frames_per_batch = n * agents[0].frames_per_batch
         init_random_frames = 0
 
-    phases = [lane.r.setting.phases[0] for lane in lanes]
-    progress = [lane.r.loop.start(phase) for lane, phase in zip(lanes, phases)]
     collector = env_collector(env, _Collects, n * remaining, frames_done=lanes[0].r.run.frames, device=p.device)
     try:
-        for data in collector:
-            t0 = time.time()
-            run0 = lanes[0].r.run
-            batch.worker.set_progress((run0.step - phases[0].start) / phases[0].total)
-            metrics = batch.update(data)
-            dt = (time.time() - t0) / n
-            parts = data.reshape(n, per_seed, *data.batch_size[1:])
-            if any(lane.r.loop.evaluation_due(st, phase, parts[0].numel()) for lane, st, phase in zip(lanes, progress, phases)):
-                batch.sync()  # the evaluations and checkpoints act with each seed's own agent
-            done = []
-            for i, (lane, st, phase) in enumerate(zip(lanes, progress, phases)):
-                lane.r.loop.timing["update_time_s"] += dt
-                with lane:
-                    done.append(lane.r.loop.account(st, phase, parts[i], metrics[i]))
-            if all(done):
-                break
+        _drive(lanes, batch, collector, lambda data: data.reshape(n, per_seed, *data.batch_size[1:]))
     finally:
         collector.shutdown()
         env.close()
-        batch.sync()
-        for st in progress:
-            st.bar.close()
