@@ -58,8 +58,39 @@ def budget(algo: str, frames: int) -> list[str]:
     return [f"train.total_frames={frames}", f"eval.every_frames={frames // 5}", *extra]
 
 
-def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None = None) -> str:
-    return f"{algo}-{task}-{dataset}" + (f"-{ablation}" if ablation else "") + f"-seed{seed}"
+#: the model-env agents' budget the runs were first made at; a run at another budget says so in its name (``uof.f200k-...``)
+DEFAULT_FRAMES = 40_000
+
+
+def algo_key(algo: str, frames: int = DEFAULT_FRAMES) -> str:
+    """The agent's name in run names and the report's groups: the algorithm, with its budget where it is not the default.
+
+    Examples:
+        >>> algo_key("uof"), algo_key("uof", 200_000), algo_key("bc", 200_000)
+        ('uof', 'uof.f200k', 'bc')
+    """
+    return algo if algo == "bc" or frames == DEFAULT_FRAMES else f"{algo}.f{frames // 1000}k"
+
+
+def label(key: str) -> str:
+    """The report's row label for an agent key (:func:`algo_key`, with an ablation suffix).
+
+    Examples:
+        >>> label("uof"), label("uof.f200k"), label("sac_her-no_cvae")
+        ('UOF (ours)', 'UOF (ours), 200k frames', 'sac_her-no_cvae')
+    """
+    base, _, budget = key.partition(".f")
+    if key in LABELS or base not in LABELS:
+        return LABELS.get(key, key)
+    return f"{LABELS[base]}, {budget} frames"
+
+
+def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None = None, frames: int = DEFAULT_FRAMES) -> str:
+    """Examples:
+        >>> run_name("blockstack2", "medium", "uof", 4), run_name("blockstack2", "medium", "uof", 4, frames=200_000)
+        ('uof-blockstack2-medium-seed4', 'uof.f200k-blockstack2-medium-seed4')
+    """
+    return f"{algo_key(algo, frames)}-{task}-{dataset}" + (f"-{ablation}" if ablation else "") + f"-seed{seed}"
 
 
 def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int, transitions: int) -> None:
@@ -71,7 +102,7 @@ def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int,
     if ablations:
         jobs += [("blockstack2", "medium-expert", "uof", s, ab) for ab in ablations for s in seeds]
     for task, dataset, algo, seed, ab in jobs:
-        name = run_name(task, dataset, algo, seed, ab)
+        name = run_name(task, dataset, algo, seed, ab, frames)
         over = [f"algo={algo}", f"env={task}", f"dataset={dataset}", f"num_transitions={transitions}", f"seed={seed}", f"run_dir={BASE / name}",
                 "torch_threads=1", *budget(algo, frames), *(ABLATIONS[ab] if ab else [])]
         s = train(to_plain(compose("offline_train", over)))
@@ -173,7 +204,7 @@ def report() -> str:
         if meta:
             lines.append(f"| data (behaviour) | | {' / '.join(f'{x:.2f}' for x in meta)} | | |")
         evals_of = {algo: [json.loads((d / "evals.json").read_text()) for d in ds] for algo, ds in algos.items()}  # read once per group
-        for algo, ds in sorted(algos.items(), key=lambda kv: list(LABELS).index(kv[0]) if kv[0] in LABELS else 99):
+        for algo, ds in sorted(algos.items(), key=lambda kv: (list(LABELS).index(kv[0].split('.f')[0]) if kv[0].split('.f')[0] in LABELS else 99, kv[0])):
             evs = evals_of[algo]
             last = [e[-1] for e in evs]
             n = len(last[0]["success_per_goal"])
@@ -181,7 +212,7 @@ def report() -> str:
             c25 = " / ".join(_fmt([r["success_per_goal"][k] for r in last]) for k in range(n))
             c50 = " / ".join(_fmt([r[h50][k] for r in last]) for k in range(n)) if h50 else "n/a"
             best = _fmt([max(e2["success_rate"] for e2 in e if e2.get("step", e2["frames"]) > 0) for e in evs])
-            lines.append(f"| {LABELS.get(algo, algo)} | {len(ds)} | {c25} | {c50} | {best} |")
+            lines.append(f"| {label(algo)} | {len(ds)} | {c25} | {c50} | {best} |")
         lines.append("")
         if verdict := _last_goal_verdict(evals_of):
             lines += [verdict, ""]
@@ -189,7 +220,7 @@ def report() -> str:
         for algo in sorted(algos):
             if algo == "bc":
                 continue  # another x-axis (gradient steps); its final numbers are in the table
-            plot_goal_success(evals_of[algo], None, label=LABELS.get(algo, algo), axes=axes[0], xlabel="model-env frames")
+            plot_goal_success(evals_of[algo], None, label=label(algo), axes=axes[0], xlabel="model-env frames")
         if axes[0][0].get_legend_handles_labels()[0]:  # BC alone draws no curve
             axes[0][0].legend(fontsize=7)
         fig.suptitle(f"{task}, {dataset}: success per goal (horizon 25), mean ± std over seeds", fontsize=9)
@@ -234,7 +265,7 @@ def report() -> str:
     return text
 
 
-def last_goal_comparison(uof: list[float], bc: list[float]) -> str:
+def last_goal_comparison(uof: list[float], bc: list[float], name: str = "UOF") -> str:
     """UOF against BC on a task's last goal (final success at horizon 25, one value per seed): both IQMs with their 95%
     bootstrap CIs and what they show (issue 39 asks for UOF >= BC with CIs that do not overlap). With 3 seeds the IQM
     trims nothing: it is the mean (0.1 / 3 = 0.03 and 1.0 / 3 = 0.33 below).
@@ -248,19 +279,21 @@ def last_goal_comparison(uof: list[float], bc: list[float]) -> str:
     from ..stats import iqm_ci
 
     (mu, lu, hu), (mb, lb, hb) = iqm_ci(uof), iqm_ci(bc)
-    verdict = ("UOF above BC, the CIs apart." if lu > hb else "BC above UOF, the CIs apart." if lb > hu
+    verdict = (f"{name} above BC, the CIs apart." if lu > hb else f"BC above {name}, the CIs apart." if lb > hu
                else "the CIs overlap, no difference shown.")
-    return (f"Last goal, final success at horizon 25: UOF {mu:.2f} [{lu:.2f}, {hu:.2f}] against BC {mb:.2f} [{lb:.2f}, {hb:.2f}]: "
+    return (f"Last goal, final success at horizon 25: {name} {mu:.2f} [{lu:.2f}, {hu:.2f}] against BC {mb:.2f} [{lb:.2f}, {hb:.2f}]: "
             f"{verdict}")
 
 
 def _last_goal_verdict(evals_of: dict) -> str | None:
-    """:func:`last_goal_comparison` for a (task, dataset) group (``algo -> each seed's evaluations``) with 2+ seeds of UOF
-    and of BC, else None."""
-    if len(evals_of.get("uof", [])) < 2 or len(evals_of.get("bc", [])) < 2:
+    """:func:`last_goal_comparison` for a (task, dataset) group (``algo -> each seed's evaluations``): one line per UOF
+    budget (``uof``, ``uof.f200k``, ...) with 2+ seeds, against BC's 2+ seeds; None when there is none."""
+    bc = evals_of.get("bc", [])
+    uofs = sorted(k for k in evals_of if k.split(".f")[0] == "uof" and len(evals_of[k]) >= 2)
+    if len(bc) < 2 or not uofs:
         return None
-    last = {a: [evs[-1]["success_per_goal"][-1] for evs in evals_of[a]] for a in ("uof", "bc")}
-    return last_goal_comparison(last["uof"], last["bc"])
+    last = lambda evs: [e[-1]["success_per_goal"][-1] for e in evs]  # noqa: E731
+    return "\n\n".join(last_goal_comparison(last(evals_of[k]), last(bc), name=label(k).replace(" (ours)", "")) for k in uofs)
 
 
 def _dataset_success(algos: dict) -> list[float] | None:
@@ -284,7 +317,8 @@ def main(argv=None) -> int:
     r.add_argument("--ablations", nargs="*", choices=sorted(ABLATIONS), default=None,
                    help="UOF ablations on task 1 medium-expert (no names: all three)")
     r.add_argument("--no-main", action="store_true", help="only the ablations, not the --algos runs")
-    r.add_argument("--frames", type=int, default=40_000)
+    r.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
+                   help="model-env frames of UOF and SAC + HER; runs at another budget than 40k carry it in their names (uof.f200k-...)")
     r.add_argument("--transitions", type=int, default=100_000)
     sub.add_parser("report")
     a = p.parse_args(argv)
