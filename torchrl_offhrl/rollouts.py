@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-__all__ = ["evaluate_policy", "first_episode_mask", "full_reset_mask"]
+__all__ = ["evaluate_policy", "first_episode_mask", "first_episodes_rollout", "full_reset_mask"]
 
 
 def first_episode_mask(done: torch.Tensor) -> torch.Tensor:
@@ -23,7 +23,8 @@ def first_episode_mask(done: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, deterministic: bool = True, seed: int | None = None, return_rollout: bool = False):
+def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, deterministic: bool = True, seed: int | None = None, return_rollout: bool = False,
+                    stop_early: bool = True):
     """Returns of the first episode of each of ``env``'s parallel envs.
 
     ``env`` is a batched TorchRL env with ``batch_size=[episodes]`` (e.g.
@@ -34,6 +35,15 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     ``seed``, the policy's samples are drawn from torch's RNG seeded with it
     (forked: the caller's RNG stream is left as it was), so a stochastic
     evaluation is as repeatable as a deterministic one.
+
+    With ``stop_early`` and a ``seed`` the rollout stops at the step where
+    the last env ends its first episode (``T`` may then be below
+    ``max_steps``): what comes after is never counted, so the returns and the
+    first episodes' steps are those of the full ``max_steps`` rollout (the
+    same actions, draws and states; ``tests/test_rollouts.py``), at the cost
+    of the steps the first episodes take. Without a seed the env's state
+    after the call is the next call's start, so the rollout runs all
+    ``max_steps`` as it always did.
     """
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -50,12 +60,47 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     with torch.random.fork_rng(devices=devices, enabled=seeded), set_exploration_type(mode):
         if seeded:
             torch.manual_seed(seed)
-        td = env.rollout(max_steps, policy, tensordict=td0, auto_reset=False, break_when_any_done=False, auto_cast_to_device=True)
+        if stop_early and seed is not None:
+            td = first_episodes_rollout(env, policy, max_steps, td0)
+        else:
+            td = env.rollout(max_steps, policy, tensordict=td0, auto_reset=False, break_when_any_done=False, auto_cast_to_device=True)
     reward = td.get(("next", "reward")).reshape(episodes, -1)
     done = td.get(("next", "done")).reshape(episodes, -1)
     alive = first_episode_mask(done)
     returns = (reward * alive).sum(1).cpu()
     return (returns, td) if return_rollout else returns
+
+
+def first_episodes_rollout(env, policy, max_steps: int, tensordict):
+    """``env.rollout(max_steps, policy, tensordict=tensordict, auto_reset=False, break_when_any_done=False)``, stopped at
+    the step where every env has ended its first episode.
+
+    The steps are TorchRL's own (``policy``, then ``env.step_and_maybe_reset``, the done envs reset as in a
+    non-stopping rollout), so every step up to the stop is the full rollout's. TorchRL's ``break_when_all_done``
+    is not this: it needs an env that can step some of its envs and not others (a gym vector env cannot). ``policy``
+    None: the env's random actions (``env.rand_action``), as ``env.rollout`` takes them.
+    """
+    policy = env.rand_action if policy is None else policy
+    params = list(policy.parameters()) if hasattr(policy, "parameters") else []
+    policy_device = params[0].device if params else None
+    cast = policy_device is not None and env.device is not None and policy_device != env.device
+    ended = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device)
+    tds, td_ = [], tensordict
+    for i in range(max_steps):
+        if cast:
+            td_ = td_.to(policy_device)
+        td_.update(policy(td_))
+        if cast:
+            td_ = td_.to(env.device)
+        if i == max_steps - 1:
+            td = env.step(td_)
+        else:
+            td, td_ = env.step_and_maybe_reset(td_)
+        tds.append(td)
+        ended |= td.get(("next", "done")).reshape(env.batch_size)
+        if bool(ended.all()):
+            break
+    return torch.stack(tds, len(env.batch_size))
 
 
 def full_reset_mask(env):
