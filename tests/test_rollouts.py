@@ -60,3 +60,23 @@ def test_no_stop_while_an_episode_runs_and_none_without_a_seed():
     env.set_seed(3)
     _, td = evaluate_policy(env, None, 2, max_steps=300, deterministic=False, seed=None, return_rollout=True)
     assert td.shape == (2, 300) and td["next", "done"].any(1).all()
+
+
+def test_per_env_seeds_make_each_block_the_evaluation_of_its_own_seed():
+    """Two blocks of 3 envs seeded 11, 12, 13 and 40, 41, 42 in one 6-env env start and run as two 3-env envs seeded 11 and 40
+    (the falling linear policy: the same start states exactly, the same steps and returns to float32's rounding)."""
+    from torchrl_offhrl.rollouts import seed_each_env
+
+    policy = _linear_policy()
+    both = make_gym_env("Hopper-v5", num_envs=6)
+    rb, tb = evaluate_policy(both, policy, 6, max_steps=60, seed=0, env_seeds=[11, 12, 13, 40, 41, 42], return_rollout=True)
+    for k, s in enumerate((11, 40)):
+        alone = make_gym_env("Hopper-v5", num_envs=3)
+        ra, ta = evaluate_policy(alone, policy, 3, max_steps=60, seed=s, return_rollout=True)
+        block = tb[3 * k: 3 * k + 3]
+        torch.testing.assert_close(block["observation"][:, 0], ta["observation"][:, 0], rtol=0, atol=0)  # the same start states
+        t = ta.shape[1]
+        torch.testing.assert_close(block["next", "observation"][:, :t], ta["next", "observation"], rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(rb[3 * k: 3 * k + 3], ra, rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match="2 seeds for an env of batch size"):
+        seed_each_env(both, [1, 2])

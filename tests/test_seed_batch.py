@@ -175,12 +175,29 @@ def test_seed_batch_trains_cql_seeds_as_separate_agents_on_the_same_draws(env):
     assert all(torch.isfinite(torch.tensor(losses))) and len(set(losses)) == 3
 
 
-def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cache, tmp_path):
+def _count_seeds_evaluations(monkeypatch) -> list:
+    """Record each SeedsEvaluation.prepare call (its number of runs), and let Hopper batch its evaluations as a task whose
+    episodes never end early would (the registry says it terminates, so real runs evaluate its seeds one by one)."""
+    import dataclasses
+
+    import torchrl_offhrl.registry as registry
+    from torchrl_offhrl.recipes.evaluation import SeedsEvaluation
+
+    calls, own, task_of = [], SeedsEvaluation.prepare, registry.task_of
+    monkeypatch.setattr(SeedsEvaluation, "prepare", lambda self, policies: (calls.append(len(policies)), own(self, policies))[1])
+    monkeypatch.setattr(registry, "task_of", lambda env: dataclasses.replace(task_of(env), terminates=False))
+    return calls
+
+
+def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cache, tmp_path, monkeypatch):
     # `offhrl train --seeds 4 5` against two separate `offhrl train seed=S`: the same evaluation records and weights per seed,
-    # each in its own run directory; then a longer budget resumes both from their checkpoints, batched again
+    # each in its own run directory; then a longer budget resumes both from their checkpoints, batched again. The batch's
+    # evaluations after the first run as one rollout of both seeds' policies (SeedsEvaluation), each seed's from its own
+    # run's start states: the records match the separate runs' (a wrong block's start states would not)
     import json
     from pathlib import Path
 
+    prepared = _count_seeds_evaluations(monkeypatch)
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.seed_runs import seed_configs, train_seeds
     from torchrl_offhrl.recipes.train import train
@@ -203,6 +220,7 @@ def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cac
         for k, v in wa.items():
             if torch.is_tensor(v) and v.is_floating_point():
                 torch.testing.assert_close(wb[k], v, rtol=1e-4, atol=1e-5)
+    assert prepared == [2, 2]  # the evaluations at 30 and 60 updates, both seeds in one rollout
     r4 = json.loads((Path(batched[0]["run_dir"]) / "evals.json").read_text())
     r5 = json.loads((Path(batched[1]["run_dir"]) / "evals.json").read_text())
     assert r4[-1]["return_mean"] != r5[-1]["return_mean"]  # two seeds, two agents
@@ -339,7 +357,7 @@ def test_seed_batched_policy_acts_as_each_seed_s_policy(env, name):
     assert isinstance(env, TransformedEnv) or True
 
 
-def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path):
+def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path, monkeypatch):
     # `offhrl train algo=moc --seeds 4 5`: one model env of 2 x 4 envs, each seed's 4 envs its own; each run directory
     # has its seed's records at the same frames as a separate run's, its own checkpoint, and resumes batched
     import json
@@ -354,10 +372,13 @@ def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path):
                                          "algo.frames_per_batch=64", "algo.minibatch_size=32", "algo.epochs=2",
                                          "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16,16]",
                                          "cvae.fit.max_steps=20", "collector.num_envs=4", "train.total_frames=128", "eval.every_frames=64",
-                                         "eval.episodes=2", "eval.max_steps=20", *extra])
+                                         "eval.episodes=2", "eval.max_steps=20", "eval.sampled=true", *extra])
 
     separate = train(cfg(tmp_path / "sep", "seed=4"), progress=False)
+    prepared = _count_seeds_evaluations(monkeypatch)  # MOC's evaluations as one rollout too (a latent policy, options, sampled)
     batched = train_seeds(cfg(tmp_path / "bat"), [4, 5], progress=False)
+    assert prepared == [2, 2]
+    monkeypatch.undo()  # Hopper as the registry has it: its seeds evaluate one by one (episodes end early)
     ra = json.loads((Path(separate["run_dir"]) / "evals.json").read_text())
     runs = [json.loads((Path(b["run_dir"]) / "evals.json").read_text()) for b in batched]
     assert Path(batched[0]["run_dir"]).name == Path(separate["run_dir"]).name
@@ -365,13 +386,21 @@ def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path):
         assert [x["frames"] for x in r] == [x["frames"] for x in ra] == [0, 64, 128]
         assert [x["updates"] for x in r] == [x["updates"] for x in ra] == [0, 4, 8]  # 2 epochs x 2 minibatches per 64-frame batch
     assert runs[0][0]["return_mean"] == pytest.approx(ra[0]["return_mean"], rel=1e-4)  # the same untrained seed-4 agent
+    assert runs[0][0]["return_mean_sampled"] == pytest.approx(ra[0]["return_mean_sampled"], rel=1e-4)
+    # the later evaluations (one rollout of both seeds' policies) keep every key of a separate run's record
+    assert all(set(x) == set(y) for r in runs for x, y in zip(r, ra))
     w = [torch.load(Path(b["run_dir"]) / "checkpoint.pt", weights_only=True)["agent"]["loss"] for b in batched]
     k = next(k for k, v in w[0].items() if torch.is_tensor(v) and v.is_floating_point() and v.dim() == 2)
     assert not torch.equal(w[0][k], w[1][k])  # two seeds, two agents
     logs = [json.loads((Path(b["run_dir"]) / "summary.json").read_text()) for b in batched]
     assert [s["frames"] for s in logs] == [128, 128]
+    prepared = []
+    from torchrl_offhrl.recipes.evaluation import SeedsEvaluation
+
+    own = SeedsEvaluation.prepare
+    monkeypatch.setattr(SeedsEvaluation, "prepare", lambda self, policies: (prepared.append(len(policies)), own(self, policies))[1])
     more = train_seeds(cfg(tmp_path / "bat", "train.total_frames=192"), [4, 5], progress=False)
-    assert [s["frames"] for s in more] == [192, 192]
+    assert [s["frames"] for s in more] == [192, 192] and prepared == []
     assert [x["frames"] for x in json.loads((Path(more[1]["run_dir"]) / "evals.json").read_text())] == [0, 64, 128, 192]
     # a results script's own per-seed configs (run directories it names) batch alike; configs that differ otherwise do not
     from torchrl_offhrl.recipes.seed_runs import RunsApart, train_seed_configs

@@ -24,13 +24,16 @@ class Task:
     ``family``: ``"locomotion"`` (a Markov task scored by its return, D4RL's
     normalisation where defined) or ``"stacking"`` (goal-conditioned block
     stacking: per-goal success, agents conditioned on the sub-goal, episodes of
-    ``horizon`` steps); ``n_blocks``: the blocks of a stacking task (0 otherwise).
+    ``horizon`` steps); ``n_blocks``: the blocks of a stacking task (0 otherwise);
+    ``terminates``: whether an episode can end before its time limit (Hopper
+    falls; HalfCheetah's episodes always run to the limit).
     """
 
     env_id: str
     short: str
     family: str = "locomotion"
     n_blocks: int = 0
+    terminates: bool = True
 
     @property
     def goal_conditioned(self) -> bool:
@@ -41,7 +44,7 @@ class Task:
 #: Every task the project ships, by Gymnasium id.
 TASKS: dict[str, Task] = {t.env_id: t for t in (
     Task("Hopper-v5", "hopper"),
-    Task("HalfCheetah-v5", "halfcheetah"),
+    Task("HalfCheetah-v5", "halfcheetah", terminates=False),
     Task("BlockStack2-v0", "blockstack2", "stacking", 2),
     Task("BlockStack3-v0", "blockstack3", "stacking", 3),
 )}
@@ -81,7 +84,7 @@ def task_of(env: str | None) -> Task:
         >>> task_of("blockstack3").n_blocks, task_of("BlockStack3-v0").goal_conditioned
         (3, True)
         >>> task_of("Walker2d-v5")
-        Task(env_id='Walker2d-v5', short='walker2d', family='locomotion', n_blocks=0)
+        Task(env_id='Walker2d-v5', short='walker2d', family='locomotion', n_blocks=0, terminates=True)
     """
     if env is None:
         return Task("", "")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-__all__ = ["evaluate_policy", "first_episode_mask", "first_episodes_rollout", "full_reset_mask"]
+__all__ = ["evaluate_policy", "first_episode_mask", "first_episodes_rollout", "full_reset_mask", "seed_each_env"]
 
 
 def first_episode_mask(done: torch.Tensor) -> torch.Tensor:
@@ -24,7 +24,7 @@ def first_episode_mask(done: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, deterministic: bool = True, seed: int | None = None, return_rollout: bool = False,
-                    stop_early: bool = True):
+                    stop_early: bool = True, env_seeds=None):
     """Returns of the first episode of each of ``env``'s parallel envs.
 
     ``env`` is a batched TorchRL env with ``batch_size=[episodes]`` (e.g.
@@ -44,12 +44,19 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     of the steps the first episodes take. Without a seed the env's state
     after the call is the next call's start, so the rollout runs all
     ``max_steps`` as it always did.
+
+    ``env_seeds`` (one int per env) seeds env ``i`` of a gym vector env with
+    ``env_seeds[i]`` instead of ``seed + i`` (:func:`seed_each_env`; e.g. the
+    envs of several runs' evaluations in one env, each block with its own
+    run's seeds); ``seed`` still seeds the draws.
     """
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     if env.batch_size.numel() != episodes:
         raise ValueError(f"evaluate_policy: env has batch size {tuple(env.batch_size)}, expected [{episodes}]")
-    if seed is not None:
+    if env_seeds is not None:
+        seed_each_env(env, env_seeds)
+    elif seed is not None:
         env.set_seed(seed)
     mask = full_reset_mask(env)
     td0 = env.reset(mask) if mask is not None else env.reset()
@@ -60,7 +67,7 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     with torch.random.fork_rng(devices=devices, enabled=seeded), set_exploration_type(mode):
         if seeded:
             torch.manual_seed(seed)
-        if stop_early and seed is not None:
+        if stop_early and (seed is not None or env_seeds is not None):
             td = first_episodes_rollout(env, policy, max_steps, td0)
         else:
             td = env.rollout(max_steps, policy, tensordict=td0, auto_reset=False, break_when_any_done=False, auto_cast_to_device=True)
@@ -69,6 +76,24 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     alive = first_episode_mask(done)
     returns = (reward * alive).sum(1).cpu()
     return (returns, td) if return_rollout else returns
+
+
+def seed_each_env(env, seeds) -> None:
+    """Seed env ``i`` of ``env`` (a TorchRL-wrapped gym vector env, possibly transformed) with ``seeds[i]``.
+
+    ``env.set_seed(s)`` resets the wrapped gym env with ``seed=s`` (TorchRL's ``GymEnv``), and a gym vector env seeds
+    its env ``i`` with ``s + i``; this makes the same reset with one seed per env (gymnasium's ``reset(seed=[...])``), so a
+    block of envs seeded ``s, s + 1, ...`` starts where an env of that block's size seeded ``s`` starts.
+    """
+    from torchrl.envs import TransformedEnv
+
+    seeds = [int(x) for x in seeds]
+    if len(seeds) != env.batch_size.numel():
+        raise ValueError(f"seed_each_env: {len(seeds)} seeds for an env of batch size {tuple(env.batch_size)}")
+    base = env
+    while isinstance(base, TransformedEnv):
+        base = base.base_env
+    base.reset(seed=seeds)
 
 
 def first_episodes_rollout(env, policy, max_steps: int, tensordict):

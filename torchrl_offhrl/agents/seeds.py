@@ -54,7 +54,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from .base import DatasetAgent, OnPolicyAgent, backward
 
-__all__ = ["OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_norm_per_seed_"]
+__all__ = ["OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_norm_per_seed_", "stacked_module_params"]
 
 
 #: TorchRL losses that cannot run under ``torch.vmap``, and why
@@ -67,6 +67,25 @@ _NOT_VMAPPABLE = {"CQLLoss": "reads its parameters' .data inside the loss (log_a
 #: leaf names of buffers that are constants of a run, kept unstacked when every seed holds the same values (an action
 #: box, the data's observation statistics); any other tensor is stacked per seed, even when the seeds hold it alike
 _CONSTANT_LEAVES = ("low", "high", "loc", "scale")
+
+
+def stacked_module_params(modules) -> TensorDict:
+    """N modules of one architecture (e.g. N seeds' policies) as one parameter set for ``torch.vmap``: their tensors
+    stacked along a leading seed dimension (batch size ``[N]``, copies, detached), except the constants every module
+    holds alike (buffers named as :data:`_CONSTANT_LEAVES`, e.g. the action box or the data's statistics, equal in
+    all): those stay the module's own, so that checks such as a distribution's ``(high > low).all()`` see one plain
+    tensor, not a batched one. ``params.to_module(modules[0])`` puts one seed's tensors in place (under ``vmap``).
+    """
+    tds = [TensorDict.from_module(m, as_module=False) for m in modules]
+    out = TensorDict(batch_size=[len(tds)])
+    for k in tds[0].keys(True, True):
+        ts = [td.get(k) for td in tds]
+        leaf = k[-1] if isinstance(k, tuple) else k
+        if (leaf in _CONSTANT_LEAVES and not isinstance(ts[0], torch.nn.Parameter)
+                and all(t.shape == ts[0].shape and torch.equal(t, ts[0]) for t in ts[1:])):
+            continue
+        out.set(k, torch.stack([t.detach() for t in ts]))
+    return out
 
 
 def _flat_params(opt: torch.optim.Optimizer) -> list:

@@ -20,7 +20,7 @@ from ..utils import load_torch_file
 from .config import acts_in_latent_space, latent_bound, transfer_config
 from .pipeline import make_real_env
 
-__all__ = ["Evaluator", "GoalEvaluator", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
+__all__ = ["Evaluator", "GoalEvaluator", "SeedsEvaluation", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
 
 
 class Evaluator:
@@ -63,11 +63,22 @@ class Evaluator:
         self.task = task
         self.gamma = float(gamma)
         self.sampled = bool(sampled)
+        self.prepared = None  # rollouts made elsewhere for the next call (SeedsEvaluation), used once
 
-    def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
+    def rollouts(self, agent) -> tuple:
+        """``(returns, rollout, sampled returns or None)``: the deterministic evaluation's first-episode returns ``[episodes]``
+        and its ``[episodes, T]`` rollout, and the sampled policy's returns on the same start states (``sampled``)."""
         rets, td = evaluate_policy(
             self.env, agent.eval_policy, self.episodes, max_steps=self.max_steps, deterministic=True, seed=self.seed, return_rollout=True,
         )
+        srets = None
+        if self.sampled:  # the stochastic policy on the same start states (evaluate_policy forks the RNG for its draws)
+            srets = evaluate_policy(self.env, agent.eval_policy, self.episodes, max_steps=self.max_steps, deterministic=False, seed=self.seed)
+        return rets, td, srets
+
+    def __call__(self, agent, save_to: Path | None = None, title: str = "") -> dict:
+        prepared, self.prepared = self.prepared, None
+        rets, td, srets = prepared if prepared is not None else self.rollouts(agent)
         mean = float(rets.mean())
         forward = self.task in (None, "forward")
         rec = {} if self.task is None else {"task": self.task}
@@ -77,8 +88,7 @@ class Evaluator:
             "normalized_d4rl": normalized_score(self.env_id, mean) if forward else None,
             "normalized_dataset": normalized_score(self.env_id, mean, ref=self.ref) if self.ref and forward else None,
         })
-        if self.sampled:  # the stochastic policy on the same start states (evaluate_policy forks the RNG for its draws)
-            srets = evaluate_policy(self.env, agent.eval_policy, self.episodes, max_steps=self.max_steps, deterministic=False, seed=self.seed)
+        if srets is not None:
             smean = float(srets.mean())
             rec.update({"return_mean_sampled": smean, "return_std_sampled": float(srets.std()),
                         "normalized_d4rl_sampled": normalized_score(self.env_id, smean) if forward else None})
@@ -127,6 +137,72 @@ class Evaluator:
         if ("next", "penalized") in td.keys(True):
             out["model_penalized"] = float((td["next", "penalized"].reshape(n, -1) & alive).any(1).float().mean())
         return out
+
+
+class SeedsEvaluation:
+    """The real-env evaluations of N seeds' runs (a seeds' batch, :mod:`~torchrl_offhrl.recipes.seed_runs`) as one rollout.
+
+    ``env`` holds the N runs' evaluation envs as blocks of ``episodes`` envs (seed ``i``'s block: envs
+    ``i * episodes .. (i + 1) * episodes - 1``), each block seeded as its run's own evaluation env is
+    (:func:`~torchrl_offhrl.rollouts.seed_each_env`: run ``i``'s ``evaluators[i].seed + j`` for its env ``j``), so
+    every seed's episodes start from its own run's start states. :meth:`prepare` rolls the N policies out as one
+    vmapped :class:`~torchrl_offhrl.agents.seeds.SeedBatchedPolicy` (deterministic, then sampled when the runs
+    evaluate it) and hands each run's evaluator its block (:attr:`Evaluator.prepared`); the evaluator then makes its
+    record as it would from its own rollouts, the model-env part included (that part runs per seed).
+
+    Each seed's deterministic episodes are its own policy's from its own start states; they can differ from a
+    separate run's in floating-point rounding (a vmapped matrix product is not the same kernel), which a long
+    episode of a chaotic system amplifies, so a batched run's evaluations are those of the same policy, not
+    bit-for-bit replays. The sampled policy's draws come from the batch's own seeded stream
+    (``seed``), each seed its own (``randomness="different"``), not from the runs' own.
+
+    Args:
+        evaluators: the N runs' :class:`Evaluator` (one protocol: episodes, max_steps, sampled).
+        env: the real env of ``N * episodes`` envs with the agents' transforms (:meth:`Setting.eval_env_for`).
+        seed: seeds the sampled evaluation's draws.
+    """
+
+    def __init__(self, evaluators, env, seed: int):
+        evs = list(evaluators)
+        if any(type(ev) is not Evaluator for ev in evs):
+            raise TypeError("SeedsEvaluation batches plain Evaluators (returns), not per-goal or other evaluations")
+        first = evs[0]
+        if any((ev.episodes, ev.max_steps, ev.sampled) != (first.episodes, first.max_steps, first.sampled) for ev in evs):
+            raise ValueError("the seeds' evaluations differ in episodes, max_steps or sampled: they cannot share a rollout")
+        if env.batch_size.numel() != len(evs) * first.episodes:
+            raise ValueError(f"SeedsEvaluation: env of batch size {tuple(env.batch_size)} for {len(evs)} runs x {first.episodes} episodes")
+        self.evaluators, self.env, self.seed = evs, env, int(seed)
+        self.env_seeds = [ev.seed + j for ev in evs for j in range(ev.episodes)]
+
+    def prepare(self, policies) -> None:
+        """Roll the N runs' policies (their :attr:`~torchrl_offhrl.agents.Agent.eval_policy`, one per evaluator, of one
+        architecture) out together; each evaluator's next call makes its record from its block."""
+        from ..agents.seeds import SeedBatchedPolicy, stacked_module_params
+
+        policies = list(policies)
+        if len(policies) != len(self.evaluators):
+            raise ValueError(f"{len(policies)} policies for {len(self.evaluators)} runs")
+        policy = SeedBatchedPolicy(policies[0], stacked_module_params(policies))
+        first, n = self.evaluators[0], len(self.evaluators)
+        total = n * first.episodes
+        with torch.random.fork_rng():  # the caller's stream (the batch's training draws) is left as it was
+            rets, td = evaluate_policy(self.env, policy, total, max_steps=first.max_steps, deterministic=True, seed=self.seed,
+                                       env_seeds=self.env_seeds, return_rollout=True)
+        srets = None
+        if first.sampled:
+            srets = evaluate_policy(self.env, policy, total, max_steps=first.max_steps, deterministic=False, seed=self.seed, env_seeds=self.env_seeds)
+        e = first.episodes
+        for i, ev in enumerate(self.evaluators):
+            block = slice(i * e, (i + 1) * e)
+            ev.prepared = (rets[block], td[block], None if srets is None else srets[block])
+
+    def discard(self) -> None:
+        """Drop what :meth:`prepare` handed out and no evaluation used."""
+        for ev in self.evaluators:
+            ev.prepared = None
+
+    def close(self) -> None:
+        self.env.close()
 
 
 class GoalEvaluator(Evaluator):

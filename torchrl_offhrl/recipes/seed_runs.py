@@ -150,7 +150,10 @@ def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> lis
             # the batch's own stream (draws inside the vmapped losses, the collection), seeded from the seeds and the step:
             # not the last lane's stream, which its own bookkeeping reads
             torch.manual_seed(_batch_seed([c["seed"] for c in configs], lanes[0].r.run.step))
-            (_train_batched if on_dataset else _train_batched_on_model_env)(lanes, remaining)
+            evaluation = _seeds_evaluation(lanes)
+            if evaluation is not None:
+                stack.callback(evaluation.close)
+            (_train_batched if on_dataset else _train_batched_on_model_env)(lanes, remaining, evaluation)
         summaries = []
         for lane in lanes:
             with lane:
@@ -158,21 +161,45 @@ def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> lis
         return summaries
 
 
-def _train_batched(lanes: list[_Lane], remaining: int) -> None:
+def _seeds_evaluation(lanes: list[_Lane]):
+    """One :class:`~torchrl_offhrl.recipes.evaluation.SeedsEvaluation` for the lanes' real-env evaluations (their
+    evaluations' envs as blocks of one env), or None where they do not batch, and each run evaluates on its own: per-goal
+    evaluations, a setting that builds no such env, and a task whose episodes can end early (``Task.terminates``).
+
+    Why not there: an evaluation stops when its last episode ends, and one env of N runs' blocks steps every block
+    until the longest episode of all runs ends, each step paying MuJoCo per env; on Hopper that made 5 seeds'
+    evaluations 2x *slower* than one after the other, and on HalfCheetah, whose episodes all run 1,000 steps, 1.56x
+    faster (``benchmarks/evaluation_speed.py``, ``benchmarks/README.md``)."""
+    from ..registry import task_of
+    from .evaluation import Evaluator, SeedsEvaluation
+
+    settings = [lane.r.setting for lane in lanes]
+    evaluators = [s.phases[0].evaluator for s in settings]
+    if (settings[0].eval_env_for is None or any(type(ev) is not Evaluator for ev in evaluators)
+            or task_of(evaluators[0].env_id).terminates):
+        return None
+    with torch.random.fork_rng():  # building the env checks its specs with draws: the training stream stays as it was
+        env = settings[0].eval_env_for(len(lanes))
+    return SeedsEvaluation(evaluators, env, seed=_batch_seed([ev.seed for ev in evaluators], 0))
+
+
+def _train_batched(lanes: list[_Lane], remaining: int, evaluation=None) -> None:
     first = lanes[0].r.setting
     hashes = {lane.r.run.data_hash for lane in lanes}
     if len(hashes) != 1:
         raise ValueError("the seeds' runs read different data; they cannot share updates")
     batch = SeedBatch([lane.r.setting.agent for lane in lanes], generators=[lane.rng for lane in lanes])
     rb = dataset_replay_buffer(first.data, first.agent, first.device)
-    _drive(lanes, batch, (batch.sample(rb) for _ in range(remaining)), lambda data: data)
+    _drive(lanes, batch, (batch.sample(rb) for _ in range(remaining)), lambda data: data, evaluation)
 
 
-def _drive(lanes: list[_Lane], batch, source, split) -> None:
+def _drive(lanes: list[_Lane], batch, source, split, evaluation=None) -> None:
     """The seeds' training loop: each batch of ``source`` is one update of ``batch`` (a seeds' batch), and ``split(data)[i]``
     is accounted to lane ``i``'s run (its counters, logs, evaluations and checkpoints, with its own RNG stream in place);
-    the agents are synced before any evaluation and at the end. Timed as the single-run loop times an update: from the
-    batch's arrival."""
+    the agents are synced before any evaluation and at the end. With ``evaluation`` (a
+    :class:`~torchrl_offhrl.recipes.evaluation.SeedsEvaluation`), a step where every run evaluates rolls their policies
+    out as one first, and each run's evaluation makes its record from its part. Timed as the single-run loop times an
+    update: from the batch's arrival."""
     phases = [lane.r.setting.phases[0] for lane in lanes]
     progress = [lane.r.loop.start(phase) for lane, phase in zip(lanes, phases)]
     per_update = lanes[0].r.run.unit == "updates"
@@ -185,13 +212,18 @@ def _drive(lanes: list[_Lane], batch, source, split) -> None:
             dt = (time.time() - t0) / len(lanes)
             parts = split(data)
             steps = 1 if per_update else parts[0].numel()
-            if any(lane.r.loop.evaluation_due(st, phase, steps) for lane, st, phase in zip(lanes, progress, phases)):
+            due = [lane.r.loop.evaluation_due(st, phase, steps) for lane, st, phase in zip(lanes, progress, phases)]
+            if any(due):
                 batch.sync()  # the evaluations and checkpoints act with each seed's own agent
+            if evaluation is not None and all(due):
+                evaluation.prepare([lane.r.setting.agent.eval_policy for lane in lanes])
             done = []
             for i, (lane, st, phase) in enumerate(zip(lanes, progress, phases)):
                 lane.r.loop.timing["update_time_s"] += dt
                 with lane:
                     done.append(lane.r.loop.account(st, phase, parts[i], metrics[i]))
+            if evaluation is not None:
+                evaluation.discard()  # each run's evaluation took its part above; nothing may wait for a later one
             if all(done):
                 break
     finally:
@@ -221,7 +253,7 @@ def _on_policy_model_env(cfg: Mapping) -> bool:
     return cfg["algo"]["name"] in ON_POLICY and isinstance(setting_of(cfg), ModelEnvSetting)
 
 
-def _train_batched_on_model_env(lanes: list[_Lane], remaining: int) -> None:
+def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=None) -> None:
     """The seeds' on-policy agents on one model env of ``N * E`` envs (seed ``i``'s: ``i * E .. (i + 1) * E - 1``), their
     policies run as one (:class:`~torchrl_offhrl.agents.seeds.SeedBatchedPolicy`), their updates as one
     (:class:`~torchrl_offhrl.agents.seeds.OnPolicySeedBatch`); each seed's part of a batch is accounted to its own run.
@@ -258,7 +290,7 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int) -> None:
 
     collector = env_collector(env, _Collects, n * remaining, frames_done=lanes[0].r.run.frames, device=p.device)
     try:
-        _drive(lanes, batch, collector, lambda data: data.reshape(n, per_seed, *data.batch_size[1:]))
+        _drive(lanes, batch, collector, lambda data: data.reshape(n, per_seed, *data.batch_size[1:]), evaluation)
     finally:
         collector.shutdown()
         env.close()

@@ -17,6 +17,7 @@ does not know which setting it runs; a new setting is a new class in
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -63,6 +64,7 @@ class Setting:
     device: torch.device
     closers: list = field(default_factory=list)  # the real envs to close at the end
     parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
+    eval_env_for: Callable | None = None  # copies -> a real evaluation env of copies x episodes envs with the agent's transforms
 
     def close(self) -> None:
         for e in self.closers:
@@ -178,12 +180,15 @@ class Parts:
         return make_agent((algo or self.cfg["algo"])["name"], env, algo or self.cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
                           action_key="latent_action" if latent else "action", device=self.device, goal_key="sub_goal" if self.stacking else None)
 
-    def eval_real_env(self, cvae):
-        """The real env of the evaluations, through ``cvae``'s decoder (or in real actions): per goal ``episodes`` copies on a stacking task."""
+    def eval_real_env(self, cvae, copies: int = 1):
+        """The real env of the evaluations, through ``cvae``'s decoder (or in real actions): per goal ``episodes`` copies on a stacking task.
+
+        ``copies``: that many evaluations' envs in one env, one block after the other (a seeds' batch evaluates its
+        runs together: :class:`~torchrl_offhrl.recipes.evaluation.SeedsEvaluation`)."""
         bound = latent_bound(self.cfg)
         if not self.stacking:
-            return make_real_env(self.env_id, cvae, num_envs=self.episodes, latent_bound=bound)
-        goals = [k for k in range(self.n_goals) for _ in range(self.episodes)]
+            return make_real_env(self.env_id, cvae, num_envs=self.episodes * copies, latent_bound=bound)
+        goals = [k for _ in range(copies) for k in range(self.n_goals) for _ in range(self.episodes)]
         return make_real_env(self.env_id, cvae, num_envs=len(goals), latent_bound=bound, goals=goals, max_episode_steps=self.rc.eval.max_steps)
 
     def add_reward_transforms(self, env):
@@ -214,13 +219,14 @@ class Parts:
         )
 
     def setting(self, agent, phases: list[Phase], unit: str = "frames", selectable: bool = False,
-                pessimism: dict | None = None, threshold: float | None = None, closers: tuple = ()) -> Setting:
+                pessimism: dict | None = None, threshold: float | None = None, closers: tuple = (), eval_env_for: Callable | None = None) -> Setting:
         """The :class:`Setting` of these parts, with what the setting built."""
         return Setting(
             cfg=self.cfg, snapshots=self.snapshots, data=self.data, agent=agent, phases=phases, unit=unit,
             title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, transfer=self.rc.transfer, stacking=self.stacking,
             n_goals=self.n_goals, pessimism=pessimism, threshold=threshold, reward_scale=self.pcfg["env"].get("reward_scale", 1.0),
             model_info=self.model_info, ref=self.ref, t_data=self.t_data, t_models=self.t_models, device=self.device, closers=list(closers),
+            eval_env_for=eval_env_for,
         )
 
 
@@ -264,7 +270,9 @@ class ModelEnvSetting:
 
     def build(self, p: Parts) -> Setting:
         agent, phase, eval_env, pess, threshold, selectable = self.model_part(p)
-        return p.setting(agent, [phase], selectable=selectable, pessimism=pess, threshold=threshold, closers=(eval_env,))
+        cvae = p.cvae if acts_in_latent_space(p.cfg) else None
+        return p.setting(agent, [phase], selectable=selectable, pessimism=pess, threshold=threshold, closers=(eval_env,),
+                         eval_env_for=lambda copies: agent.attach(p.eval_real_env(cvae, copies)))
 
 
 class DatasetSetting:
@@ -293,7 +301,8 @@ class DatasetSetting:
         # the sampling continues from the run's restored RNG state
         phase = p.offline_phase(p.evaluator(eval_env, algo=algo), lambda remaining, frames_done: dataset_batches(p.data, agent, remaining, device=p.device),
                                 self.unit, None, None)
-        return p.setting(agent, [phase], unit=self.unit, closers=(eval_env,))
+        return p.setting(agent, [phase], unit=self.unit, closers=(eval_env,),
+                         eval_env_for=lambda copies: agent.attach(p.eval_real_env(None, copies)))
 
 
 class OnlineSetting:
