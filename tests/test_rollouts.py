@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from torchrl_offhrl.data import load_policy, make_gym_env
-from torchrl_offhrl.rollouts import evaluate_policy, first_episode_mask
+from torchrl_offhrl.rollouts import evaluate_policy
 
 
 def _both(policy, episodes: int, max_steps: int, deterministic: bool, seed: int = 5):
@@ -45,8 +45,6 @@ def test_stopping_early_keeps_every_first_episode_step(deterministic):
         head = tf[:, :first_end]
         for key in head.keys(True, True):
             assert torch.equal(head[key], ts[key]), key
-        alive = first_episode_mask(ts["next", "done"].reshape(4, -1))
-        assert torch.equal((ts["next", "reward"].reshape(4, -1) * alive).sum(1), rs)
     assert stopped >= 1  # the falling policies stop early (the check above is not only of full-length rollouts)
 
 

@@ -36,7 +36,7 @@ def evaluate_policy(env, policy, episodes: int, max_steps: int = 1000, determini
     (forked: the caller's RNG stream is left as it was), so a stochastic
     evaluation is as repeatable as a deterministic one.
 
-    With ``stop_early`` and a ``seed`` the rollout stops at the step where
+    With ``stop_early`` and a ``seed`` (or ``env_seeds``) the rollout stops at the step where
     the last env ends its first episode (``T`` may then be below
     ``max_steps``): what comes after is never counted, so the returns and the
     first episodes' steps are those of the full ``max_steps`` rollout (the
@@ -103,7 +103,9 @@ def first_episodes_rollout(env, policy, max_steps: int, tensordict):
     The steps are TorchRL's own (``policy``, then ``env.step_and_maybe_reset``, the done envs reset as in a
     non-stopping rollout), so every step up to the stop is the full rollout's. TorchRL's ``break_when_all_done``
     is not this: it needs an env that can step some of its envs and not others (a gym vector env cannot). ``policy``
-    None: the env's random actions (``env.rand_action``), as ``env.rollout`` takes them.
+    None: the env's random actions (``env.rand_action``), as ``env.rollout`` takes them. Unlike ``env.rollout`` the
+    policy is called as it is (no ``_make_compatible_policy`` wrapping: a TensorDict module is expected), and it runs
+    on its parameters' device with the data moved there and back when that differs from the env's.
     """
     policy = env.rand_action if policy is None else policy
     params = list(policy.parameters()) if hasattr(policy, "parameters") else []
@@ -125,7 +127,9 @@ def first_episodes_rollout(env, policy, max_steps: int, tensordict):
         ended |= td.get(("next", "done")).reshape(env.batch_size)
         if bool(ended.all()):
             break
-    return torch.stack(tds, len(env.batch_size))
+    out = torch.stack(tds, len(env.batch_size))
+    out.refine_names(..., "time")  # as env.rollout names its time dimension
+    return out
 
 
 def full_reset_mask(env):

@@ -158,7 +158,7 @@ class SeedsEvaluation:
 
     Args:
         evaluators: the N runs' :class:`Evaluator` (one protocol: episodes, max_steps, sampled).
-        env: the real env of ``N * episodes`` envs with the agents' transforms (:meth:`Setting.eval_env_for`).
+        env: the real env of ``N * episodes`` envs with the agents' transforms (``Setting.eval_env_for(N)``).
         seed: seeds the sampled evaluation's draws.
     """
 

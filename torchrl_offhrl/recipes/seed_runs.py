@@ -20,7 +20,15 @@ with their policies run as one, and each seed's part of a batch is its run's
 batch (:class:`~torchrl_offhrl.agents.seeds.OnPolicySeedBatch`). There the
 collection's random draws come from one stream for all seeds, so a seed's
 run is a run of its config, not a replay of its separate run (its
-untrained evaluation is the same; ``tests/test_seed_batch.py``). SAC,
+untrained evaluation is the same; ``tests/test_seed_batch.py``). On a task
+whose episodes never end early (HalfCheetah, ``Task.terminates``) the
+seeds' evaluations after the untrained one run as one rollout
+(:class:`~torchrl_offhrl.recipes.evaluation.SeedsEvaluation`): each seed's
+policy from its own run's start states, but the deterministic episodes
+follow a separate run's only to floating-point rounding (which a long
+chaotic episode amplifies), and the sampled one's draws come from the
+batch's stream: those records are the same policies' evaluations, not
+replays of separate runs'. SAC,
 MOPO, MOReL-style and the transfer and online settings run one seed per run
 (``offhrl sweep``).
 """
@@ -218,12 +226,14 @@ def _drive(lanes: list[_Lane], batch, source, split, evaluation=None) -> None:
             if evaluation is not None and all(due):
                 evaluation.prepare([lane.r.setting.agent.eval_policy for lane in lanes])
             done = []
-            for i, (lane, st, phase) in enumerate(zip(lanes, progress, phases)):
-                lane.r.loop.timing["update_time_s"] += dt
-                with lane:
-                    done.append(lane.r.loop.account(st, phase, parts[i], metrics[i]))
-            if evaluation is not None:
-                evaluation.discard()  # each run's evaluation took its part above; nothing may wait for a later one
+            try:
+                for i, (lane, st, phase) in enumerate(zip(lanes, progress, phases)):
+                    lane.r.loop.timing["update_time_s"] += dt
+                    with lane:
+                        done.append(lane.r.loop.account(st, phase, parts[i], metrics[i]))
+            finally:
+                if evaluation is not None:
+                    evaluation.discard()  # each run's evaluation took its part above; nothing may wait for a later one
             if all(done):
                 break
     finally:

@@ -64,7 +64,7 @@ class Setting:
     device: torch.device
     closers: list = field(default_factory=list)  # the real envs to close at the end
     parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
-    eval_env_for: Callable | None = None  # copies -> a real evaluation env of copies x episodes envs with the agent's transforms
+    eval_env_for: Callable | None = None  # copies -> one real env holding `copies` evaluations' envs, the agent's transforms appended
 
     def close(self) -> None:
         for e in self.closers:

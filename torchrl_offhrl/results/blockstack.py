@@ -66,23 +66,27 @@ def algo_key(algo: str, frames: int = DEFAULT_FRAMES) -> str:
     """The agent's name in run names and the report's groups: the algorithm, with its budget where it is not the default.
 
     Examples:
-        >>> algo_key("uof"), algo_key("uof", 200_000), algo_key("bc", 200_000)
-        ('uof', 'uof.f200k', 'bc')
+        >>> algo_key("uof"), algo_key("uof", 200_000), algo_key("bc", 200_000), algo_key("uof", 62_500)
+        ('uof', 'uof.f200k', 'bc', 'uof.f62500')
     """
-    return algo if algo == "bc" or frames == DEFAULT_FRAMES else f"{algo}.f{frames // 1000}k"
+    if algo == "bc" or frames == DEFAULT_FRAMES:
+        return algo
+    return f"{algo}.f{frames // 1000}k" if frames % 1000 == 0 else f"{algo}.f{frames}"  # never two budgets under one name
 
 
 def label(key: str) -> str:
     """The report's row label for an agent key (:func:`algo_key`, with an ablation suffix).
 
     Examples:
-        >>> label("uof"), label("uof.f200k"), label("sac_her-no_cvae")
-        ('UOF (ours)', 'UOF (ours), 200k frames', 'sac_her-no_cvae')
+        >>> label("uof"), label("uof.f200k"), label("uof.f200k-no_cvae"), label("sac_her-no_cvae")
+        ('UOF (ours)', 'UOF (ours), 200k frames', 'UOF, no CVAE, 200k frames', 'sac_her-no_cvae')
     """
-    base, _, budget = key.partition(".f")
-    if key in LABELS or base not in LABELS:
-        return LABELS.get(key, key)
-    return f"{LABELS[base]}, {budget} frames"
+    agent, _, ablation = key.partition("-")
+    base, _, budget = agent.partition(".f")
+    name = f"{base}-{ablation}" if ablation else base
+    if name not in LABELS:
+        return key
+    return LABELS[name] + (f", {budget} frames" if budget else "")
 
 
 def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None = None, frames: int = DEFAULT_FRAMES) -> str:
@@ -204,7 +208,7 @@ def report() -> str:
         if meta:
             lines.append(f"| data (behaviour) | | {' / '.join(f'{x:.2f}' for x in meta)} | | |")
         evals_of = {algo: [json.loads((d / "evals.json").read_text()) for d in ds] for algo, ds in algos.items()}  # read once per group
-        for algo, ds in sorted(algos.items(), key=lambda kv: (list(LABELS).index(kv[0].split('.f')[0]) if kv[0].split('.f')[0] in LABELS else 99, kv[0])):
+        for algo, ds in sorted(algos.items(), key=lambda kv: (list(LABELS).index(kv[0].partition('.f')[0]) if kv[0].partition('.f')[0] in LABELS else 99, kv[0])):
             evs = evals_of[algo]
             last = [e[-1] for e in evs]
             n = len(last[0]["success_per_goal"])
@@ -289,7 +293,7 @@ def _last_goal_verdict(evals_of: dict) -> str | None:
     """:func:`last_goal_comparison` for a (task, dataset) group (``algo -> each seed's evaluations``): one line per UOF
     budget (``uof``, ``uof.f200k``, ...) with 2+ seeds, against BC's 2+ seeds; None when there is none."""
     bc = evals_of.get("bc", [])
-    uofs = sorted(k for k in evals_of if k.split(".f")[0] == "uof" and len(evals_of[k]) >= 2)
+    uofs = sorted(k for k in evals_of if "-" not in k and k.partition(".f")[0] == "uof" and len(evals_of[k]) >= 2)  # no ablations
     if len(bc) < 2 or not uofs:
         return None
     last = lambda evs: [e[-1]["success_per_goal"][-1] for e in evs]  # noqa: E731
