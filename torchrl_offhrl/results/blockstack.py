@@ -233,17 +233,22 @@ def report() -> str:
         fig.savefig(png, dpi=110)
         plt.close(fig)
         lines += [f"![success per goal]({png.relative_to(OUT)})", ""]
-        uof = algos.get("uof", [])
-        usage = [torch.load(d / "option_usage.pt", weights_only=True) for d in uof if (d / "option_usage.pt").is_file()]
-        if usage:
+        for key in sorted(k for k in algos if k.partition(".f")[0] == "uof"):  # UOF at each budget (not the ablations)
+            usage = [torch.load(d / "option_usage.pt", weights_only=True) for d in algos[key] if (d / "option_usage.pt").is_file()]
+            if not usage:
+                continue
             from ..agents.uof import plot_goal_option_usage
 
             t = min(u.shape[1] for u in usage)
             mean = torch.stack([u[:, :t] for u in usage]).mean(0)
-            png = fig_dir / f"option_usage_{task}_{dataset}.png"
-            plot_goal_option_usage(mean, png, title=f"UOF option usage per goal at the final evaluation, {task} {dataset} (mean over {len(usage)} seed{'s' if len(usage) > 1 else ''})")
-            lines += ["Which option (sub-goal) UOF's high level runs at each step of the final evaluation, per goal (the paper's Figs. 6-7):", "",
-                      f"![option usage]({png.relative_to(OUT)})", ""]
+            budget = key.partition(".f")[2]
+            png = fig_dir / f"option_usage_{task}_{dataset}{f'_{budget}' if budget else ''}.png"
+            who = label(key).replace(" (ours)", "")
+            plot_goal_option_usage(mean, png, title=f"{who} option usage per goal at the final evaluation, {task} {dataset} "
+                                                     f"(mean over {len(usage)} seed{'s' if len(usage) > 1 else ''})")
+            at = f", the runs at {budget} model frames" if budget else ""
+            lines += [f"Which option (sub-goal) UOF's high level runs at each step of the final evaluation, per goal (the paper's "
+                      f"Figs. 6-7){at}:", "", f"![option usage]({png.relative_to(OUT)})", ""]
     lines += ["## The paper's numbers (measured on its own data from partially trained UOF agents, not on ours)", "",
               "| task | agent | success per goal |", "|---|---|---|"]
     for task, rows in PAPER.items():
