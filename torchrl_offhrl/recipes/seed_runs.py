@@ -223,7 +223,8 @@ def _drive(lanes: list[_Lane], batch, source, split, evaluation=None) -> None:
             due = [lane.r.loop.evaluation_due(st, phase, steps) for lane, st, phase in zip(lanes, progress, phases)]
             if any(due):
                 batch.sync()  # the evaluations and checkpoints act with each seed's own agent
-            if evaluation is not None and all(due):
+            together = evaluation is not None and all(due)
+            if together:
                 evaluation.prepare([lane.r.setting.agent.eval_policy for lane in lanes])
             done = []
             try:
@@ -232,7 +233,7 @@ def _drive(lanes: list[_Lane], batch, source, split, evaluation=None) -> None:
                     with lane:
                         done.append(lane.r.loop.account(st, phase, parts[i], metrics[i]))
             finally:
-                if evaluation is not None:
+                if together:
                     evaluation.discard()  # each run's evaluation took its part above; nothing may wait for a later one
             if all(done):
                 break

@@ -74,6 +74,24 @@ def algo_key(algo: str, frames: int = DEFAULT_FRAMES) -> str:
     return f"{algo}.f{frames // 1000}k" if frames % 1000 == 0 else f"{algo}.f{frames}"  # never two budgets under one name
 
 
+def key_parts(key: str) -> tuple[str, str, str]:
+    """``(algorithm, budget, ablation)`` of an agent key (:func:`algo_key`, with an ablation suffix); ``""`` where absent.
+
+    Examples:
+        >>> key_parts("uof"), key_parts("uof.f200k-no_cvae"), key_parts("sac_her")
+        (('uof', '', ''), ('uof', '200k', 'no_cvae'), ('sac_her', '', ''))
+    """
+    agent, _, ablation = key.partition("-")
+    algo, _, budget = agent.partition(".f")
+    return algo, budget, ablation
+
+
+def _unbudgeted(key: str) -> str:
+    """The key without its budget (``uof.f200k-no_cvae`` -> ``uof-no_cvae``): the name :data:`LABELS` knows."""
+    algo, _, ablation = key_parts(key)
+    return f"{algo}-{ablation}" if ablation else algo
+
+
 def label(key: str) -> str:
     """The report's row label for an agent key (:func:`algo_key`, with an ablation suffix).
 
@@ -81,12 +99,16 @@ def label(key: str) -> str:
         >>> label("uof"), label("uof.f200k"), label("uof.f200k-no_cvae"), label("sac_her-no_cvae")
         ('UOF (ours)', 'UOF (ours), 200k frames', 'UOF, no CVAE, 200k frames', 'sac_her-no_cvae')
     """
-    agent, _, ablation = key.partition("-")
-    base, _, budget = agent.partition(".f")
-    name = f"{base}-{ablation}" if ablation else base
+    name, budget = _unbudgeted(key), key_parts(key)[1]
     if name not in LABELS:
         return key
     return LABELS[name] + (f", {budget} frames" if budget else "")
+
+
+def _is_uof(key: str) -> bool:
+    """UOF at any budget, not an ablation (the agents the last-goal verdicts and option-usage figures are about)."""
+    algo, _, ablation = key_parts(key)
+    return algo == "uof" and not ablation
 
 
 def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None = None, frames: int = DEFAULT_FRAMES) -> str:
@@ -208,7 +230,7 @@ def report() -> str:
         if meta:
             lines.append(f"| data (behaviour) | | {' / '.join(f'{x:.2f}' for x in meta)} | | |")
         evals_of = {algo: [json.loads((d / "evals.json").read_text()) for d in ds] for algo, ds in algos.items()}  # read once per group
-        for algo, ds in sorted(algos.items(), key=lambda kv: (list(LABELS).index(kv[0].partition('.f')[0]) if kv[0].partition('.f')[0] in LABELS else 99, kv[0])):
+        for algo, ds in sorted(algos.items(), key=lambda kv: (list(LABELS).index(_unbudgeted(kv[0])) if _unbudgeted(kv[0]) in LABELS else 99, kv[0])):
             evs = evals_of[algo]
             last = [e[-1] for e in evs]
             n = len(last[0]["success_per_goal"])
@@ -233,7 +255,7 @@ def report() -> str:
         fig.savefig(png, dpi=110)
         plt.close(fig)
         lines += [f"![success per goal]({png.relative_to(OUT)})", ""]
-        for key in sorted(k for k in algos if k.partition(".f")[0] == "uof"):  # UOF at each budget (not the ablations)
+        for key in sorted(filter(_is_uof, algos)):  # UOF at each budget (not the ablations)
             usage = [torch.load(d / "option_usage.pt", weights_only=True) for d in algos[key] if (d / "option_usage.pt").is_file()]
             if not usage:
                 continue
@@ -241,7 +263,7 @@ def report() -> str:
 
             t = min(u.shape[1] for u in usage)
             mean = torch.stack([u[:, :t] for u in usage]).mean(0)
-            budget = key.partition(".f")[2]
+            budget = key_parts(key)[1]
             png = fig_dir / f"option_usage_{task}_{dataset}{f'_{budget}' if budget else ''}.png"
             who = label(key).replace(" (ours)", "")
             plot_goal_option_usage(mean, png, title=f"{who} option usage per goal at the final evaluation, {task} {dataset} "
@@ -298,7 +320,7 @@ def _last_goal_verdict(evals_of: dict) -> str | None:
     """:func:`last_goal_comparison` for a (task, dataset) group (``algo -> each seed's evaluations``): one line per UOF
     budget (``uof``, ``uof.f200k``, ...) with 2+ seeds, against BC's 2+ seeds; None when there is none."""
     bc = evals_of.get("bc", [])
-    uofs = sorted(k for k in evals_of if "-" not in k and k.partition(".f")[0] == "uof" and len(evals_of[k]) >= 2)  # no ablations
+    uofs = sorted(k for k in evals_of if _is_uof(k) and len(evals_of[k]) >= 2)
     if len(bc) < 2 or not uofs:
         return None
     last = lambda evs: [e[-1]["success_per_goal"][-1] for e in evs]  # noqa: E731
