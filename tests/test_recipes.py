@@ -634,7 +634,7 @@ def test_mopo_mixes_real_ratio_of_each_minibatch_from_the_scaled_dataset(toy_dat
     with torch.no_grad():
         batch = env.rollout(10, agent.policy, break_when_any_done=False)
     agent.replay_buffer.extend(batch.reshape(-1))
-    mb = agent.mixed_sample()
+    mb = agent.minibatch()
     assert mb.batch_size == torch.Size([40])
     assert int((mb["next", "reward"] == 3.5).sum()) == 10
     out = agent.update(batch)

@@ -230,8 +230,8 @@ def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cac
     assert [c["run_dir"] for c in seed_configs({"seed": 0, "run_dir": "x", "seeds": [1]}, [4, 5])] == ["x/seed4", "x/seed5"]
     with pytest.raises(ValueError, match="distinct"):
         seed_configs({}, [4, 4])
-    with pytest.raises(NotImplementedError, match="one seed per run"):
-        train_seeds(compose("offline_train", ["algo=sac", f"dataset={hopper_file}"]), [4, 5])
+    with pytest.raises(NotImplementedError, match="one seed per run"):  # SAC online, in the real env: one run per seed
+        train_seeds(compose("offline_train", ["algo=sac", "train.online=true", f"dataset={hopper_file}"]), [4, 5])
     from torchrl_offhrl.recipes.seed_runs import batchable, refusal
     from torchrl_offhrl.utils import to_plain
 
@@ -412,3 +412,125 @@ def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path, 
     train(named[0], progress=False)  # seed 4 finished alone: the two runs stand apart
     with pytest.raises(RunsApart, match="different steps"):
         train_seed_configs(named, progress=False)
+
+
+# ------------------------------------------------------------------ off-policy agents (SAC, MOPO) on an env
+def build_off_policy(env, name, seed, **kw):
+    torch.manual_seed(seed)
+    agent = make_agent(name, env, {"hidden_sizes": [16, 16], "batch_size": 8, "init_random_frames": 8, "frames_per_batch": 4,
+                                   "buffer_size": 1000, "fused_adam": False, **kw}, action_key="action")
+    agent.loss = agent.loss.double()
+    return agent
+
+
+def off_policy_batch(g, n, e):
+    shape = (n, e, 1)
+    nxt = TensorDict(observation=torch.randn(*shape, 3, generator=g, dtype=torch.float64), reward=torch.randn(*shape, 1, generator=g, dtype=torch.float64),
+                     done=torch.zeros(*shape, 1, dtype=torch.bool), terminated=torch.rand(*shape, 1, generator=g) < 0.2, batch_size=shape)
+    return TensorDict(observation=torch.randn(*shape, 3, generator=g, dtype=torch.float64),
+                      action=torch.rand(*shape, 1, generator=g, dtype=torch.float64) * 2 - 1, next=nxt, batch_size=shape)
+
+
+@pytest.mark.parametrize("name", ["sac", "mopo"])
+def test_off_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
+    # each seed stores its part of the collected batch in its own replay buffer and samples its minibatches (MOPO: with
+    # its share of the dataset) from its own generator; with randomness="same" (SAC's sampled actions are the draws a
+    # separate agent makes from the same RNG state) every loss, weight, target critic, temperature and Adam moment after
+    # three collected batches (the first only fills the buffers: init_random_frames) is its separate agent's
+    from torchrl_offhrl.agents.seeds import OffPolicySeedBatch
+
+    n, e, seeds = 3, 4, [4, 5, 6]
+    dataset = off_policy_batch(torch.Generator().manual_seed(7), 1, 50)[0].reshape(-1)
+    kw = {"real_ratio": 0.25} if name == "mopo" else {}
+
+    def agents():
+        out = [build_off_policy(env, name, s, **kw) for s in seeds]
+        for a in out:
+            a.use_dataset(dataset, reward_scale=0.5)
+        return out
+
+    separate = agents()
+    batched = OffPolicySeedBatch(agents(), randomness="same", generators=[torch.Generator().manual_seed(i) for i in range(n)])
+    own = [torch.Generator().manual_seed(i) for i in range(n)]
+    g = torch.Generator().manual_seed(0)
+    for step in range(3):
+        data = off_policy_batch(g, n, e)
+        state = torch.get_rng_state()
+        got = batched.update(data.reshape(n * e, 1))  # the collector's [N * E, T]
+        want = []
+        for i, a in enumerate(separate):
+            torch.set_rng_state(state)
+
+            def sample(a=a, i=i):
+                with torch.random.fork_rng(devices=[]):
+                    torch.set_rng_state(own[i].get_state())
+                    out = a.minibatch()
+                    own[i].set_state(torch.get_rng_state())
+                return out
+
+            a.store(data[i])
+            want.append(a.gradient_steps(data[i].numel(), sample))
+        for gd, w in zip(got, want):
+            assert set(gd) == set(w)
+            assert gd["updates"] == w["updates"] == (0 if step == 0 else e)
+            for k in w:
+                assert gd[k] == pytest.approx(w[k], rel=1e-9, abs=1e-12), (k, gd[k], w[k])
+    assert len(batched.agents[0].replay_buffer) == len(separate[0].replay_buffer) == 3 * e  # each seed its own frames
+    assert batched.worker.replay_buffer is None  # the worker holds no copy of agent 0's buffer
+    batched.sync()
+    moved = 0.0
+    for a, b, fresh in zip(separate, batched.agents, [build_off_policy(env, name, s, **kw) for s in seeds]):
+        sa, sb, s0 = float_state(a), float_state(b), float_state(fresh)
+        assert sa.keys() == sb.keys() and a.frames == b.frames == 3 * e
+        for k in sa:
+            torch.testing.assert_close(sb[k], sa[k], rtol=1e-9, atol=1e-12)
+            moved = max(moved, float((sa[k] - s0[k]).abs().max()))
+        for oa, ob in zip(a.optimizers(), b.optimizers()):
+            for pa, pb in zip((p for g in oa.param_groups for p in g["params"]), (p for g in ob.param_groups for p in g["params"])):
+                if pa in oa.state:
+                    torch.testing.assert_close(ob.state[pb]["exp_avg"], oa.state[pa]["exp_avg"], rtol=1e-8, atol=1e-12)
+    assert moved > 1e-4
+    assert any(not torch.allclose(float_state(batched.agents[0])[k], float_state(batched.agents[1])[k]) for k in float_state(batched.agents[0]))
+    # a batch of the wrong width is refused with what it should be
+    with pytest.raises(ValueError, match="the 3 seeds' envs"):
+        batched.update(off_policy_batch(g, 1, 4).reshape(4, 1))
+
+
+def test_train_seeds_batches_off_policy_agents_on_one_model_env(hopper_file, cache, tmp_path):
+    # `offhrl train algo=mopo --seeds 4 5` (SAC whose minibatches mix the dataset's transitions; plain SAC takes the same
+    # path, and the update rule of both is checked against separate agents above): one model env of
+    # 2 x 4 envs; each seed's run has the records of a separate run at the same frames, its own replay buffer saved
+    # with its checkpoint, and resumes batched
+    import json
+    from pathlib import Path
+
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.seed_runs import train_seeds
+    from torchrl_offhrl.recipes.train import train
+
+    def cfg(out, *extra):
+        return compose("offline_train", ["algo=mopo", f"dataset={hopper_file}", f"out_root={out}", "algo.hidden_sizes=[16,16]",
+                                         "algo.frames_per_batch=8", "algo.batch_size=16", "algo.init_random_frames=16",
+                                         "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16,16]",
+                                         "cvae.fit.max_steps=20", "collector.num_envs=4", "train.total_frames=48", "eval.every_frames=24",
+                                         "eval.episodes=2", "eval.max_steps=20", *extra])
+
+    separate = train(cfg(tmp_path / "sep", "seed=4"), progress=False)
+    batched = train_seeds(cfg(tmp_path / "bat"), [4, 5], progress=False)
+    ra = json.loads((Path(separate["run_dir"]) / "evals.json").read_text())
+    runs = [json.loads((Path(b["run_dir"]) / "evals.json").read_text()) for b in batched]
+    assert Path(batched[0]["run_dir"]).name == Path(separate["run_dir"]).name
+    for r in runs:
+        assert [x["frames"] for x in r] == [x["frames"] for x in ra] == [0, 24, 48]
+        # batches of 8 frames: steps (one per frame) from the batch that brings the 16th frame in: 16 at 24 frames, 40 at 48
+        assert [x["updates"] for x in ra] == [0, 16, 40] and [x["updates"] for x in r] == [0, 16, 40]
+        assert all(set(x) == set(y) for x, y in zip(r, ra))
+    assert runs[0][0]["return_mean"] == pytest.approx(ra[0]["return_mean"], rel=1e-4)  # the same untrained seed-4 agent
+    w = [torch.load(Path(b["run_dir"]) / "checkpoint.pt", weights_only=True)["agent"] for b in batched]
+    assert [x["frames"] for x in w] == [48, 48]
+    k = next(k for k, v in w[0]["loss"].items() if torch.is_tensor(v) and v.is_floating_point() and v.dim() == 2)
+    assert not torch.equal(w[0]["loss"][k], w[1]["loss"][k])  # two seeds, two agents
+    more = train_seeds(cfg(tmp_path / "bat", "train.total_frames=72"), [4, 5], progress=False)
+    assert [s["frames"] for s in more] == [72, 72]
+    r = json.loads((Path(more[1]["run_dir"]) / "evals.json").read_text())
+    assert [x["frames"] for x in r] == [0, 24, 48, 72] and r[-1]["updates"] == 64  # resumed with its buffer: no random frames again

@@ -271,7 +271,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "Rerunning the same command resumes from the run's checkpoint.")
     s.add_argument("overrides", nargs="*", help="hydra overrides of configs/offline_train.yaml")
     s.add_argument("--seeds", nargs="+", type=int, help="train one run per seed with their updates batched as one computation "
-                   "(the agents that learn from the dataset: bc, td3bc, iql, cql; ppo and moc on the model env: one env of N x E envs), "
+                   "(the agents that learn from the dataset: bc, td3bc, iql, cql; ppo, moc, sac and mopo on the model env: one env of N x E envs, "
+                   "sac and mopo each seed with its own replay buffer), "
                    "e.g. --seeds 4 5 6 7 8")
     s.set_defaults(func=cmd_train)
 

@@ -56,7 +56,10 @@ class MetricMeans:
     """Means, over the steps of an update, of every one-element tensor of the loss outputs (named ``prefix + key``).
 
     Summed on their device and read once by :meth:`means` (no device sync
-    per gradient step); :attr:`count` is the number of outputs added.
+    per gradient step); :attr:`count` is the number of outputs added. With
+    ``width`` N (a seeds' batch, :mod:`torchrl_offhrl.agents.seeds`) it keeps
+    the outputs of ``N`` elements instead, one per seed, and :meth:`means`
+    gives each key's N means as a list.
 
     Examples:
         >>> import torch
@@ -65,22 +68,29 @@ class MetricMeans:
         >>> m.add({"loss_a": torch.tensor(2.0)})
         >>> m.means(), m.count
         ({'train/loss_a': 1.5}, 2)
+        >>> m = MetricMeans(width=2)
+        >>> m.add({"loss_a": torch.tensor([1.0, 3.0]), "alpha": torch.tensor(1.0)})
+        >>> m.means()
+        {'train/loss_a': [1.0, 3.0]}
     """
 
-    def __init__(self, prefix: str = "train/"):
+    def __init__(self, prefix: str = "train/", width: int = 1):
         self.prefix = prefix
+        self.width = int(width)
         self.count = 0
         self._sums: dict[str, torch.Tensor] = {}
 
     def add(self, out: Mapping) -> None:
         for k, v in out.items():
-            if isinstance(v, torch.Tensor) and v.numel() == 1:
-                v = v.detach().reshape(()).double()
+            if isinstance(v, torch.Tensor) and v.numel() == self.width and (self.width == 1 or v.shape[:1] == (self.width,)):
+                v = v.detach().reshape(self.width if self.width > 1 else ()).double()
                 self._sums[k] = self._sums[k] + v if k in self._sums else v
         self.count += 1
 
-    def means(self) -> dict[str, float]:
-        return {self.prefix + k: float(v) / max(self.count, 1) for k, v in self._sums.items()}
+    def means(self) -> dict:
+        if self.width == 1:
+            return {self.prefix + k: float(v) / max(self.count, 1) for k, v in self._sums.items()}
+        return {self.prefix + k: (v / max(self.count, 1)).tolist() for k, v in self._sums.items()}
 
 
 class Agent:

@@ -58,15 +58,15 @@ class MOPOAgent(SACAgent):
         self.dataset_buffer = ReplayBuffer(storage=LazyTensorStorage(len(td), device=self.replay_buffer.storage.device), batch_size=self.real_batch)
         self.dataset_buffer.extend(td)
 
-    def mixed_sample(self):
+    def minibatch(self):
         """A minibatch of ``batch_size``: ``real_ratio`` of it from the dataset, the rest from the model rollouts' replay."""
         if self.dataset_buffer is None:
             return self.replay_buffer.sample()
         model = self.replay_buffer.sample().select(*self.TRANSITION_KEYS, self.action_key)  # the dataset's buffer holds only these
         return torch.cat([model, self.dataset_buffer.sample()], 0)
 
-    def update(self, batch):
+
+    def store(self, batch) -> None:
         if self.real_batch and self.dataset_buffer is None:
             raise RuntimeError("MOPOAgent: call use_dataset(data, reward_scale) before training (the training loop does)")
-        self.replay_buffer.extend(batch.reshape(-1))
-        return self.gradient_steps(batch.numel(), self.mixed_sample)
+        super().store(batch)

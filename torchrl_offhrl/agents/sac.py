@@ -10,7 +10,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import group_optimizers
 
 from ..nets import NormalizedMLP, tanh_gaussian_actor
-from .base import Agent, MetricMeans, action_box, adam, compile_setting, sum_losses
+from .base import Agent, MetricMeans, action_box, adam, backward, compile_setting, sum_losses
 from .registry import register_agent
 
 __all__ = ["SACAgent", "make_sac_loss", "sac_optimizer", "sac_step"]
@@ -51,7 +51,7 @@ def sac_step(loss_fn, minibatch, optimizers, target_updater):
     out = loss_fn(minibatch)
     for opt in optimizers:
         opt.zero_grad()
-    sum_losses(out).backward()
+    backward(sum_losses(out))  # a seeds' batch: each seed's loss, summed
     for opt in optimizers:
         opt.step()
     target_updater.step()
@@ -119,13 +119,23 @@ class SACAgent(Agent):
         self.frames = 0
 
     def update(self, batch):
-        self.replay_buffer.extend(batch.reshape(-1))
-        return self.gradient_steps(batch.numel(), self.replay_buffer.sample)
+        self.store(batch)
+        return self.gradient_steps(batch.numel(), self.minibatch)
 
-    def gradient_steps(self, frames: int, sample) -> dict:
-        """Count ``frames`` collected frames; once ``init_random_frames`` are in, ``utd_ratio`` steps per frame on minibatches from ``sample()``."""
+    def store(self, batch) -> None:
+        """Add a collected batch (any batch shape) to the replay buffer."""
+        self.replay_buffer.extend(batch.reshape(-1))
+
+    def minibatch(self):
+        """One minibatch of ``batch_size`` for a gradient step (SAC: from the replay buffer)."""
+        return self.replay_buffer.sample()
+
+    def gradient_steps(self, frames: int, sample, metrics: MetricMeans | None = None) -> dict:
+        """Count ``frames`` collected frames; once ``init_random_frames`` are in, ``utd_ratio`` steps per frame on minibatches
+        from ``sample()``. ``metrics`` collects the losses (default: a fresh :class:`MetricMeans`; a seeds' batch passes
+        one per seed)."""
         self.frames += frames
-        metrics = MetricMeans()
+        metrics = MetricMeans() if metrics is None else metrics
         if self.frames >= self.init_random_frames:
             for _ in range(max(1, round(frames * self.utd_ratio))):
                 metrics.add(sac_step(self.loss_fn(), sample(), (self.optimizer,), self.target_updater))

@@ -24,7 +24,8 @@ Batched: BC, TD3+BC, IQL and CQL (:class:`SeedBatch`); PPO and MOC
 (:class:`OnPolicySeedBatch`: their policies act as one
 :class:`SeedBatchedPolicy` on an env of ``N * E`` envs, their updates
 vmapped as above, minibatches shuffled per seed, gradients clipped per
-seed). Constants every seed holds alike (buffers such as an action box or
+seed); SAC and MOPO (:class:`OffPolicySeedBatch`: the same acting policy,
+each seed's own replay buffer, its SAC steps vmapped). Constants every seed holds alike (buffers such as an action box or
 the data's observation statistics) stay one unstacked tensor. TorchRL's own ``CQLLoss`` is refused: it
 reads its parameters' ``.data`` inside the loss, which ``vmap`` forbids; the
 CQL agent's :class:`~torchrl_offhrl.agents.cql.BatchableCQLLoss` is the same
@@ -54,7 +55,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from .base import DatasetAgent, OnPolicyAgent, backward
 
-__all__ = ["OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_norm_per_seed_", "stacked_module_params"]
+__all__ = ["OffPolicySeedBatch", "OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_norm_per_seed_", "stacked_module_params"]
 
 
 #: TorchRL losses that cannot run under ``torch.vmap``, and why
@@ -231,6 +232,7 @@ class SeedBatch:
         self._rebind_target_updater()
         self.worker.__dict__.pop("_step_fns", None)
         self.worker.loss_fn = self._vmapped_loss_fn  # the agent's step code reaches its losses here
+        self._policy = None
         self.stack()
 
     # -------------------------------------------------------------- stacking
@@ -326,6 +328,37 @@ class SeedBatch:
                                              for name, v in w_opt.state[wp].items()}
                 if hasattr(a, "steps"):
                     a.steps = self.worker.steps
+
+    @property
+    def policy(self) -> SeedBatchedPolicy:
+        """The seeds' policy for a collector on an env of ``N * E`` envs (built on first use)."""
+        if self._policy is None:
+            self._policy = SeedBatchedPolicy(self.worker.policy, self._module_params(self.worker.policy), randomness=self.randomness)
+        return self._policy
+
+    def _module_params(self, module) -> TensorDictBase:
+        """The worker's stacked loss tensors in ``module``'s layout (batch size ``[N]``): each of agent 0's policy tensors is
+        matched to the loss tensor that shares its memory (a functional TorchRL loss keeps its own tensor objects, e.g.
+        buffers, over the policy's storage), and the worker's stacked tensor at that key stands in for it."""
+        a0_loss = TensorDict.from_module(self.agents[0].loss, as_module=False)
+        where = {}
+        for k in a0_loss.keys(True, True):
+            t = a0_loss.get(k)
+            where.setdefault((t.data_ptr(), tuple(t.shape)), k)
+        a0_policy = TensorDict.from_module(self.agents[0].policy, as_module=False)
+        worker_loss = TensorDict.from_module(self.worker.loss, as_module=False)
+        out, foreign = TensorDict(), []
+        for k in a0_policy.keys(True, True):
+            t = a0_policy.get(k)
+            lk = where.get((t.data_ptr(), tuple(t.shape)))
+            if lk is None:
+                foreign.append(k if isinstance(k, str) else ".".join(k))
+            elif lk not in self._shared:  # a constant of every seed stays the module's own
+                out.set(k, worker_loss.get(lk))
+        if foreign:
+            raise ValueError(f"SeedBatch: the policy holds tensors outside its agent's loss ({foreign[:3]}): they would not be "
+                             "stacked per seed")
+        return _with_seed_dim(out, self.n, module)
 
     # -------------------------------------------------------------- updates
     def _vmapped_loss_fn(self, method: str | None = None):
@@ -483,7 +516,6 @@ class OnPolicySeedBatch(SeedBatch):
             est = copy.deepcopy(self.agents[0].loss.value_estimator)
             est.value_network = None
             self._estimator = est
-        self._policy = None
 
     @staticmethod
     def refusal(agent) -> str | None:
@@ -503,37 +535,6 @@ class OnPolicySeedBatch(SeedBatch):
         if type(agent).prepare not in (OnPolicyAgent.prepare, MOCAgent.prepare):
             return f"{type(agent).__name__} overrides prepare(), which the batch would skip"
         return None
-
-    @property
-    def policy(self) -> SeedBatchedPolicy:
-        """The seeds' policy for a collector on an env of ``N * E`` envs (built on first use)."""
-        if self._policy is None:
-            self._policy = SeedBatchedPolicy(self.worker.policy, self._module_params(self.worker.policy), randomness=self.randomness)
-        return self._policy
-
-    def _module_params(self, module) -> TensorDictBase:
-        """The worker's stacked loss tensors in ``module``'s layout (batch size ``[N]``): each of agent 0's policy tensors is
-        matched to the loss tensor that shares its memory (a functional TorchRL loss keeps its own tensor objects, e.g.
-        buffers, over the policy's storage), and the worker's stacked tensor at that key stands in for it."""
-        a0_loss = TensorDict.from_module(self.agents[0].loss, as_module=False)
-        where = {}
-        for k in a0_loss.keys(True, True):
-            t = a0_loss.get(k)
-            where.setdefault((t.data_ptr(), tuple(t.shape)), k)
-        a0_policy = TensorDict.from_module(self.agents[0].policy, as_module=False)
-        worker_loss = TensorDict.from_module(self.worker.loss, as_module=False)
-        out, foreign = TensorDict(), []
-        for k in a0_policy.keys(True, True):
-            t = a0_policy.get(k)
-            lk = where.get((t.data_ptr(), tuple(t.shape)))
-            if lk is None:
-                foreign.append(k if isinstance(k, str) else ".".join(k))
-            elif lk not in self._shared:  # a constant of every seed stays the module's own
-                out.set(k, worker_loss.get(lk))
-        if foreign:
-            raise ValueError(f"OnPolicySeedBatch: the policy holds tensors outside its agent's loss ({foreign[:3]}): they would not be "
-                             "stacked per seed")
-        return _with_seed_dim(out, self.n, module)
 
     def _prepare(self, batch: TensorDictBase) -> None:
         """Each seed's advantage (and whatever else its agent's :meth:`prepare` writes) into the ``[N, E, T]`` batch."""
@@ -598,3 +599,78 @@ class OnPolicySeedBatch(SeedBatch):
         means = {k: (v / max(count, 1)).tolist() for k, v in sums.items()}
         return [{**{f"train/{k}": vals[i] for k, vals in means.items()}, "updates": count} for i in range(n)]
 
+
+
+class OffPolicySeedBatch(SeedBatch):
+    """N off-policy agents of one config on the model env (SAC, MOPO), one per seed, acting as one policy and updated as one.
+
+    The collector runs :attr:`policy` (a :class:`SeedBatchedPolicy`) on an
+    env of ``N * E`` envs, seed ``i`` owning envs ``i * E .. (i + 1) * E - 1``.
+    :meth:`update` takes that batch (``[N * E, T]`` or ``[N, E, T]``), puts
+    each seed's part into that seed's own replay buffer (each agent keeps its
+    own, which its run's checkpoint saves), and takes the agents' gradient
+    steps for all seeds at once: each seed's minibatch drawn from its own
+    buffers with its own generator (MOPO's share of the dataset's transitions
+    included, :meth:`~torchrl_offhrl.agents.sac.SACAgent.minibatch`), the
+    SAC losses of all seeds in one ``torch.vmap``, one optimiser step (Adam is
+    elementwise) and one Polyak step of the stacked target critics. Given the
+    same minibatches and (``randomness="same"``) the same draws inside the loss
+    (the actions SAC samples for its actor, temperature and TD target), each
+    seed's weights follow its own agent's update up to floating-point rounding
+    (``tests/test_seed_batch.py``).
+    """
+
+    agent_kinds = "off-policy agents on the model env (SAC, MOPO)"
+
+    def __init__(self, agents, randomness: str = "different", generators: Sequence[torch.Generator] | None = None):
+        from .sac import SACAgent
+
+        type(self).agent_base = SACAgent
+        agents = list(agents)
+        # the worker is a copy of agent 0 without its buffers: each seed keeps and fills its own (and MOPO its dataset's)
+        held = {}
+        if agents:
+            held = {k: agents[0].__dict__[k] for k in ("replay_buffer", "dataset_buffer") if k in agents[0].__dict__}
+            agents[0].__dict__.update(dict.fromkeys(held))
+        try:
+            super().__init__(agents, randomness=randomness, generators=generators)
+        finally:
+            if agents:
+                agents[0].__dict__.update(held)
+
+    def stack(self) -> None:
+        super().stack()
+        frames = {a.frames for a in self.agents}
+        if len(frames) != 1:
+            raise ValueError(f"OffPolicySeedBatch: the agents have collected different numbers of frames {sorted(frames)}")
+        self.worker.frames = frames.pop()
+
+    def sync(self) -> None:
+        super().sync()
+        for a in self.agents:
+            a.frames = self.worker.frames
+
+    def sample(self, replay_buffer=None) -> TensorDict:
+        """``[N, batch_size]``: each seed's minibatch from its own agent's buffers (its ``minibatch()``), drawn from its own generator."""
+        out = []
+        for a, g in zip(self.agents, self.generators):
+            with torch.random.fork_rng(devices=[]):
+                torch.set_rng_state(g.get_state())
+                out.append(a.minibatch())
+                g.set_state(torch.get_rng_state())
+        return torch.stack(out)
+
+    def update(self, batch: TensorDictBase) -> list[dict]:
+        """Store each seed's part of ``batch`` in its buffer, then the gradient steps of every seed; each seed's metrics."""
+        from .base import MetricMeans
+
+        n = self.n
+        if batch.batch_size[:1] != torch.Size([n]):
+            if not batch.batch_dims or batch.batch_size[0] % n:
+                raise ValueError(f"OffPolicySeedBatch.update: a batch of the {n} seeds' envs ([N * E, T] or [N, E, T]), got {tuple(batch.batch_size)}")
+            batch = batch.reshape(n, batch.batch_size[0] // n, *batch.batch_size[1:])
+        for a, part in zip(self.agents, batch.unbind(0)):
+            a.store(part)
+        metrics = self.worker.gradient_steps(batch[0].numel(), self.sample, MetricMeans(width=n))
+        count = metrics.pop("updates")
+        return [{**{k: (v[i] if isinstance(v, list) else v) for k, v in metrics.items()}, "updates": count} for i in range(n)]

@@ -28,9 +28,11 @@ policy from its own run's start states, but the deterministic episodes
 follow a separate run's only to floating-point rounding (which a long
 chaotic episode amplifies), and the sampled one's draws come from the
 batch's stream: those records are the same policies' evaluations, not
-replays of separate runs'. SAC,
-MOPO, MOReL-style and the transfer and online settings run one seed per run
-(``offhrl sweep``).
+replays of separate runs'. SAC and MOPO batch on the model env as PPO and MOC do, each
+seed filling its own replay buffer
+(:class:`~torchrl_offhrl.agents.seeds.OffPolicySeedBatch`). MOReL-style (PPO
+with an adaptive KL penalty) and the transfer and online settings run one
+seed per run (``offhrl sweep``).
 """
 from __future__ import annotations
 
@@ -103,10 +105,10 @@ def refusal(cfg: Mapping) -> str | None:
         return "algo.compile / algo.cudagraphs are set (the vmapped update is not compiled yet)"
     if learns_from_dataset(cfg):
         return None
-    if not _on_policy_model_env(cfg):
-        return (f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) and the on-policy agents on the "
-                f"model env (ppo, moc; offline, one phase) for now; algo={algo['name']} "
-                f"{'in this setting ' if algo['name'] in ON_POLICY else ''}runs one seed per run")
+    if not _model_env_batchable(cfg):
+        return (f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) and the agents on the model "
+                f"env (ppo, moc, sac, mopo; offline, one phase) for now; algo={algo['name']} "
+                f"{'in this setting ' if algo['name'] in MODEL_ENV else ''}runs one seed per run")
     if algo.get("loss_type", "clip") != "clip":
         return f"algo.loss_type={algo.get('loss_type')} (PPO's adaptive KL penalty adapts its coefficient with data-dependent control flow)"
     if algo.get("policy_ema") is not None:
@@ -244,6 +246,9 @@ def _drive(lanes: list[_Lane], batch, source, split, evaluation=None) -> None:
 
 #: the on-policy agents whose seeds batch on the model env (OnPolicySeedBatch)
 ON_POLICY = ("ppo", "moc")
+#: the off-policy agents whose seeds batch on the model env (OffPolicySeedBatch)
+OFF_POLICY = ("sac", "mopo")
+MODEL_ENV = ON_POLICY + OFF_POLICY
 
 
 def _batch_seed(seeds: Sequence[int], step: int) -> int:
@@ -258,21 +263,24 @@ def _batch_seed(seeds: Sequence[int], step: int) -> int:
     return int(np.random.SeedSequence([*map(int, seeds), int(step)]).generate_state(1)[0])
 
 
-def _on_policy_model_env(cfg: Mapping) -> bool:
+def _model_env_batchable(cfg: Mapping) -> bool:
     from .setting import ModelEnvSetting, setting_of
 
-    return cfg["algo"]["name"] in ON_POLICY and isinstance(setting_of(cfg), ModelEnvSetting)
+    return cfg["algo"]["name"] in MODEL_ENV and isinstance(setting_of(cfg), ModelEnvSetting)
 
 
 def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=None) -> None:
-    """The seeds' on-policy agents on one model env of ``N * E`` envs (seed ``i``'s: ``i * E .. (i + 1) * E - 1``), their
+    """The seeds' agents on one model env of ``N * E`` envs (seed ``i``'s: ``i * E .. (i + 1) * E - 1``), their
     policies run as one (:class:`~torchrl_offhrl.agents.seeds.SeedBatchedPolicy`), their updates as one
-    (:class:`~torchrl_offhrl.agents.seeds.OnPolicySeedBatch`); each seed's part of a batch is accounted to its own run.
+    (:class:`~torchrl_offhrl.agents.seeds.OnPolicySeedBatch` for PPO and MOC,
+    :class:`~torchrl_offhrl.agents.seeds.OffPolicySeedBatch` for SAC and MOPO, each seed with its own replay buffer);
+    each seed's part of a batch is accounted to its own run. A run starting from scratch collects its first
+    ``init_random_frames`` frames with random actions, each seed's own count.
 
     The collection's draws (actions, options, the env's start states and members) come from one stream for all seeds,
     not from each seed's own: the seeds' runs are runs of the same config, not replays of separate ones.
     """
-    from ..agents.seeds import OnPolicySeedBatch
+    from ..agents.seeds import OffPolicySeedBatch, OnPolicySeedBatch
     from .config import acts_in_latent_space
     from .pipeline import make_model_env
     from .sources import env_collector
@@ -286,7 +294,8 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=N
         raise ValueError(f"the seeds' runs use different models ({sorted(map(str, dirs))}); they cannot share one model env")
     p = lanes[0].r.setting.parts
     agents = [lane.r.setting.agent for lane in lanes]
-    batch = OnPolicySeedBatch(agents, generators=[lane.rng for lane in lanes])
+    kind = OffPolicySeedBatch if p.cfg["algo"]["name"] in OFF_POLICY else OnPolicySeedBatch
+    batch = kind(agents, generators=[lane.rng for lane in lanes])
     latent = acts_in_latent_space(p.cfg)
     per_seed = int(p.rc.collector.num_envs)
     env = make_model_env(p.pcfg, p.ensemble, p.cvae if latent else None, p.data, batch_size=n * per_seed, latent=latent,
@@ -297,7 +306,7 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=N
     class _Collects:  # what env_collector reads of an agent
         policy = batch.policy
         frames_per_batch = n * agents[0].frames_per_batch
-        init_random_frames = 0
+        init_random_frames = n * agents[0].init_random_frames
 
     collector = env_collector(env, _Collects, n * remaining, frames_done=lanes[0].r.run.frames, device=p.device)
     try:
