@@ -410,8 +410,17 @@ def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path, 
     with pytest.raises(ValueError, match=r"differ beyond seed and run_dir \(\['algo'\]\)"):
         train_seed_configs([named[0], {**named[1], "algo": {**named[1]["algo"], "lr": 1e-3}}])
     train(named[0], progress=False)  # seed 4 finished alone: the two runs stand apart
-    with pytest.raises(RunsApart, match="different steps"):
-        train_seed_configs(named, progress=False)
+    with pytest.raises(RunsApart, match="different steps") as apart:
+        train_seed_configs(named, progress=False, catch_up=False)
+    assert apart.value.steps == [128, 0] and apart.value.unit == "frames"
+    # by default the run behind (seed 5, at its untrained evaluation) trains alone to seed 4's step, on its own schedule
+    caught = train_seed_configs(named, progress=False)
+    assert [s["frames"] for s in caught] == [128, 128]
+    assert [x["frames"] for x in json.loads((tmp_path / "named" / "moc-seed5" / "evals.json").read_text())] == [0, 64, 128]
+    # and from there the two go on as one batch
+    longer = [{**c, "train": {**c["train"], "total_frames": 192}} for c in named]
+    assert [s["frames"] for s in train_seed_configs(longer, progress=False)] == [192, 192]
+    assert [x["frames"] for x in json.loads((tmp_path / "named" / "moc-seed5" / "evals.json").read_text())] == [0, 64, 128, 192]
 
 
 # ------------------------------------------------------------------ off-policy agents (SAC, MOPO) on an env

@@ -52,7 +52,13 @@ __all__ = ["RunsApart", "batchable", "refusal", "seed_configs", "train_seed_conf
 
 
 class RunsApart(ValueError):
-    """The seeds' runs stand at different steps (resumed from different points): they cannot take one batch."""
+    """The seeds' runs stand at different steps (resumed from different points): they cannot take one batch.
+
+    ``steps``: where each run stands (its checkpoint's step, in ``unit``: ``"frames"`` or ``"updates"``)."""
+
+    def __init__(self, message: str, steps: Sequence[int] = (), unit: str = "frames"):
+        super().__init__(message)
+        self.steps, self.unit = list(steps), unit
 
 
 def seed_configs(cfg: Mapping, seeds: Sequence[int]) -> list[dict]:
@@ -118,9 +124,35 @@ def refusal(cfg: Mapping) -> str | None:
     return None
 
 
-def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> list[dict]:
+def train_seed_configs(configs: Sequence[Mapping], progress: bool = True, catch_up: bool = True) -> list[dict]:
     """:func:`train_seeds` on given per-seed configs (e.g. each with the run directory a results script names): they must
-    be one config but for ``seed`` and ``run_dir``."""
+    be one config but for ``seed`` and ``run_dir``.
+
+    Runs that stand at different steps (a batch interrupted while it wrote its checkpoints one run after the other, or
+    runs of which some went on alone) cannot take one batch. With ``catch_up`` (the default) the runs behind are first
+    trained alone, each to the step of the run furthest on (a checkpoint's step is one of the evaluation schedule's, so
+    each of them gets the records its schedule has there), and then all of them batched from there; without it,
+    :class:`RunsApart` is raised.
+    """
+    try:
+        return _train_seed_configs(configs, progress)
+    except RunsApart as apart:
+        if not catch_up:
+            raise
+        from .train import train
+
+        target = max(apart.steps)
+        key = "total_frames" if apart.unit == "frames" else "total_updates"
+        for c, step in zip(configs, apart.steps):
+            if step < target:
+                c = to_plain(c)
+                print(f"{c.get('run_dir') or 'seed ' + str(c['seed'])}: at {step} {apart.unit}, behind the batch's furthest run "
+                      f"({target}); training it alone to there first", flush=True)
+                train({**c, "train": {**c["train"], key: target}}, progress=progress)
+        return _train_seed_configs(configs, progress)
+
+
+def _train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> list[dict]:
     from .train import PreparedRun, run_directory  # the one-run steps, shared
 
     configs = [to_plain(c) for c in configs]
@@ -154,7 +186,8 @@ def train_seed_configs(configs: Sequence[Mapping], progress: bool = True) -> lis
         steps = {lane.remaining for lane in lanes}
         if len(steps) != 1:
             raise RunsApart(f"the seeds' runs stand at different steps ({[lane.r.run.step for lane in lanes]}): resume them one by one "
-                             "(offhrl train seed=S) to the same step, or start the batch in new run directories")
+                            "(offhrl train seed=S) to the same step, or start the batch in new run directories",
+                            [lane.r.run.step for lane in lanes], lanes[0].r.run.unit)
         remaining = steps.pop()
         if remaining > 0:
             # the batch's own stream (draws inside the vmapped losses, the collection), seeded from the seeds and the step:

@@ -176,7 +176,7 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
             if batch_seeds and len(configs) > 1 and batchable(configs[0]):
                 try:
                     summaries = train_seed_configs(configs)
-                except (RunsApart, NotImplementedError) as e:  # runs standing apart (e.g. some finished), or a batch it cannot take
+                except (RunsApart, NotImplementedError) as e:  # a batch it cannot take (runs standing apart are caught up first)
                     print(f"{where} {env}-{dataset} {algo}: {e}; seed by seed instead", flush=True)
                 else:
                     archive(where)
