@@ -318,9 +318,9 @@ def main(argv=None) -> int:
     r.add_argument("--speed", nargs="+", default=[], metavar="KEY=VALUE",
                    help="overrides that change how fast, not what, a run trains (refused otherwise): e.g. device=cuda algo.cudagraphs=true")
     r.add_argument("--batch-seeds", action="store_true",
-                   help="train the seeds of an algorithm as one computation where they batch (the dataset agents; ppo and moc on the "
-                        "model env: one env of N x E envs), each seed still its own run; a batch resumes only when its runs stand at "
-                        "the same step, else they go seed by seed")
+                   help="train the seeds of an algorithm as one computation where they batch (the dataset agents; ppo, moc, sac and "
+                        "mopo on the model env: one env of N x E envs), each seed still its own run; runs of a batch that stand at "
+                        "different steps (an interrupted batch) first catch up alone to the furthest one, then go on batched")
     g = sub.add_parser("report")
     g.add_argument("--scale", choices=sorted(CONFIG), default="demo")
     g.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/<scale>_tuning/README.md")
