@@ -54,6 +54,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from .base import DatasetAgent, OnPolicyAgent, backward
+from .sac import SACAgent
 
 __all__ = ["OffPolicySeedBatch", "OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_norm_per_seed_", "stacked_module_params"]
 
@@ -620,12 +621,10 @@ class OffPolicySeedBatch(SeedBatch):
     (``tests/test_seed_batch.py``).
     """
 
+    agent_base = SACAgent
     agent_kinds = "off-policy agents on the model env (SAC, MOPO)"
 
     def __init__(self, agents, randomness: str = "different", generators: Sequence[torch.Generator] | None = None):
-        from .sac import SACAgent
-
-        type(self).agent_base = SACAgent
         agents = list(agents)
         # the worker is a copy of agent 0 without its buffers: each seed keeps and fills its own (and MOPO its dataset's)
         held = {}
