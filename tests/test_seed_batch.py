@@ -32,6 +32,25 @@ def float_state(agent):
     return {k: v for k, v in agent.loss.state_dict().items() if torch.is_tensor(v) and v.is_floating_point()}
 
 
+def assert_seeds_are_their_separate_agents(separate, batched, fresh, rtol, atol, moment, moment_rtol, moment_atol):
+    """After ``batched.sync()``: each seed's tensors (weights, target networks, temperature) and Adam ``moment`` equal its
+    separate agent's, the agents did learn (the check compares trained weights, not initial ones: ``fresh`` are the
+    untrained agents), and the seeds stay different agents (seed 4's weights are not seed 5's)."""
+    moved = 0.0
+    for a, b, f in zip(separate, batched.agents, fresh):
+        sa, sb, s0 = float_state(a), float_state(b), float_state(f)
+        assert sa.keys() == sb.keys()
+        for k in sa:
+            torch.testing.assert_close(sb[k], sa[k], rtol=rtol, atol=atol)
+            moved = max(moved, float((sa[k] - s0[k]).abs().max()))
+        for oa, ob in zip(a.optimizers(), b.optimizers()):  # Adam's moments, slice by slice
+            for pa, pb in zip((p for g in oa.param_groups for p in g["params"]), (p for g in ob.param_groups for p in g["params"])):
+                if pa in oa.state:
+                    torch.testing.assert_close(ob.state[pb][moment], oa.state[pa][moment], rtol=moment_rtol, atol=moment_atol)
+    assert moved > 1e-4
+    assert any(not torch.allclose(float_state(batched.agents[0])[k], float_state(batched.agents[1])[k]) for k in float_state(batched.agents[0]))
+
+
 @pytest.mark.parametrize("name,kw", [("bc", {}), ("iql", {}), ("td3bc", {"policy_noise": 0.0, "policy_update_delay": 2})])
 def test_seed_batch_trains_each_seed_as_its_own_agent(env, name, kw):
     # N agents updated one by one, and the same N agents (same seeds) updated as one batched computation, on the same
@@ -49,21 +68,8 @@ def test_seed_batch_trains_each_seed_as_its_own_agent(env, name, kw):
                 torch.testing.assert_close(torch.as_tensor(m_bat[k], dtype=torch.float32), torch.as_tensor(m_sep[k], dtype=torch.float32),
                                            rtol=1e-4, atol=1e-5)
     batched.sync()
-    moved = 0.0
-    for a, b, fresh in zip(separate, batched.agents, [build(env, name, s, **kw) for s in seeds]):
-        sa, sb, s0 = float_state(a), float_state(b), float_state(fresh)
-        assert sa.keys() == sb.keys()
-        for k in sa:
-            torch.testing.assert_close(sb[k], sa[k], rtol=1e-4, atol=1e-5)
-            moved = max(moved, float((sa[k] - s0[k]).abs().max()))
-        assert a.steps == b.steps == T
-        for oa, ob in zip(a.optimizers(), b.optimizers()):  # Adam's moments, slice by slice
-            for pa, pb in zip((p for g in oa.param_groups for p in g["params"]), (p for g in ob.param_groups for p in g["params"])):
-                if pa in oa.state:
-                    torch.testing.assert_close(ob.state[pb]["exp_avg_sq"], oa.state[pa]["exp_avg_sq"], rtol=1e-3, atol=1e-9)
-    assert moved > 1e-4  # the agents did learn: the check compares trained weights, not initial ones
-    # the seeds stay different agents: seed 4's weights are not seed 5's
-    assert any(not torch.allclose(float_state(batched.agents[0])[k], float_state(batched.agents[1])[k]) for k in float_state(batched.agents[0]))
+    assert all(a.steps == b.steps == T for a, b in zip(separate, batched.agents))
+    assert_seeds_are_their_separate_agents(separate, batched, [build(env, name, s, **kw) for s in seeds], 1e-4, 1e-5, "exp_avg_sq", 1e-3, 1e-9)
 
 
 def test_seed_batch_resumes_from_the_agents_states(env):
@@ -308,18 +314,8 @@ def test_on_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
             for k in ("train/loss_objective", "train/loss_critic"):
                 assert g[k] == pytest.approx(w[k], rel=1e-6, abs=1e-9), (k, g[k], w[k])
     batched.sync()
-    moved = 0.0
-    for a, b, fresh in zip(separate, batched.agents, [build_on_policy(env, name, s, torch.float64) for s in seeds]):
-        sa, sb, s0 = float_state(a), float_state(b), float_state(fresh)
-        for k in sa:
-            torch.testing.assert_close(sb[k], sa[k], rtol=1e-9, atol=1e-11)
-            moved = max(moved, float((sa[k] - s0[k]).abs().max()))
-        for oa, ob in zip(a.optimizers(), b.optimizers()):
-            for pa, pb in zip((p for g in oa.param_groups for p in g["params"]), (p for g in ob.param_groups for p in g["params"])):
-                if pa in oa.state:
-                    torch.testing.assert_close(ob.state[pb]["exp_avg"], oa.state[pa]["exp_avg"], rtol=1e-8, atol=1e-12)
-    assert moved > 1e-4
-    assert any(not torch.allclose(float_state(batched.agents[0])[k], float_state(batched.agents[1])[k]) for k in float_state(batched.agents[0]))
+    assert_seeds_are_their_separate_agents(separate, batched, [build_on_policy(env, name, s, torch.float64) for s in seeds],
+                                           1e-9, 1e-11, "exp_avg", 1e-8, 1e-12)
 
 
 @pytest.mark.parametrize("name", ["ppo", "moc"])
@@ -487,19 +483,9 @@ def test_off_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
     assert len(batched.agents[0].replay_buffer) == len(separate[0].replay_buffer) == 3 * e  # each seed its own frames
     assert batched.worker.replay_buffer is None  # the worker holds no copy of agent 0's buffer
     batched.sync()
-    moved = 0.0
-    for a, b, fresh in zip(separate, batched.agents, [build_off_policy(env, name, s, **kw) for s in seeds]):
-        sa, sb, s0 = float_state(a), float_state(b), float_state(fresh)
-        assert sa.keys() == sb.keys() and a.frames == b.frames == 3 * e
-        for k in sa:
-            torch.testing.assert_close(sb[k], sa[k], rtol=1e-9, atol=1e-12)
-            moved = max(moved, float((sa[k] - s0[k]).abs().max()))
-        for oa, ob in zip(a.optimizers(), b.optimizers()):
-            for pa, pb in zip((p for g in oa.param_groups for p in g["params"]), (p for g in ob.param_groups for p in g["params"])):
-                if pa in oa.state:
-                    torch.testing.assert_close(ob.state[pb]["exp_avg"], oa.state[pa]["exp_avg"], rtol=1e-8, atol=1e-12)
-    assert moved > 1e-4
-    assert any(not torch.allclose(float_state(batched.agents[0])[k], float_state(batched.agents[1])[k]) for k in float_state(batched.agents[0]))
+    assert all(a.frames == b.frames == 3 * e for a, b in zip(separate, batched.agents))
+    assert_seeds_are_their_separate_agents(separate, batched, [build_off_policy(env, name, s, **kw) for s in seeds],
+                                           1e-9, 1e-12, "exp_avg", 1e-8, 1e-12)
     # a batch of the wrong width is refused with what it should be
     with pytest.raises(ValueError, match="the 3 seeds' envs"):
         batched.update(off_policy_batch(g, 1, 4).reshape(4, 1))

@@ -53,7 +53,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from tensordict.nn import TensorDictModuleBase
 
-from .base import DatasetAgent, OnPolicyAgent, backward
+from .base import DatasetAgent, MetricMeans, OnPolicyAgent, backward
 from .sac import SACAgent
 
 __all__ = ["OffPolicySeedBatch", "OnPolicySeedBatch", "SeedBatch", "SeedBatchedPolicy", "clip_grad_norm_per_seed_", "stacked_module_params"]
@@ -391,13 +391,27 @@ class SeedBatch:
 
     def sample(self, replay_buffer) -> TensorDict:
         """``[N, batch_size]``: one minibatch per seed from ``replay_buffer``, each drawn from its seed's own generator."""
+        return self._per_seed_draws([replay_buffer.sample] * self.n)
+
+    def _per_seed_draws(self, draws) -> TensorDict:
+        """``draws[i]()`` for every seed ``i`` with seed ``i``'s generator as the RNG state (the outer state untouched), stacked."""
         out = []
-        for g in self.generators:
+        for draw, g in zip(draws, self.generators):
             with torch.random.fork_rng(devices=[]):
                 torch.set_rng_state(g.get_state())
-                out.append(replay_buffer.sample())
+                out.append(draw())
                 g.set_state(torch.get_rng_state())
         return torch.stack(out)
+
+    def _seeds_first(self, batch: TensorDictBase) -> TensorDictBase:
+        """A batch of the seeds' envs as ``[N, E, ...]``: given so, or as the collector's ``[N * E, ...]`` (seed ``i``'s envs
+        ``i * E .. (i + 1) * E - 1``)."""
+        n = self.n
+        if batch.batch_size[:1] == torch.Size([n]):
+            return batch
+        if not batch.batch_dims or batch.batch_size[0] % n:
+            raise ValueError(f"{type(self).__name__}.update: a batch of the {n} seeds' envs ([N * E, T] or [N, E, T]), got {tuple(batch.batch_size)}")
+        return batch.reshape(n, batch.batch_size[0] // n, *batch.batch_size[1:])
 
     def update(self, batch: TensorDict) -> list[dict]:
         """One update of every seed on ``batch`` (``[N, batch_size]``); each seed's metrics (``train/...`` and ``updates``)."""
@@ -570,10 +584,7 @@ class OnPolicySeedBatch(SeedBatch):
     def update(self, batch: TensorDictBase) -> list[dict]:
         """One on-policy update of every seed on its part of ``batch``; each seed's metrics (``train/...`` means and ``updates``)."""
         n, w = self.n, self.worker
-        if batch.batch_size[:1] != torch.Size([n]):
-            if not batch.batch_dims or batch.batch_size[0] % n:
-                raise ValueError(f"OnPolicySeedBatch.update: a batch of the {n} seeds' envs ([N * E, T] or [N, E, T]), got {tuple(batch.batch_size)}")
-            batch = batch.reshape(n, batch.batch_size[0] // n, *batch.batch_size[1:])
+        batch = self._seeds_first(batch)
         with torch.no_grad():
             self._prepare(batch)
         flat = batch.reshape(n, -1)
@@ -649,27 +660,16 @@ class OffPolicySeedBatch(SeedBatch):
         for a in self.agents:
             a.frames = self.worker.frames
 
-    def sample(self, replay_buffer=None) -> TensorDict:
+    def minibatches(self) -> TensorDict:
         """``[N, batch_size]``: each seed's minibatch from its own agent's buffers (its ``minibatch()``), drawn from its own generator."""
-        out = []
-        for a, g in zip(self.agents, self.generators):
-            with torch.random.fork_rng(devices=[]):
-                torch.set_rng_state(g.get_state())
-                out.append(a.minibatch())
-                g.set_state(torch.get_rng_state())
-        return torch.stack(out)
+        return self._per_seed_draws([a.minibatch for a in self.agents])
 
     def update(self, batch: TensorDictBase) -> list[dict]:
         """Store each seed's part of ``batch`` in its buffer, then the gradient steps of every seed; each seed's metrics."""
-        from .base import MetricMeans
-
         n = self.n
-        if batch.batch_size[:1] != torch.Size([n]):
-            if not batch.batch_dims or batch.batch_size[0] % n:
-                raise ValueError(f"OffPolicySeedBatch.update: a batch of the {n} seeds' envs ([N * E, T] or [N, E, T]), got {tuple(batch.batch_size)}")
-            batch = batch.reshape(n, batch.batch_size[0] // n, *batch.batch_size[1:])
+        batch = self._seeds_first(batch)
         for a, part in zip(self.agents, batch.unbind(0)):
             a.store(part)
-        metrics = self.worker.gradient_steps(batch[0].numel(), self.sample, MetricMeans(width=n))
+        metrics = self.worker.gradient_steps(batch[0].numel(), self.minibatches, MetricMeans(width=n))
         count = metrics.pop("updates")
         return [{**{k: (v[i] if isinstance(v, list) else v) for k, v in metrics.items()}, "updates": count} for i in range(n)]
