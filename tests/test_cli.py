@@ -142,7 +142,9 @@ def test_the_demo_cites_what_its_robustness_page_measured():
     from pathlib import Path
 
     page = (Path(__file__).resolve().parents[1] / "docs" / "results" / "demo_robustness.md").read_text()
-    section = next(s for s in page.split("\n## ") if s.startswith("shipped:") and s.splitlines()[0].endswith("(evaluation seeds 4+)"))
+    from torchrl_offhrl.results.robustness import SHIPPED
+
+    section = next(s for s in page.split("\n## ") if s.startswith(f"{SHIPPED}:") and s.splitlines()[0].endswith("(evaluation seeds 4+)"))
     iqm_row = next(line for line in section.splitlines() if line.startswith("| IQM"))
     beats, seeds = map(int, re.findall(r"\| (\d+)/(\d+) \|", iqm_row)[0])
     assert (CHECKED["beats_both"], CHECKED["runs"]) == (beats, seeds)
@@ -158,11 +160,27 @@ def test_the_robustness_page_is_what_its_archived_runs_give():
     mod = import_module("torchrl_offhrl.results.robustness")
     page = (Path(__file__).resolve().parents[1] / "docs" / "results" / "demo_robustness.md").read_text()
     assert mod.table(list(mod.VARIANTS)) + "\n" == page
-    rows = mod.rows_of("shipped")
+    rows = mod.rows_of(mod.SHIPPED)
     rows = [r for r in rows if r["dataset_seed"] >= 4]  # the evaluation runs (tuning runs: dataset seeds 1-3)
     assert sorted({r["dataset_seed"] for r in rows}) == list(range(4, 14)) and sorted({r["agent_seed"] for r in rows}) == [0, 1]
     wins = sum(r["selected"] > r["untrained"] and r["selected"] > r["behaviour"] for r in rows)
     assert f"| {wins}/{len(rows)} |" in page and len(rows) == 20
+
+
+def test_the_shipped_robustness_variant_is_the_demo_config_and_older_variants_keep_theirs():
+    """Rerunning a robustness variant reproduces what its archived runs ran: the shipped variant's overrides change nothing in
+    configs/demo.yaml, and the variants run before the demo's ensemble fit went from 10k to 30k steps still fit 10k."""
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.results import robustness as mod
+    from torchrl_offhrl.utils import to_plain
+
+    demo = to_plain(compose("demo", []))
+    assert to_plain(compose("demo", mod.overrides(mod.SHIPPED))) == demo
+    old = to_plain(compose("demo", mod.overrides("shipped")))
+    assert old["ensemble"]["fit"]["max_steps"] == 10000 and demo["ensemble"]["fit"]["max_steps"] == 30000
+    old["ensemble"]["fit"]["max_steps"] = 30000
+    assert old == demo  # the earlier shipped demo differs in its ensemble fit alone
+    assert to_plain(compose("demo", mod.overrides("clip01")))["ensemble"]["fit"]["max_steps"] == 10000
 
 
 @pytest.mark.parametrize("argv, expect", [

@@ -63,8 +63,8 @@ from pathlib import Path
 
 from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
 CONFIG = {"demo": "demo", "full": "offline_train"}
-# the demo stops MOC at 82k frames and fits its models for 10k steps (its 10-minute budget); the results run
-# twice the frames, to show what longer training does, on models fitted for 20k steps
+# the demo stops MOC at 82k frames and fits its ensemble for 30k steps and its CVAE for 10k (its 10-minute budget); the
+# results run twice the frames, to show what longer training does, on models fitted for 20k steps (both)
 # the model-free agents (iql, cql, td3bc, bc) learn from the dataset: their budget is 100k gradient steps at both scales
 # (issue 15's minimum; CORL and the papers run 1M), evaluated every 10k
 # every evaluation also runs the sampled policy (actions and options drawn) on the same start states: the tables report both
