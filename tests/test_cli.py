@@ -133,6 +133,43 @@ def test_hydra_deletion_overrides_are_accepted():
         compose("demo", ["algo.minibatch_size"])
 
 
+def test_fit_threads_sets_the_model_fits_thread_count_and_restores_it(cache, tmp_path, monkeypatch):
+    """``fit_threads`` is the torch thread count while the models are fitted (or loaded); the caller's count comes back."""
+    import time
+
+    import torch
+
+    from torchrl_offhrl.recipes import setting
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.utils import threads, to_plain
+
+    with threads(2):
+        assert torch.get_num_threads() == 2
+        with threads(None):
+            assert torch.get_num_threads() == 2
+        with threads(1):
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+
+    class Seen(Exception):
+        pass
+
+    def fake_fit(*args, **kwargs):
+        raise Seen(torch.get_num_threads())
+
+    monkeypatch.setattr(setting, "fit_or_load_models", fake_fit)
+    cfg = to_plain(compose("offline_train", ["env=hopper", "dataset=random", "num_transitions=200", "fit_threads=1",
+                                             f"run_dir={tmp_path}"]))
+    with threads(2):
+        with pytest.raises(Seen) as seen:
+            setting.build_setting(cfg, tmp_path, time.time(), progress=False)
+        assert seen.value.args == (1,) and torch.get_num_threads() == 2
+    from torchrl_offhrl.recipes.schema import validate_config
+
+    with pytest.raises(ValueError, match="fit_threads: expected an integer >= 1 or null, got 0"):
+        validate_config(to_plain(compose("offline_train", ["fit_threads=0"])))
+
+
 def test_the_demo_cites_what_its_robustness_page_measured():
     """The count the demo prints (recipes.demo.CHECKED) is the one docs/results/demo_robustness.md shows for the shipped config."""
     import re

@@ -6,7 +6,7 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "load_torch_file", "one_thread", "remove_stale_tmp", "to_plain"]
+__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "load_torch_file", "one_thread", "remove_stale_tmp", "threads", "to_plain"]
 
 
 class CorruptFileError(ValueError):
@@ -99,6 +99,20 @@ def cache_dir() -> Path:
 
 
 @contextmanager
+def threads(n: int | None):
+    """Run the block on ``n`` torch threads (restored afterwards); ``None`` leaves the count as it is."""
+    import torch
+
+    prev = torch.get_num_threads()
+    if n is not None:
+        torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(prev)
+
+
+@contextmanager
 def one_thread():
     """Run small-batch policy inference on one torch thread (restored afterwards).
 
@@ -106,14 +120,8 @@ def one_thread():
     busy 2-core machine two threads made collection 5-8 times slower. One
     thread also makes the numbers independent of the caller's setting.
     """
-    import torch
-
-    prev = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with threads(1):
         yield
-    finally:
-        torch.set_num_threads(prev)
 
 
 def to_plain(cfg) -> dict:

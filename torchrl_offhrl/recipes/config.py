@@ -24,7 +24,7 @@ __all__ = [
 ]
 
 #: Settings that may change between a run and its resumption; anything else must match the checkpoint.
-RESUMABLE_KEYS = ("train", "eval", "logger", "run_dir", "out_root", "torch_threads", "device")  # and transfer.online_frames / eval_every_frames
+RESUMABLE_KEYS = ("train", "eval", "logger", "run_dir", "out_root", "torch_threads", "fit_threads", "device")  # and transfer.online_frames / eval_every_frames
 
 
 def config_dir() -> Path:

@@ -270,6 +270,7 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "model_env.reward_penalty": _num(0),
     "model_env.reward_scale": ("a positive number or 'auto'", lambda v: v == "auto" or (_is_num(v) and v > 0)),
     "torch_threads": _int(1, optional=True),
+    "fit_threads": _int(1, optional=True),
     # the typed sections' fields: their rules are held by the dataclasses
     **{f"{key}.{f.name}": f.metadata["rule"] for key, section in SECTIONS.items() for f in fields(section)},
 }

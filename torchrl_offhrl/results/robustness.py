@@ -14,8 +14,8 @@ table reads (config, evaluations, summaries) is archived in the repo under
 ``docs/results/demo_robustness_runs/<variant>/d<seed>`` as each run finishes (the cache, ``$TORCHRL_OFFHRL_CACHE``, keeps the datasets and models: a
 second variant on the same dataset seed costs only its agent's training).
 Two runs side by side on a 2-core machine (two dataset seeds at once): give each ``OMP_NUM_THREADS=1``.
-The model fits run at torch's default thread count (all cores; ``torch_threads`` applies after them), and two
-fits at two threads each on two cores ran 2-5x slower than at one thread each (ensemble steps: 6-17 against 17-35
+The model fits run at ``fit_threads`` torch threads (default: torch's count, all cores; ``torch_threads`` applies after
+them; ``OMP_NUM_THREADS=1`` sets both), and two fits at two threads each on two cores ran 2-5x slower than at one thread each (ensemble steps: 6-17 against 17-35
 per second beside another job, measured 2026-12-03): a dataset seed's fits took 20-45 minutes instead of a few.
 
 The table scores, per dataset seed, the behaviour data, the untrained agent
