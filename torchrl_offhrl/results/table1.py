@@ -85,7 +85,10 @@ NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the conf
                   "(`*`): a config that no longer exists (PPO in real actions from a random policy, threshold max / 3; "
                   "`configs/algo/morel.yaml` now follows MOReL's code), first run on hopper seeds 4-5 with a HALT penalty of 100 "
                   "and then with the env group's penalty.")}
-NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. On the 2-core CPU machine the runs go "
+NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
+                 "seeds 4-8 on 2026-12-03 with `--batch-seeds` (each algorithm's five seeds as one computation on one model env "
+                 "of 5 x 64 envs, each seed still its own run; the paper's 1000-step model episodes from the data's start states), "
+                 "on data and models generated on this machine: they replace the rows rebuilt from an earlier page. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
                  "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
                  "one core; CQL ~8 h per seed on one core, so its medium runs were made on a lent H100: the same config, data (rebuilt bit for "
