@@ -134,12 +134,13 @@ def test_hydra_deletion_overrides_are_accepted():
 
 
 def test_fit_threads_sets_the_model_fits_thread_count_and_restores_it(cache, tmp_path, monkeypatch):
-    """``fit_threads`` is the torch thread count while the models are fitted (or loaded); the caller's count comes back."""
+    """``fit_threads`` is the torch thread count while the models are fitted (or loaded), for every caller of
+    fit_or_load_models (train, fit, tune models); the caller's count comes back."""
     import time
 
     import torch
 
-    from torchrl_offhrl.recipes import setting
+    from torchrl_offhrl.recipes import pipeline, setting
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.utils import threads, to_plain
 
@@ -157,7 +158,7 @@ def test_fit_threads_sets_the_model_fits_thread_count_and_restores_it(cache, tmp
     def fake_fit(*args, **kwargs):
         raise Seen(torch.get_num_threads())
 
-    monkeypatch.setattr(setting, "fit_or_load_models", fake_fit)
+    monkeypatch.setattr(pipeline, "_fit_or_load_models", fake_fit)  # what fit_or_load_models runs at fit_threads threads
     cfg = to_plain(compose("offline_train", ["env=hopper", "dataset=random", "num_transitions=200", "fit_threads=1",
                                              f"run_dir={tmp_path}"]))
     with threads(2):

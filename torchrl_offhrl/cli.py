@@ -108,13 +108,12 @@ def cmd_fit(args) -> int:
     from .recipes.config import compose, model_config, resolve_dataset
     from .recipes.pipeline import fit_or_load_models
     from .recipes.schema import validate_config
-    from .utils import threads, to_plain
+    from .utils import to_plain
 
     cfg = compose("offline_train", args.overrides, "fit")
     validate_config(to_plain(cfg))
     data = resolve_dataset(cfg)
-    with threads(cfg.get("fit_threads")):
-        _, _, info = fit_or_load_models(model_config(cfg), data)
+    _, _, info = fit_or_load_models(model_config(cfg), data)
     for name in ("ensemble", "cvae"):
         hist = info.get(f"{name}_history")
         val = hist[-1].get("val_loss") if hist else None

@@ -97,6 +97,7 @@ def model_config(cfg: Mapping) -> dict:
         "dataset": {"val_ratio": cfg.get("val_ratio", 0.1)},
         "ensemble": cfg["ensemble"],
         "cvae": cfg["cvae"],
+        "fit_threads": cfg.get("fit_threads"),  # how fast, not what, the fits compute: not in the cache key
     }
 
 

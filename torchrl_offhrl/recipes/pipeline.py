@@ -21,7 +21,7 @@ from ..data import OfflineDataset
 from ..registry import task_of
 from ..envs import DEFAULT_LATENT_BOUND, AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble
-from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, to_plain
+from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, threads, to_plain
 
 __all__ = [
     "GaussianLatentPolicy",
@@ -119,8 +119,14 @@ def fit_or_load_models(
     and the model and fit configs: change either and the models are fitted
     again (a file replaced by other data at the same path is reported). Returns ``(ensemble, cvae, info)``;
     ``with_cvae=False`` fits (or loads) the ensemble alone and returns ``None`` for the CVAE (a later call fits
-    it into the same folder).
+    it into the same folder). ``cfg["fit_threads"]`` (optional; None: torch's count) is the torch thread count while
+    they are fitted, restored afterwards.
     """
+    with threads(cfg.get("fit_threads")):
+        return _fit_or_load_models(cfg, data, progress, with_cvae)
+
+
+def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with_cvae: bool) -> tuple:
     device = torch.device(cfg.get("device", "cpu"))
     ecfg, ccfg = to_plain(cfg["ensemble"]), to_plain(cfg["cvae"])
     if ecfg.get("reward_hidden_sizes", "absent") is None:  # the default (the transition widths): the cache key of configs without the key

@@ -27,7 +27,6 @@ from torchrl.envs import RewardScaling, RewardSum
 from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
 from ..blockstack import goals as G
 from ..registry import task_of
-from ..utils import threads
 from .config import acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_config, resolve_dataset, resolve_reward_scale, transfer_config
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
@@ -411,8 +410,7 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
     ensemble = cvae = None
     model_info = {"model_dir": None}
     if kind.needs_models(cfg):
-        with threads(cfg.get("fit_threads")):  # None: torch's default count (every core)
-            ensemble, cvae, model_info = fit_or_load_models(pcfg, data, progress=progress)
+        ensemble, cvae, model_info = fit_or_load_models(pcfg, data, progress=progress)  # at fit_threads threads
     t_models = time.time() - t_start - t_data
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg["torch_threads"]))
