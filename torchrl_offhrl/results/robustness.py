@@ -113,9 +113,9 @@ def overrides(variant: str) -> list[str]:
     return [*(FIT10K if variant in ON_FIT10K else []), *VARIANTS[variant][1]]
 
 
-#: variant -> the baseline (or baselines) it is compared with run for run (same dataset and agent seeds): the paired
+#: variant -> the baselines it is compared with run for run (same dataset and agent seeds): the paired
 #: block of the table, on the runs both have. The earlier variants' pairs (the shipped demo's archived runs) are in the notes.
-PAIRED = {"stdlr": "machine2", "mb64": "machine2", "stdsched": "machine2", "batch4096": "machine2", "prior1": "machine2", "prior01": "machine2", "prior003": "machine2", "clip01": "machine2",
+PAIRED = {**{v: ("machine2",) for v in ("stdlr", "mb64", "stdsched", "batch4096", "prior1", "prior01", "prior003", "clip01")},
           # the evaluation seeds' pair: the earlier shipped demo's runs (the first machine: the same datasets, other model fits)
           "models30k": ("machine2", "shipped")}
 
@@ -134,6 +134,11 @@ def parse_name(name: str) -> tuple[int, int]:
 def run(variant: str, seeds: list[int], agent_seeds: list[int] = (0,)) -> None:
     from ..recipes.demo import run_demo
 
+    ov = overrides(variant)
+    # every evaluation's policy kept (snapshot-<frames>.pt): other selection criteria can be scored afterwards
+    over = dict(o.split("=", 1) for o in ov if "=" in o)
+    every, total = int(over.get("eval.every_frames", 10240)), int(over.get("train.total_frames", 81920))
+    snaps = f"train.snapshot_frames=[{','.join(str(every * k) for k in range(1, total // every + 1))}]"
     for d in seeds:
         for a in agent_seeds:
             name = run_name(d, a)
@@ -143,11 +148,7 @@ def run(variant: str, seeds: list[int], agent_seeds: list[int] = (0,)) -> None:
                 if not (ARCHIVE / variant / name / "demo_summary.json").is_file():
                     archive(variant, name)
                 continue
-            # every evaluation's policy kept (snapshot-<frames>.pt): other selection criteria can be scored afterwards
-            over = dict(o.split("=", 1) for o in overrides(variant) if "=" in o)
-            every, total = int(over.get("eval.every_frames", 10240)), int(over.get("train.total_frames", 81920))
-            snaps = f"train.snapshot_frames=[{','.join(str(every * k) for k in range(1, total // every + 1))}]"
-            run_demo([*overrides(variant), f"dataset_seed={d}", f"seed={a}", f"run_dir={out}", snaps], progress=False)
+            run_demo([*ov, f"dataset_seed={d}", f"seed={a}", f"run_dir={out}", snaps], progress=False)
             archive(variant, name)
 
 
@@ -277,7 +278,7 @@ def table(variants: list[str]) -> str:
             lines.append(f"| IQM [95% CI] | {' | '.join(agg)} | {wins}/{len(rs)} | {hits}/{len(rs)} | |")
             lines.append("| mean ± std | " + " | ".join(msd) + " | | | |")
             lines.append("")
-            for baseline in ((PAIRED[v],) if isinstance(PAIRED.get(v), str) else PAIRED.get(v, ())):
+            for baseline in PAIRED.get(v, ()):
                 lines += paired_rows(v, baseline, rs)
             crit = criteria_rows([run for run in runs if pick({"dataset_seed": run[0][0]})])
             if crit:
