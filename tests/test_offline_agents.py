@@ -471,6 +471,16 @@ def test_results_script_keeps_tuning_runs_apart(monkeypatch):
     assert Path(seen[-1]["run_dir"]).parent.name == "demo" and archived[-1] == "demo"
     with pytest.raises(SystemExit, match="evaluation seeds"):
         mod.main(["run", "--tuning", "--seeds", "3", "4"])
+    # --extra ... --tag T: a variant of the scale's config, in run directories and a column (algo.label) of its own
+    mod.main(["run", "--tuning", "--scale", "full", "--envs", "hopper", "--algos", "moc", "--seeds", "2",
+              "--extra", "model_env.reset_states=any", "model_env.horizon=100", "--tag", "branch"])
+    assert Path(seen[-1]["run_dir"]).name == "moc_branch-hopper-medium-seed2" and seen[-1]["algo"]["label"] == "moc_branch"
+    assert seen[-1]["model_env"]["horizon"] == 100 and seen[-1]["model_env"]["reset_states"] == "any"
+    assert seen[-1]["algo"]["minibatch_size"] == 256 and seen[-1]["train"]["total_frames"] == 204800  # the scale's own settings stay
+    mod.main(["run", "--tuning", "--scale", "full", "--envs", "hopper", "--algos", "moc", "--seeds", "2"])
+    assert seen[-1]["model_env"]["horizon"] == 1000 and "label" not in seen[-1]["algo"]
+    with pytest.raises(SystemExit, match="go together"):
+        mod.main(["run", "--tuning", "--algos", "moc", "--extra", "model_env.horizon=100"])
 
 
 def test_transfer_script_keeps_variants_and_tuning_runs_apart(monkeypatch):

@@ -4,6 +4,7 @@
                                   [--datasets medium medium-expert]
     offhrl results table1 report [--scale demo|full]     # docs/results/<scale>/: results.md, curves.png, option usage
     offhrl results table1 run --tuning --algos moc moc_online --seeds 1 2 3   # tuning seeds, kept apart (see below)
+    offhrl results table1 run --tuning --scale full --algos moc --extra model_env.horizon=100 --tag h100   # a variant
 
 Scales:
 
@@ -163,18 +164,24 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
 
 
 def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",), tuning: bool = False,
-        speed: list[str] = (), batch_seeds: bool = False) -> None:
+        speed: list[str] = (), batch_seeds: bool = False, changes: list[str] = (), tag: str | None = None) -> None:
     """Every (dataset, env, algo, seed) run in turn. ``speed``: overrides that must not change the run (e.g. ``device=cuda``,
     ``algo.cudagraphs=true``): each run's resume fingerprint is checked to be the same with them and without.
     ``batch_seeds``: the seeds of an (env, dataset, algo) whose seeds can batch (:func:`~torchrl_offhrl.recipes.seed_runs.batchable`)
-    train as one computation, each still its own run directory; the others go seed by seed."""
+    train as one computation, each still its own run directory; the others go seed by seed.
+    ``changes`` (with ``tag``): overrides that do change the runs, a variant of the scale's config: its runs are named
+    ``<algo>_<tag>-<env>-<dataset>-seed<N>`` and labelled ``<algo>_<tag>`` (their own column of the tables)."""
+    if bool(changes) != bool(tag):
+        raise SystemExit("--extra and --tag go together: a variant's runs need a name of their own (--tag NAME) beside the scale's own runs")
+    if tag and not tag.replace("_", "").isalnum():
+        raise SystemExit(f"--tag {tag!r}: letters, digits and _ only (it becomes part of the run directories' names)")
     from ..recipes.seed_runs import RunsApart, batchable, train_seed_configs
     from ..recipes.train import train
 
     where = folder(scale, tuning)
     for env, dataset in ((e, d) for d in datasets for e in envs):
         for algo in algos:
-            configs = [_run_config(scale, where, env, dataset, algo, seed, speed) for seed in seeds]
+            configs = [_run_config(scale, where, env, dataset, algo, seed, speed, changes, tag) for seed in seeds]
             summaries = None
             if batch_seeds and len(configs) > 1 and batchable(configs[0]):
                 try:
@@ -189,22 +196,26 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
                     summaries.append(train(cfg))
                     archive(where)  # kept in docs/results/<scale>/runs/ at once: outputs/ does not outlive the machine
             for seed, s in zip(seeds, summaries):
-                print(f"{where} {env}-{dataset} {algo} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
+                print(f"{where} {env}-{dataset} {algo}{'_' + tag if tag else ''} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
-def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed: int, speed: list[str]) -> dict:
-    """The config of one Table I run (``speed``: checked not to change it)."""
+def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed: int, speed: list[str],
+                changes: list[str] = (), tag: str | None = None) -> dict:
+    """The config of one Table I run (``speed``: checked not to change it; ``changes``: a variant named ``tag``)."""
     from ..agents import agent_defaults
     from ..recipes.config import compose, config_fingerprint
     from ..utils import to_plain
 
+    name = f"{algo}_{tag}" if tag else algo
     overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
-                 f"run_dir={run_dir(where, env, algo, seed, dataset)}", *BUDGET[scale]]
+                 f"run_dir={run_dir(where, env, name, seed, dataset)}", *BUDGET[scale]]
     cfg = compose(CONFIG[scale], overrides)
     if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
         overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
     elif "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
         overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
+    if tag:
+        overrides += [*changes, f"++algo.label={name}"]  # after the scale's own: the variant's settings win
     cfg = to_plain(compose(CONFIG[scale], overrides))
     if speed:
         fast = to_plain(compose(CONFIG[scale], [*overrides, *speed]))
@@ -217,9 +228,10 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
 
 
 # why a cell of the full-scale table has fewer than 3 seeds (paper_table's "Missing cells"; keys "<row>" or "<row>:<algo>")
-_MODEL_ENV_ME = ("Not run: the model-env agents (MOC, PPO, SAC, MOReL, MOPO) first need an ensemble and a CVAE fitted on the 2M "
-                 "transitions, then ~1 h per seed for 205k frames on one core; the CPU went to the medium rows and to the transfer "
-                 "runs (issue 16) first.")
+_MODEL_ENV_ME = ("Not run yet: the model-env agents (MOC, PPO, SAC, MOReL, MOPO) first need an ensemble and a CVAE fitted on the 2M "
+                 "transitions (the medium fits took ~35 min on one core: 25 for the ensemble's 20k steps, 9 for the CVAE's), then "
+                 "five seeds batched (`--batch-seeds`) take ~15-20 min per algorithm (MOC 13.4 and PPO 16.4 min for the medium "
+                 "rows' 205k frames, evaluations apart); the CPU went to the medium rows and issue 37's robustness runs first.")
 _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert MPS=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6` "
            "with the medium and expert packs, at the next lent GPU.")
 _SEEDS_7_8 = ("Not yet run on all of seeds 4-8 (a headline cell takes 5 seeds): `offhrl results table1 run --scale {scale} --envs {env} "
@@ -324,6 +336,9 @@ def main(argv=None) -> int:
                    help="train the seeds of an algorithm as one computation where they batch (the dataset agents; ppo, moc, sac and "
                         "mopo on the model env: one env of N x E envs), each seed still its own run; runs of a batch that stand at "
                         "different steps (an interrupted batch) first catch up alone to the furthest one, then go on batched")
+    r.add_argument("--extra", nargs="+", default=[], metavar="KEY=VALUE", dest="changes",
+                   help="a variant of the scale's config (e.g. model_env.reset_states=any model_env.horizon=100), with --tag")
+    r.add_argument("--tag", default=None, help="the variant's name: runs <algo>_<tag>-<env>-<dataset>-seed<N>, their own column")
     g = sub.add_parser("report")
     g.add_argument("--scale", choices=sorted(CONFIG), default="demo")
     g.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/<scale>_tuning/README.md")
@@ -332,7 +347,7 @@ def main(argv=None) -> int:
         seeds = a.seeds if a.seeds is not None else [1, 2, 3] if a.tuning else [4, 5, 6, 7, 8]
         if a.tuning and any(s >= FIRST_EVAL_SEED for s in seeds):
             raise SystemExit("--tuning runs use the tuning seeds; seeds 4 and up are the evaluation seeds of docs/results/<scale>/")
-        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning, a.speed, batch_seeds=a.batch_seeds)
+        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning, a.speed, batch_seeds=a.batch_seeds, changes=a.changes, tag=a.tag)
     else:
         print(report(a.scale, a.tuning))
     return 0
