@@ -4,6 +4,7 @@ import os
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -493,6 +494,18 @@ def test_offline_policy_selection_returns_the_policy_its_criterion_ranks_first(c
         torch.testing.assert_close(v, snap["agent"]["loss"][k])
     env.close()
     assert state["frames"] == best["frames"]
+
+
+def test_a_model_criterion_on_model_episodes_shorter_than_the_real_ones_warns(hopper_file, cache, tmp_path):
+    """model_lcb on 20-step model episodes where a real one runs 40: the run says why the criterion may mislead; the same
+    run returning its last policy (the default, and the demo's choice) does not."""
+    short = ["model_env.horizon=20", "train.total_frames=128"]
+    with pytest.warns(UserWarning, match="reads 20-step model episodes .* where a real episode runs 40 steps"):
+        train(_cfg("ppo", hopper_file, tmp_path / "lcb", [*short, "selection.criterion=model_lcb"]), progress=False)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        train(_cfg("ppo", hopper_file, tmp_path / "last", [*short, "selection.criterion=last"]), progress=False)
+    assert not [w for w in seen if "model episodes" in str(w.message)]
 
 
 def test_policy_selection_without_a_model_env_returns_the_last_policy(hopper_file, cache, tmp_path):

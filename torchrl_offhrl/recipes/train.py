@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -45,7 +46,7 @@ from .plots import plot_training_metrics
 from .summary import run_summary
 from .rundir import RunDirectory
 from .schema import RunConfig
-from .selection import PolicySelector
+from .selection import PolicySelector, horizon_warning
 from .setting import build_setting
 
 TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
@@ -109,6 +110,8 @@ class PreparedRun:
         run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
         run.unit = unit
         run.selector = PolicySelector(rc.selection.criterion if s.selectable else "last", rc.selection.include_start)
+        if s.selectable and (why := horizon_warning(rc.selection.criterion, (cfg.get("model_env") or {}).get("horizon"), rc.eval.max_steps)):
+            warnings.warn(why, stacklevel=2)
         previous_summary = None
         resumed = run.resume(agent, s.device)
         if not resumed:  # a start from the dataset before training (e.g. MOReL's behaviour cloning); a resumed run has it in its weights

@@ -48,8 +48,9 @@ class Preset:
 
 PRESETS: dict[str, Preset] = {
     "table1": Preset("table1", "the paper's Table I: every algorithm on hopper / halfcheetah x medium / medium-expert, demo and full scale",
-                     ("demo/", "full/", "demo_tuning/"),
-                     (("report", "--scale", "demo"), ("report", "--scale", "full"), ("report", "--scale", "demo", "--tuning"))),
+                     ("demo/", "full/", "demo_tuning/", "full_tuning/"),
+                     (("report", "--scale", "demo"), ("report", "--scale", "full"), ("report", "--scale", "demo", "--tuning"),
+                      ("report", "--scale", "full", "--tuning"))),
     "transfer": Preset("transfer", "offline training on the forward task, then online fine-tuning on the backward task",
                        ("transfer.md", "transfer/", "transfer_tuning.md", "transfer_sampled.md"),
                        (("report",), ("report", "--tuning")),

@@ -194,8 +194,10 @@ def rows_of(variant: str) -> list[dict]:
     return rows
 
 
-def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
-    """Every selection criterion scored afterwards on the same runs: the real score of the evaluation its selector picks."""
+def criteria_rows(runs: list[tuple[int, list[dict], dict]], names: list[str] | None = None) -> list[str]:
+    """Every selection criterion scored afterwards on the same runs: the real score of the evaluation its selector picks.
+
+    ``runs``: ``(key, evaluation records, summary)``; a pick is named ``d<label(key)>``, or by ``names`` where given."""
     from ..recipes.selection import CRITERIA, PolicySelector
 
     class _Index:  # stands for the agent: its "state" is the index of the evaluation being considered
@@ -206,7 +208,10 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
 
     if not runs:
         return []
-    out = ["| criterion | picked real score per dataset seed | mean | within 5 of best | beats untrained and data |", "|---|---|---|---|---|"]
+    what = "dataset seed" if names is None else "run"
+    names = names or [f"d{label(k)}" for k, _, _ in runs]
+    out = [f"| criterion | picked real score per {what} | mean | within 5 of best | beats untrained and data |",
+           "|---|---|---|---|---|"]
     for name, key in CRITERIA.items():
         if key is not None and any(key not in e for _, evals, _ in runs for e in evals):
             continue  # a run made before the criterion's record existed
@@ -220,7 +225,7 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]]) -> list[str]:
             picks.append(e["normalized_d4rl"])
             hits += best - e["normalized_d4rl"] <= 5.0
             wins += beats_both(e["normalized_d4rl"], s)
-        out.append(f"| {name} | {', '.join(f'd{label(k)}: {x:.1f}' for (k, _, _), x in zip(runs, picks))} | {sum(picks) / len(picks):.1f} | "
+        out.append(f"| {name} | {', '.join(f'{n}: {x:.1f}' for n, x in zip(names, picks))} | {sum(picks) / len(picks):.1f} | "
                    f"{hits}/{len(picks)} | {wins}/{len(picks)} |")
     return out + [""]
 

@@ -89,7 +89,13 @@ NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the conf
 NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
                  "seeds 4-8 on 2026-12-03 with `--batch-seeds` (each algorithm's five seeds as one computation on one model env "
                  "of 5 x 64 envs, each seed still its own run; the paper's 1000-step model episodes from the data's start states), "
-                 "on data and models generated on this machine: they replace the rows rebuilt from an earlier page. On the 2-core CPU machine the runs go "
+                 "on data and models generated on this machine: they replace the rows rebuilt from an earlier page. The columns "
+                 "`moc_fit60k_lcb` and `ppo_fit60k_lcb` are a variant run once on the same seeds after a choice on the tuning seeds "
+                 "1-3 (`--extra ensemble.fit.max_steps=60000 selection.criterion=model_lcb --tag fit60k_lcb`: the ensemble fitted "
+                 "60k steps instead of 20k, the policy returned by the worst member's model return); it did not hold there and is not "
+                 "adopted ([experiments.md](experiments.md), [../full_tuning/README.md](../full_tuning/README.md)). `MOC, 1 option` on "
+                 "hopper-medium (`--algos moc_1opt --batch-seeds`, 2026-12-03) is MOC's column with one option: the same config, models "
+                 "and seeds. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
                  "finished so far; the model-free baselines' runs take 100k gradient steps (BC ~10 min, TD3+BC ~45 min, IQL ~1 h per seed on "
                  "one core; CQL ~8 h per seed on one core, so its medium runs were made on a lent H100: the same config, data (rebuilt bit for "
@@ -314,9 +320,32 @@ def report(scale: str, tuning: bool = False) -> str:
         best = max([e for e in ev if e.get("step", e["frames"]) > 0] or ev, key=lambda e: e.get("normalized_d4rl") or float("-inf"))
         lines.append(f"- `{r['name']}`: start {ev[0]['normalized_d4rl']:.1f}, final {ev[-1]['normalized_d4rl']:.1f}, "
                      f"best {best['normalized_d4rl']:.1f} at {best.get('step', best['frames'])} {unit}" + (" (rebuilt)" if r.get("partial") else ""))
+    if tuning:
+        lines += _criteria_section(runs)
     text = "\n".join(lines) + "\n"
     (out / "README.md").write_text(text)
     return text
+
+
+def _criteria_section(runs: list[dict]) -> list[str]:
+    """Tuning pages: each offline selection criterion scored afterwards on each group of model-env runs (the real score of
+    the evaluation it would have returned; :func:`~torchrl_offhrl.results.robustness.criteria_rows`)."""
+    from .robustness import criteria_rows
+
+    groups: dict[str, list[dict]] = {}
+    for r in runs:
+        if not r.get("partial") and r["summary"] and any("model_discounted_min_member" in e for e in r["evals"]):
+            groups.setdefault(r["name"].rsplit("-seed", 1)[0], []).append(r)
+    if not groups:
+        return []
+    out = ["", "## Offline selection criteria compared on these runs", "",
+           "The real score of the evaluation each `selection.criterion` would have returned (after step 0; the criteria read only "
+           "the P-MDP's records), whichever criterion the runs themselves used. *Within 5 of best*: of the run's best "
+           "evaluation; *beats untrained and data*: above the run's start and the behaviour data's score.", ""]
+    for group, rs in groups.items():
+        out += [f"### {group}", "", *criteria_rows([(None, r["evals"], r["summary"]) for r in rs],
+                                                   names=[f"s{r['name'].rsplit('-seed', 1)[1]}" for r in rs])]
+    return out
 
 
 def main(argv=None) -> int:
