@@ -82,10 +82,10 @@ NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the conf
                   "seeds 4-8, the same day, data and budget: `MOC, 1 option` (`algo=moc_1opt`: no choice between options) and `PPOC "
                   "(eta 0)` (`algo=ppoc`: MOC updating only the option that ran), `offhrl results table1 run --scale demo --envs hopper "
                   "--algos moc_1opt ppoc`; on halfcheetah-medium with `--batch-seeds` (each algorithm's five seeds as one computation "
-                  "on one model env of 5 x 64 envs, each seed still its own run: the same untrained agents, other collection draws). The `MOReL-style (old)` column is still the earlier page's record "
-                  "(`*`): a config that no longer exists (PPO in real actions from a random policy, threshold max / 3; "
-                  "`configs/algo/morel.yaml` now follows MOReL's code), first run on hopper seeds 4-5 with a HALT penalty of 100 "
-                  "and then with the env group's penalty.")}
+                  "on one model env of 5 x 64 envs, each seed still its own run: the same untrained agents, other collection draws). The earlier page's `MOReL-style (old)` runs "
+                  "(a config that no longer exists: PPO in real actions from a random policy, threshold max / 3; "
+                  "`configs/algo/morel.yaml` now follows MOReL's code) are listed at the end as rebuilt rows and counted in no "
+                  "cell.")}
 NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
                  "seeds 4-8 on 2026-12-03 with `--batch-seeds` (each algorithm's five seeds as one computation on one model env "
                  "of 5 x 64 envs, each seed still its own run; the paper's 1000-step model episodes from the data's start states), "
@@ -278,11 +278,12 @@ def report(scale: str, tuning: bool = False) -> str:
     archive(scale)
     kept = sorted(d for d in archive_dir(scale).glob("*-seed*") if (d / "summary.json").is_file())
     legacy, legacy_diag = legacy_runs(scale, {d.name for d in kept})
-    runs = [{**load_run(d), "name": d.name} for d in kept] + legacy
+    runs = [{**load_run(d), "name": d.name} for d in kept]  # the tables count archived runs only (issue 37: no cell on legacy rows)
     if not runs:
         raise SystemExit(f"no finished runs under {ROOT / 'outputs' / 'results' / scale} or {archive_dir(scale)}: "
                          f"run `offhrl results table1 run --scale {name}{' --tuning' if tuning else ''}` first")
     runs.sort(key=lambda r: r["name"])
+    listed = sorted(runs + legacy, key=lambda r: r["name"])  # the per-seed list names the earlier page's runs too, marked
     out = ROOT / "docs" / "results" / scale
     cmd = f"offhrl results table1 report --scale {name}{' --tuning' if tuning else ''}"
     table = aggregate(runs, out, made_by=cmd)
@@ -296,14 +297,15 @@ def report(scale: str, tuning: bool = False) -> str:
              "Scores are D4RL-normalised; final and best are separate columns (best: the best evaluation after training began; "
              "it is never reported as the result).", "",
              *([TUNING_NOTE, ""] if tuning else [NOTES[scale], ""] if scale in NOTES else []),
-             *([f"{len(legacy)} runs (marked *rebuilt* below) are known only from an earlier version of this page: their run directories "
-                "were lost between sessions, so they count in the tables from their start, best and final scores and draw no curves "
-                "(their curves, made from the run directories: `legacy_curves*.png`); see `runs/legacy.json`.", ""] if legacy else []),
+             *([f"{len(legacy)} runs (marked *rebuilt* in the per-seed list at the end) are known only from an earlier version of "
+                "this page: their run directories were lost between sessions and only their start, best and final scores remain "
+                "(`runs/legacy.json`; their curves, made from the run directories then: `legacy_curves*.png`). They are not counted "
+                "in any table or cell here: every cell rests on archived runs.", ""] if legacy else []),
              "The same runs in the paper's Table I layout (every algorithm side by side, published scores apart): [table.md](table.md).", "",
              table, "", "## MOC option diagnostics at the end of training (mean over seeds of the last 5 logged batches)", "",
              "| env | seeds | " + " | ".join(DIAG) + " |", "|---|---|" + "---|" * len(DIAG)]
-    for env in sorted({r["name"].split("-")[1] for r in runs}):
-        moc = [r for r in runs if r["name"].startswith(f"moc-{env}-")]
+    for env in sorted({r["name"].split("-")[1] for r in listed}):
+        moc = [r for r in listed if r["name"].startswith(f"moc-{env}-")]
         whole = [r for r in moc if not r.get("partial")]
         if whole:
             tails = [json.loads((Path(r["dir"]) / "diagnostics.json").read_text())["train_tail_means"] for r in whole
@@ -320,7 +322,7 @@ def report(scale: str, tuning: bool = False) -> str:
             if src.is_file():
                 shutil.copyfile(src, out / f"option_usage_{env}_{r['name'].rsplit('-', 1)[1]}.png")
     lines += ["", "Per seed (final / best D4RL score, and where the best was: model-env frames, or gradient steps for the dataset agents):", ""]
-    for r in runs:
+    for r in listed:
         ev, unit = r["evals"], (r["summary"] or {}).get("unit", "frames")
         best = max([e for e in ev if e.get("step", e["frames"]) > 0] or ev, key=lambda e: e.get("normalized_d4rl") or float("-inf"))
         lines.append(f"- `{r['name']}`: start {ev[0]['normalized_d4rl']:.1f}, final {ev[-1]['normalized_d4rl']:.1f}, "
