@@ -413,6 +413,8 @@ def test_partial_runs_count_in_the_tables_but_draw_no_curves(tmp_path):
     assert "| hopper-medium | 50.0 [40.0, 60.0] (2) |" in text.split("## Best")[0]  # finals 40 and 60
     assert "| hopper-medium | 55.0 [50.0, 60.0] (2) |" in text.split("## Best")[1]  # best after step 0: 50 and 60
     assert "s0*: 60.0 / n/a / n/a / 60.0 / 10.0" in text  # the partial run (its config is seed 0's): marked, no last five
+    assert "`*`: a run known only from an earlier page" in text
+    assert "`*`:" not in paper_table([whole], tmp_path / "w")  # no marked row, no legend
     assert (tmp_path / "t" / "curves_hopper-medium.png").is_file()
     only_partial = paper_table([part], tmp_path / "p")
     assert "| hopper-medium | 60.0 (1) |" in only_partial and not list((tmp_path / "p").glob("curves*.png"))

@@ -429,8 +429,9 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         return any(p[key] is not None for st in stats.values() for p in st["per_seed"])
 
     sampled = has("sampled")  # the sampled policy's final score, on pages whose runs evaluated it
+    rebuilt = any(p["rebuilt"] for st in stats.values() for p in st["per_seed"])  # the legend only where a row carries the mark
     per_seed = [f"## Per-seed values (final / selected / last-5 mean / best / untrained{' / final sampled' if sampled else ''})", "",
-                "`*`: a run known only from an earlier page (start, best and final: no last five, no selection).", ""]
+                *(["`*`: a run known only from an earlier page (start, best and final: no last five, no selection).", ""] if rebuilt else [])]
     for env_id, dataset in datasets:
         for c in columns:
             st = stats.get((env_id, dataset, c))
