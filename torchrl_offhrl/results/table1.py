@@ -103,7 +103,7 @@ NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by l
                  "60k-step fit and a discount of 0.998, under which a gait that falls after ~350 steps is worth ~40% less than one that "
                  "runs the full 1000 steps, where under 0.99 the two are worth the same) are the full-scale recipe that issue 37 "
                  "adopts: chosen on the tuning seeds (3 of 3 above the data), run once on these seeds, where MOC kept its gait on 5 of 5 "
-                 "on Hopper and ended above the data on 5 of 5 on HalfCheetah (PPO with it on HalfCheetah: not run yet). BC and TD3+BC on hopper-medium ran seeds 4-8 with `--batch-seeds` "
+                 "on Hopper and ended above the data on 5 of 5 on HalfCheetah (PPO with it: 5 of 5 on both). BC and TD3+BC on hopper-medium ran seeds 4-8 with `--batch-seeds` "
                  "(2026-12-03 and -04), replacing their rows rebuilt from an earlier page. `MOC, 1 option` on "
                  "hopper-medium (`--algos moc_1opt --batch-seeds`, 2026-12-03) is MOC's column with one option: the same config, models "
                  "and seeds. On the 2-core CPU machine the runs go "
