@@ -293,7 +293,7 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.pipeline import make_real_env
     from torchrl_offhrl.recipes.train import train
-    from torchrl_offhrl.recipes.uof_policies import is_uof_policy, load_uof_policy, ship_uof_policy
+    from torchrl_offhrl.recipes.uof_policies import is_uof_policy, load_uof_policy, ship_uof_policy, uof_route_dataset
     from torchrl_offhrl.utils import to_plain
 
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
@@ -342,6 +342,12 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
     # without --out: into the datasets cache, the noise in the name (greedy and noisy collections never share a file)
     assert main(["collect", "blockstack2", "--policy", str(pt), "-n", "50", "--num-envs", "2", "--random-prob", "0.1"]) == 0
     assert [p.name for p in (tmp_path / "cache" / "datasets").glob("*.hdf5")] == ["blockstack2-bs2-test-50-seed0-envs2-rp0.1-ns0.hdf5"]
+    # the results' data route finds that file (same policy, size, noise) and does not collect again
+    cached = tmp_path / "cache" / "datasets" / "blockstack2-bs2-test-50-seed0-envs2-rp0.1-ns0.hdf5"
+    stamp = cached.stat().st_mtime_ns
+    assert uof_route_dataset("blockstack2", pt, 50, num_envs=2, random_prob=0.1) == cached and cached.stat().st_mtime_ns == stamp
+    other = uof_route_dataset("blockstack2", pt, 50, num_envs=2, random_prob=0.1, noise_std=0.1)  # other noise: collected anew
+    assert other != cached and len(load_dataset(other)) == 50 and load_dataset(other).metadata["noise_std"] == 0.1
     # a shipped UOF policy is listed apart and refused by the behaviour-policy loader with what to use instead
     import torchrl_offhrl.data.policies as pol
 
@@ -402,3 +408,16 @@ def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_ea
     text = mod.report()
     assert "## blockstack2, medium-expert *(earlier page)*" in text and "| BC | 3 | 1.00 / 1.00 / 0.69 |" in text
     assert "| BC | 1 | 1.00 / 0.70 / 0.20 |" in text.split("## blockstack2, medium-expert\n")[1].split("## ")[0]
+    # the paper's data route: `--datasets uof-epoch20` is the file the shipped epoch-20 policy collects with the medium noise,
+    # and its runs form their own group
+    asked = []
+    monkeypatch.setattr("torchrl_offhrl.recipes.uof_policies.uof_route_dataset", lambda *a, **k: asked.append((a, k)) or tmp_path / "e20.hdf5")
+    assert mod.dataset_spec("blockstack2", "medium", 100) == "medium" and not asked
+    assert mod.dataset_spec("blockstack2", "uof-epoch20", 100) == str(tmp_path / "e20.hdf5")
+    assert asked == [(("blockstack2", "blockstack2-uof-epoch20", 100), {"random_prob": 0.1, "noise_std": 0.1})]
+    run = tmp_path / "outputs" / mod.run_name("blockstack2", "uof-epoch20", "bc", 4)
+    run.mkdir()
+    for f in ("evals.json", "config.json", "summary.json"):
+        (run / f).write_bytes((tmp_path / "outputs" / "bc-blockstack2-medium-seed5" / f).read_bytes())
+    route = mod.report().split("## blockstack2, uof-epoch20\n")[1].split("## ")[0]
+    assert "| BC | 1 | 1.00 / 0.70 / 0.20 |" in route

@@ -58,26 +58,14 @@ def cmd_collect(args) -> int:
 
     t0 = time.time()
     if args.policy:  # the paper's route: a UOF policy trained online collects the block-stacking data
-        from .registry import task_of
-        from .data.stacking import collect_stacking
-        from .recipes.uof_policies import load_uof_policy, uof_dataset_path
-        from .registry import resolve_env
+        from .recipes.uof_policies import collect_with_uof_policy
 
-        env_id, _ = resolve_env(args.env)
-        if not task_of(env_id).goal_conditioned or args.level not in (None, "uof"):
+        if args.level not in (None, "uof"):
             raise ValueError(f"--policy collects block-stacking data with a shipped UOF policy: `offhrl collect blockstack2 --policy "
                              f"blockstack2-uof-epoch20`; got env {args.env!r}, level {args.level!r}")
-        import torch
-
-        controller = load_uof_policy(args.policy, random_prob=args.random_prob, noise_std=args.noise_std,
-                                     generator=torch.Generator().manual_seed(args.seed))
-        if controller.card["env_id"] != env_id:
-            raise ValueError(f"policy {args.policy!r} acts in {controller.card['env_id']}, not {env_id}")
-        name = f"{args.env}-{controller.card['name'].removeprefix(args.env + '-')}"
-        if not args.out:  # decided before the collection: a bad path fails first
-            args.out = str(uof_dataset_path(name, args.num_transitions, args.seed, args.num_envs, args.random_prob, args.noise_std))
-        ds = collect_stacking(env_id, args.num_transitions, num_envs=args.num_envs, seed=args.seed, controller=controller,
-                              metadata={"dataset": name, "level": controller.card["level"], "random_prob": args.random_prob, "noise_std": args.noise_std})
+        ds, default_out = collect_with_uof_policy(args.env, args.policy, args.num_transitions, args.seed, args.num_envs,
+                                                  args.random_prob, args.noise_std)
+        args.out = args.out or str(default_out)
     else:
         if args.level is None:
             raise ValueError("give a level (random | medium | expert | medium-expert), or --policy for block stacking")

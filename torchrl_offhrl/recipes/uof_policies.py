@@ -179,3 +179,42 @@ def load_uof_policy(name_or_path, random_prob: float = 0.0, noise_std: float = 0
     agent.policy.load_state_dict(full)
     agent.policy.eval()
     return UOFController(agent.policy, card["n_blocks"], card, random_prob, noise_std, generator)
+
+
+def collect_with_uof_policy(env: str, policy, num_transitions: int, seed: int = 0, num_envs: int = 8, random_prob: float = 0.0,
+                            noise_std: float = 0.0, progress: bool = True):
+    """A block-stacking dataset collected by a shipped UOF policy (:func:`load_uof_policy`), and the cache path it belongs at.
+
+    ``env`` is a block-stacking env name (``blockstack2``) the policy must act
+    in; the dataset's name is ``<env>-<policy level>`` (``blockstack2-uof-epoch20``).
+    Returns ``(dataset, path)``: :func:`uof_dataset_path` of that name and
+    settings (the caller writes it there, or elsewhere).
+    """
+    from ..data.stacking import collect_stacking
+    from ..registry import resolve_env, task_of
+
+    env_id, _ = resolve_env(env)
+    if not task_of(env_id).goal_conditioned:
+        raise ValueError(f"a UOF policy collects block-stacking data (blockstack2 | blockstack3), not {env!r}")
+    controller = load_uof_policy(policy, random_prob=random_prob, noise_std=noise_std, generator=torch.Generator().manual_seed(seed))
+    if controller.card["env_id"] != env_id:
+        raise ValueError(f"policy {os.fspath(policy)!r} acts in {controller.card['env_id']}, not {env_id}")
+    name = f"{env}-{controller.card['name'].removeprefix(env + '-')}"
+    ds = collect_stacking(env_id, num_transitions, num_envs=num_envs, seed=seed, controller=controller, progress=progress,
+                          metadata={"dataset": name, "level": controller.card["level"], "random_prob": random_prob, "noise_std": noise_std})
+    return ds, uof_dataset_path(name, num_transitions, seed, num_envs, random_prob, noise_std)
+
+
+def uof_route_dataset(env: str, policy, num_transitions: int, seed: int = 0, num_envs: int = 8, random_prob: float = 0.0,
+                      noise_std: float = 0.0) -> Path:
+    """The cached file of :func:`collect_with_uof_policy` (collected and written there first when missing): the paper's data
+    route as a path a run's ``dataset=`` takes."""
+    from ..data import save_dataset
+
+    card = _policy_file(policy).with_suffix(".json")
+    shipped = json.loads(card.read_text())["name"] if card.is_file() else card.stem  # a missing card: load_uof_policy says what is needed
+    path = uof_dataset_path(f"{env}-{shipped.removeprefix(env + '-')}", num_transitions, seed, num_envs, random_prob, noise_std)
+    if not path.is_file():
+        ds, path = collect_with_uof_policy(env, policy, num_transitions, seed, num_envs, random_prob, noise_std)
+        save_dataset(ds, path)
+    return path

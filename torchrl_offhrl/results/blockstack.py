@@ -14,8 +14,10 @@ earlier page whose runs were lost between sessions are printed as it gave
 them (``docs/results/blockstack/legacy.json``), followed by a section of the
 runs archived since for the same (task, dataset), if any. The datasets are the
 scripted ones of ``offhrl collect`` (``--transitions`` per level, 100k by
-default: medium-expert holds twice as many), the models the paper's sizes
-(``configs/env/blockstack*.yaml``), fitted once and cached.
+default: medium-expert holds twice as many) or, named ``uof-epoch20`` /
+``uof-epoch50``, the paper's route: ``--transitions`` collected by the shipped
+UOF policy of that epoch with the ``medium`` level's noise; the models the
+paper's sizes (``configs/env/blockstack*.yaml``), fitted once and cached.
 
 Budgets (CPU): UOF and SAC + HER collect ``--frames`` model-env frames
 (16 envs x 25 steps per batch; UOF's 40 + 40 updates per 400 frames; SAC +
@@ -119,6 +121,20 @@ def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None
     return f"{algo_key(algo, frames)}-{task}-{dataset}" + (f"-{ablation}" if ablation else "") + f"-seed{seed}"
 
 
+def dataset_spec(task: str, dataset: str, transitions: int) -> str:
+    """What a run's ``dataset=`` gets for a dataset name of ``--datasets``: a scripted level as it is; ``uof-epoch20`` (any
+    ``uof-*``: the shipped UOF policy ``<task>-uof-epoch20``, the paper's data route) the file that policy collects with the
+    ``medium`` level's noise (``SCRIPT_LEVELS["medium"]``: only the controller differs from the scripted ``medium`` data),
+    collected and cached on first use."""
+    if not dataset.startswith("uof-"):
+        return dataset
+    from ..data.stacking import SCRIPT_LEVELS
+    from ..recipes.uof_policies import uof_route_dataset
+
+    random_prob, noise_std = SCRIPT_LEVELS["medium"]
+    return str(uof_route_dataset(task, f"{task}-{dataset}", transitions, random_prob=random_prob, noise_std=noise_std))
+
+
 def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int, transitions: int) -> None:
     from ..recipes.config import compose
     from ..recipes.train import train
@@ -129,7 +145,7 @@ def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int,
         jobs += [("blockstack2", "medium-expert", "uof", s, ab) for ab in ablations for s in seeds]
     for task, dataset, algo, seed, ab in jobs:
         name = run_name(task, dataset, algo, seed, ab, frames)
-        over = [f"algo={algo}", f"env={task}", f"dataset={dataset}", f"num_transitions={transitions}", f"seed={seed}", f"run_dir={BASE / name}",
+        over = [f"algo={algo}", f"env={task}", f"dataset={dataset_spec(task, dataset, transitions)}", f"num_transitions={transitions}", f"seed={seed}", f"run_dir={BASE / name}",
                 "torch_threads=1", *budget(algo, frames), *(ABLATIONS[ab] if ab else [])]
         s = train(to_plain(compose("offline_train", over)))
         archive()  # kept in docs/results/blockstack/runs/ at once: outputs/ does not outlive the machine
@@ -342,7 +358,9 @@ def main(argv=None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("--tasks", nargs="+", default=["blockstack2"])
-    r.add_argument("--datasets", nargs="+", default=["medium-expert", "medium"])
+    r.add_argument("--datasets", nargs="+", default=["medium-expert", "medium"],
+                   help="scripted levels (medium, expert, medium-expert) or the paper's data route: uof-epoch20 | uof-epoch50 (collected "
+                        "by the shipped UOF policy <task>-uof-epochN with the medium level's noise, cached)")
     r.add_argument("--algos", nargs="+", default=["uof", "sac_her", "bc"])
     r.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
     r.add_argument("--ablations", nargs="*", choices=sorted(ABLATIONS), default=None,
