@@ -421,3 +421,14 @@ def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_ea
         (run / f).write_bytes((tmp_path / "outputs" / "bc-blockstack2-medium-seed5" / f).read_bytes())
     route = mod.report().split("## blockstack2, uof-epoch20\n")[1].split("## ")[0]
     assert "| BC | 1 | 1.00 / 0.70 / 0.20 |" in route
+    # task 2 beside the paper's Table II, goal by goal (IQM over seeds: two seeds, so their mean)
+    for seed, last in ((4, [1.0, 0.9, 0.1, 1.0, 0.8, 0.2]), (5, [1.0, 0.7, 0.3, 1.0, 1.0, 0.0])):
+        run = tmp_path / "outputs" / f"bc-blockstack3-medium-expert-seed{seed}"
+        run.mkdir()
+        (run / "evals.json").write_text(json.dumps([{"step": 20000, "frames": 0, "success_per_goal": last, "success_per_goal_h50": last,
+                                                      "success_rate": sum(last) / 6}]))
+        (run / "config.json").write_text(json.dumps({"algo": {"name": "bc"}, "env": {"env_id": "BlockStack3-v0"}, "dataset": "medium-expert"}))
+        (run / "summary.json").write_text(json.dumps({"unit": "updates"}))
+    text = mod.report()
+    assert ("| BC | 2 | 1.00 (paper 0.99) | 0.80 (paper 0.50) | 0.20 (paper 0.00) | 1.00 (paper 0.99) | 0.90 (paper 0.20) | "
+            "0.10 (paper 0.00) |") in text.split("Table II against")[1]
