@@ -432,3 +432,12 @@ def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_ea
     text = mod.report()
     assert ("| BC | 2 | 1.00 (paper 0.99) | 0.80 (paper 0.50) | 0.20 (paper 0.00) | 1.00 (paper 0.99) | 0.90 (paper 0.20) | "
             "0.10 (paper 0.00) |") in text.split("Table II against")[1]
+    # the earlier page's BC row rerun on as many seeds (3): its section goes, the group prints once, in its own section
+    for seed in (8, 9):
+        run = tmp_path / "outputs" / f"bc-blockstack2-medium-expert-seed{seed}"
+        run.mkdir()
+        for f in ("evals.json", "config.json", "summary.json"):
+            (run / f).write_bytes((tmp_path / "outputs" / "bc-blockstack2-medium-seed5" / f).read_bytes())
+    text = mod.report()
+    assert "## blockstack2, medium-expert *(earlier page)*" not in text and "| BC | 3 | 1.00 [1.00, 1.00] / 0.70 [0.70, 0.70] / 0.20 [0.20, 0.20] |" in text
+    assert text.count("## blockstack2, medium-expert") == 1

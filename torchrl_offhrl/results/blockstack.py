@@ -235,9 +235,10 @@ def report() -> str:
         lines += [note, ""]
     earlier = {tuple(x.strip() for x in key.split(",")): section for key, section in legacy["sections"].items()}
     for (task, dataset) in sorted(set(groups) | set(earlier)):
-        if (task, dataset) in earlier:  # as the earlier page gave it (its runs were lost); rows rerun since are in the section after it
-            head, _, body = earlier[(task, dataset)].partition("\n")
-            lines += [f"{head} *(earlier page)*", body.rstrip(), ""]
+        if (task, dataset) in earlier:  # as the earlier page gave it (its runs were lost), less what was rerun since
+            rerun = {label(k): len(ds) for k, ds in groups.get((task, dataset), {}).items()}
+            if left := _earlier_left(earlier[(task, dataset)], rerun, figures=(task, dataset) not in groups):
+                lines += [left, ""]
         if (task, dataset) not in groups:
             continue
         algos = groups[(task, dataset)]
@@ -311,6 +312,46 @@ def report() -> str:
             if (BASE / d.name / f).is_file():
                 shutil.copyfile(BASE / d.name / f, fig_dir / f"{d.name}_{f}")
     return text
+
+
+def _earlier_left(section: str, rerun: dict[str, int], figures: bool = True) -> str | None:
+    """An earlier page's section (``legacy.json``) less its agent rows rerun since on as many seeds or more (``rerun``:
+    label -> seeds of the archived groups of the same task and dataset, which the section after it prints), marked
+    *(earlier page)*; its figures only with ``figures`` (the file names are the new runs' once they exist); None when
+    no agent row is left.
+
+    Examples:
+        >>> s = "## t, d\\n\\n| agent | seeds |\\n|---|---|\\n| data (behaviour) | |\\n| BC | 3 |\\n| UOF (ours) | 3 |\\n\\n![f](x.png)"
+        >>> print(_earlier_left(s, {"BC": 5, "UOF (ours)": 1}, figures=False))
+        ## t, d *(earlier page)*
+        <BLANKLINE>
+        | agent | seeds |
+        |---|---|
+        | data (behaviour) | |
+        | UOF (ours) | 3 |
+        >>> _earlier_left(s, {"BC": 3, "UOF (ours)": 5}) is None
+        True
+    """
+    head, _, body = section.partition("\n")
+    keep, agents = [], 0
+    for line in body.rstrip().split("\n"):
+        cell = line.split("|")[1].strip() if line.startswith("| ") else None
+        if cell is not None and cell not in ("agent", "data (behaviour)"):
+            seeds = line.split("|")[2].strip()
+            if cell in rerun and rerun[cell] >= (int(seeds) if seeds.isdigit() else 1):
+                continue
+            agents += 1
+        if not figures and (line.startswith("![") or line.startswith("Which option")):
+            continue
+        keep.append(line)
+    if not agents:
+        return None
+    while keep and not keep[-1].strip():
+        keep.pop()
+    out = "\n".join(keep)
+    while "\n\n\n" in out:
+        out = out.replace("\n\n\n", "\n\n")
+    return f"{head} *(earlier page)*\n{out}"
 
 
 def _against_paper(groups: dict) -> list[str]:
