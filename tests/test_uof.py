@@ -173,6 +173,34 @@ def test_uof_demonstration_episodes_follow_the_abstract_demonstration(stacking_e
     assert torch.equal(td["option"][:, 1:][cont], nxt[cont])
 
 
+def test_uof_oracle_options_follow_the_demonstration_at_test_and_only_when_asked(stacking_env):
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    data, make_env = stacking_env
+    env = make_env(8)
+    agent = make_uof(env, data, demo_ratio=0.0)
+    goal_of = lambda td: td["desired_goal"].argmax(-1)  # noqa: E731
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        torch.manual_seed(2)
+        greedy = env.rollout(25, agent.policy, break_when_any_done=False)
+        agent.policy.oracle_options = True
+        torch.manual_seed(2)
+        oracle = env.rollout(25, agent.policy, break_when_any_done=False)
+    # the oracle run's options are the env's demonstration: the goal's first option, then the next one each time it is met
+    first = oracle["is_init"].squeeze(-1)
+    assert torch.equal(oracle["option"][first], G.first_option(goal_of(oracle)[first]))
+    nxt = G.next_option(oracle["option"][:, :-1], goal_of(oracle)[:, :-1], oracle["next", "achieved_goal"][:, :-1])
+    assert torch.equal(oracle["option"][:, 1:][~first[:, 1:]], nxt[~first[:, 1:]])
+    assert oracle["next", "demo_episode"].all() and not greedy["next", "demo_episode"].any()
+    # without the switch the same policy picks greedily (its untrained values are not the demonstration everywhere)
+    picked = greedy["option_start"]
+    assert torch.equal(greedy["option"][picked], agent.policy.option_values(greedy).argmax(-1)[picked])
+    # and in training (RANDOM) the switch changes nothing: demonstrations stay at demo_ratio (0 here)
+    with set_exploration_type(ExplorationType.RANDOM):
+        td = env.rollout(5, agent.policy, break_when_any_done=False)
+    assert not td["next", "demo_episode"].any()
+
+
 def test_uof_update_learns_both_levels_and_counts_episodes(stacking_env):
     from torchrl.collectors import Collector
 

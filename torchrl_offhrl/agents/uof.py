@@ -121,6 +121,12 @@ class UOFPolicy(TensorDictModuleBase):
     "prev_option")`` and ``("next", "demo_episode")``. Under
     ``ExplorationType.DETERMINISTIC``: greedy options, no demonstrations, the
     actor's action.
+
+    ``oracle_options`` (a diagnostic, off in training and in every result):
+    under ``DETERMINISTIC`` too, every episode follows the goal's abstract
+    demonstration instead of DIOL's greedy picks, so an evaluation measures
+    what the low level achieves when it is handed the right sub-goals in the
+    right order (``scripts/diagnostics/uof_oracle_options.py``).
     """
 
     def __init__(self, diol: DIOLLoss, actor, low: torch.Tensor, high: torch.Tensor, num_options: int, action_key: str,
@@ -133,6 +139,7 @@ class UOFPolicy(TensorDictModuleBase):
         self.register_buffer("high", high.clone())
         self.register_buffer("success_ema", torch.zeros(num_options))
         self.epsilon = 1.0
+        self.oracle_options = False
         self.in_keys = ["observation", "desired_goal", "achieved_goal", "sub_goals", "option", "is_init", "prev_option", "demo_episode"]
         self.out_keys = ["option", "option_start", "sub_goal", action_key, ("next", "prev_option"), ("next", "demo_episode")]
 
@@ -159,7 +166,7 @@ class UOFPolicy(TensorDictModuleBase):
         repick = is_init | G.option_met(prev, td.get("achieved_goal"))
         greedy = self.option_values(td).argmax(-1)
         det = exploration_type() in (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
-        demo = torch.zeros_like(is_init)
+        demo = torch.full_like(is_init, det and self.oracle_options)
         chosen = greedy
         if not det:
             explore = torch.rand(batch, device=obs.device) < self.epsilon
