@@ -274,7 +274,9 @@ MISSING = {"full": {"hopper-medium-expert": _MODEL_ENV_ME, "halfcheetah-medium-e
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
                                                                 "wheels: rebuild the medium part in a first call, the expert part in "
                                                                 "a second on the still warm machine."),
-                    "halfcheetah-medium-expert:iql": "Running on the CPU (~1 h per seed on one core), or on a GPU."}}
+                    "halfcheetah-medium-expert:iql": ("Seed 4 only: IQL's 100k updates ran at 11-16 updates/s on one core with "
+                                                       "three seeds batched (~2 h for the three, 2026-12-04, beside other jobs), "
+                                                       "so seeds 5-8 need ~3 h of one core, or a lent GPU (`scripts/gpu_runs.sh`).")}}
 
 
 def report(scale: str, tuning: bool = False) -> str:
