@@ -376,7 +376,8 @@ def _against_paper(groups: dict) -> list[str]:
             cells = [f"{iqm_ci([r[k] for r in last])[0]:.2f} (paper {rows[algo][k]:.2f})" for k in range(len(rows[algo]))]
             out.append(f"| {label(key)} | {len(last)} | " + " | ".join(cells) + " |")
         out += ["", "Why the order of the agents differs from the paper's on our data, measured: `blockstack/uof_notes.md` (the "
-                "budget, BC's ceiling on scripted data, the paper's data route) and `blockstack/sac_her_notes.md` (SAC + HER).", ""]
+                "budget, BC's ceiling on scripted data, the paper's data route, the model's optimism, the low level handed BC's "
+                "sub-goals, DIOL's schedule) and `blockstack/sac_her_notes.md` (SAC + HER).", ""]
     return out
 
 
