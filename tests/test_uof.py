@@ -469,3 +469,25 @@ def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_ea
     text = mod.report()
     assert "## blockstack2, medium-expert *(earlier page)*" not in text and "| BC | 3 | 1.00 [1.00, 1.00] / 0.70 [0.70, 0.70] / 0.20 [0.20, 0.20] |" in text
     assert text.count("## blockstack2, medium-expert") == 1
+
+
+def test_blockstack_variants_run_uof_with_their_setting_under_their_own_name(tmp_path, monkeypatch):
+    """`offhrl results blockstack run --variants latent05 --no-main`: UOF on every task x dataset x seed with the variant's
+    override, named so that the report groups it apart (and parses the dataset back)."""
+    import torchrl_offhrl.recipes.train as train_mod
+
+    mod = import_module("torchrl_offhrl.results.blockstack")
+    monkeypatch.setattr(mod, "BASE", tmp_path / "outputs")
+    monkeypatch.setattr(mod, "archive", lambda: [])
+    seen = []
+    monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"final": {}})
+    mod.main(["run", "--tasks", "blockstack2", "--datasets", "medium", "medium-expert", "--variants", "latent05", "--no-main",
+              "--seeds", "4", "5"])
+    names = [Path(c["run_dir"]).name for c in seen]
+    assert names == ["uof-blockstack2-medium-latent05-seed4", "uof-blockstack2-medium-latent05-seed5",
+                     "uof-blockstack2-medium-expert-latent05-seed4", "uof-blockstack2-medium-expert-latent05-seed5"]
+    assert all(c["algo"]["name"] == "uof" and c["model_env"]["latent_bound"] == 0.5 for c in seen)
+    assert [mod.split_run_name(n)[1:] for n in names[1:3]] == [("medium", "uof-latent05"), ("medium-expert", "uof-latent05")]
+    assert mod.label("uof-latent05") == "UOF, latent box ±0.5"
+    with pytest.raises(SystemExit):  # an unknown variant is refused by the parser, before any run
+        mod.main(["run", "--variants", "latent9", "--no-main"])

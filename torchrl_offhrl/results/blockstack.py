@@ -1,7 +1,7 @@
 """Offline UOF on block stacking against SAC + HER and BC: resumable runs, then the per-goal table and figures.
 
     offhrl results blockstack run [--tasks blockstack2] [--datasets medium-expert medium] [--algos uof sac_her bc]
-        [--seeds 4 5 6] [--ablations [no_cvae cvae_no_goal no_pessimism]] [--no-main] [--frames 40000]
+        [--seeds 4 5 6] [--ablations [no_cvae cvae_no_goal no_pessimism]] [--variants latent05] [--no-main] [--frames 40000]
     offhrl results blockstack report          # docs/results/block_stacking.md and its figures
 
 Every run is an ordinary run directory of ``offhrl train`` under
@@ -30,7 +30,9 @@ steps (training's horizon, the paper's) and within 50 (UOF's tests).
 ``--ablations`` (all three, or those named) adds UOF on task 1 without the CVAE (``ablation.no_cvae``),
 with a CVAE not conditioned on the sub-goal (``cvae.goal_key=null``) and
 without pessimistic termination (``ablation.no_pessimism``), the paper's
-Fig. 5 a-d.
+Fig. 5 a-d. ``--variants`` adds UOF with a setting beyond the paper's on every task, dataset and seed asked
+for (``latent05``: the latent box +-0.5 instead of +-2, so the low level stays near the decoder's mean action;
+``docs/results/blockstack/uof_notes.md`` rows 13-14).
 
 Seeds 4-6 by default: nothing was chosen by looking at their evaluations
 (the settings are UOF's, SB3's and the env configs').
@@ -47,8 +49,11 @@ BASE = ROOT / "outputs" / "results" / "blockstack"
 OUT = ROOT / "docs" / "results"
 ARCHIVE = OUT / "blockstack" / "runs"
 ABLATIONS = {"no_cvae": ["ablation.no_cvae=true"], "cvae_no_goal": ["cvae.goal_key=null"], "no_pessimism": ["ablation.no_pessimism=true"]}
+#: UOF settings tried beyond the paper's (``--variants``), on any task and dataset; their runs carry the name as ablations do
+VARIANTS = {"latent05": ["model_env.latent_bound=0.5"]}
+SETTINGS = {**ABLATIONS, **VARIANTS}
 LABELS = {"uof": "UOF (ours)", "sac_her": "SAC + HER", "bc": "BC", "uof-no_cvae": "UOF, no CVAE", "uof-cvae_no_goal": "UOF, CVAE without goal",
-          "uof-no_pessimism": "UOF, no pessimistic termination"}
+          "uof-no_pessimism": "UOF, no pessimistic termination", "uof-latent05": "UOF, latent box ±0.5"}
 #: the paper's Table II (task 2, D4RL-free: their own data from UOF agents) and its task-1 statement
 PAPER = {"blockstack3": {"uof": [0.90, 0.71, 0.41, 0.93, 0.81, 0.46], "sac_her": [0.33, 0.03, 0.0, 0.20, 0.01, 0.0], "bc": [0.99, 0.50, 0.0, 0.99, 0.20, 0.0]}}
 
@@ -121,6 +126,22 @@ def run_name(task: str, dataset: str, algo: str, seed: int, ablation: str | None
     return f"{algo_key(algo, frames)}-{task}-{dataset}" + (f"-{ablation}" if ablation else "") + f"-seed{seed}"
 
 
+def split_run_name(name: str) -> tuple[str, str, str]:
+    """``(task, dataset, agent key)`` of a run directory's name (:func:`run_name`): the key with its ablation or variant.
+
+    Examples:
+        >>> split_run_name("uof.f200k-blockstack2-medium-expert-no_cvae-seed4")
+        ('blockstack2', 'medium-expert', 'uof.f200k-no_cvae')
+        >>> split_run_name("uof-blockstack2-uof-epoch50-latent05-seed7"), split_run_name("bc-blockstack3-medium-expert-seed5")
+        (('blockstack2', 'uof-epoch50', 'uof-latent05'), ('blockstack3', 'medium-expert', 'bc'))
+    """
+    algo, rest = name.rsplit("-seed", 1)[0].split("-", 1)
+    task, _, tail = rest.partition("-")
+    setting = next((a for a in SETTINGS if tail.endswith("-" + a)), None)
+    dataset = tail[: -len(setting) - 1] if setting else tail
+    return task, dataset, algo + (f"-{setting}" if setting else "")
+
+
 def dataset_spec(task: str, dataset: str, transitions: int) -> str:
     """What a run's ``dataset=`` gets for a dataset name of ``--datasets``: a scripted level as it is; ``uof-epoch20`` (any
     ``uof-*``: the shipped UOF policy ``<task>-uof-epoch20``, the paper's data route) the file that policy collects with the
@@ -135,7 +156,7 @@ def dataset_spec(task: str, dataset: str, transitions: int) -> str:
     return str(uof_route_dataset(task, f"{task}-{dataset}", transitions, random_prob=random_prob, noise_std=noise_std))
 
 
-def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int, transitions: int) -> None:
+def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int, transitions: int, variants: list[str] | None = None) -> None:
     from ..recipes.config import compose
     from ..recipes.train import train
     from ..utils import to_plain
@@ -143,10 +164,11 @@ def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int,
     jobs = [(t, d, a, s, None) for t in tasks for d in datasets for s in seeds for a in algos]
     if ablations:
         jobs += [("blockstack2", "medium-expert", "uof", s, ab) for ab in ablations for s in seeds]
+    jobs += [(t, d, "uof", s, v) for v in variants or [] for t in tasks for d in datasets for s in seeds]
     for task, dataset, algo, seed, ab in jobs:
         name = run_name(task, dataset, algo, seed, ab, frames)
         over = [f"algo={algo}", f"env={task}", f"dataset={dataset_spec(task, dataset, transitions)}", f"num_transitions={transitions}", f"seed={seed}", f"run_dir={BASE / name}",
-                "torch_threads=1", *budget(algo, frames), *(ABLATIONS[ab] if ab else [])]
+                "torch_threads=1", *budget(algo, frames), *(SETTINGS[ab] if ab else [])]
         s = train(to_plain(compose("offline_train", over)))
         archive()  # kept in docs/results/blockstack/runs/ at once: outputs/ does not outlive the machine
         print(f"{name}: final success per goal {s['final'].get('success_per_goal')}", flush=True)
@@ -215,13 +237,8 @@ def report() -> str:
     fig_dir.mkdir(parents=True, exist_ok=True)
     groups: dict[tuple[str, str], dict[str, list[Path]]] = {}
     for d in runs:
-        name = d.name.rsplit("-seed", 1)[0]
-        algo, rest = name.split("-", 1)
-        task = rest.split("-", 1)[0]
-        tail = rest[len(task) + 1:]
-        ab = next((a for a in ABLATIONS if tail.endswith("-" + a)), None)
-        dataset = tail[: -len(ab) - 1] if ab else tail
-        groups.setdefault((task, dataset), {}).setdefault(algo + (f"-{ab}" if ab else ""), []).append(d)
+        task, dataset, key = split_run_name(d.name)
+        groups.setdefault((task, dataset), {}).setdefault(key, []).append(d)
     lines = ["# Offline UOF on block stacking: per-goal success", "",
              "Made by `offhrl results blockstack report` from the finished runs (`offhrl results blockstack run` "
              "makes them under `outputs/results/blockstack/` and archives each to `docs/results/blockstack/runs/<run>/`). Groups marked "
@@ -434,7 +451,10 @@ def main(argv=None) -> int:
     r.add_argument("--seeds", nargs="+", type=int, default=[4, 5, 6])
     r.add_argument("--ablations", nargs="*", choices=sorted(ABLATIONS), default=None,
                    help="UOF ablations on task 1 medium-expert (no names: all three)")
-    r.add_argument("--no-main", action="store_true", help="only the ablations, not the --algos runs")
+    r.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=None,
+                   help="UOF with a setting beyond the paper's on every --tasks x --datasets x --seeds (latent05: the latent box "
+                        "±0.5 instead of ±2, docs/results/blockstack/uof_notes.md row 14)")
+    r.add_argument("--no-main", action="store_true", help="only the ablations and variants, not the --algos runs")
     r.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                    help="model-env frames of UOF and SAC + HER; runs at another budget than 40k carry it in their names (uof.f200k-...)")
     r.add_argument("--transitions", type=int, default=100_000)
@@ -442,7 +462,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.cmd == "run":
         ablations = None if a.ablations is None else (a.ablations or sorted(ABLATIONS))
-        run(a.tasks, a.datasets, [] if a.no_main else a.algos, a.seeds, ablations, a.frames, a.transitions)
+        run(a.tasks, a.datasets, [] if a.no_main else a.algos, a.seeds, ablations, a.frames, a.transitions, a.variants)
     else:
         print(report())
     return 0
