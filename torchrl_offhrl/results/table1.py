@@ -318,8 +318,9 @@ def report(scale: str, tuning: bool = False) -> str:
              "The same runs in the paper's Table I layout (every algorithm side by side, published scores apart): [table.md](table.md).", "",
              table, "", "## MOC option diagnostics at the end of training (mean over seeds of the last 5 logged batches)", "",
              "| env | seeds | " + " | ".join(DIAG) + " |", "|---|---|" + "---|" * len(DIAG)]
-    for env in sorted({r["name"].split("-")[1] for r in listed}):
-        moc = [r for r in listed if r["name"].startswith(f"moc-{env}-")]
+    for env in sorted({r["name"].rsplit("-seed", 1)[0].split("-", 1)[1] for r in listed if r["name"].startswith("moc-")}):
+        # one row per dataset ("hopper-medium", "hopper-medium-expert"): MOC's own runs, not its variants (moc_<tag>-...)
+        moc = [r for r in listed if r["name"].rsplit("-seed", 1)[0] == f"moc-{env}"]
         whole = [r for r in moc if not r.get("partial")]
         if whole:
             tails = [json.loads((Path(r["dir"]) / "diagnostics.json").read_text())["train_tail_means"] for r in whole
@@ -329,12 +330,12 @@ def report(scale: str, tuning: bool = False) -> str:
                 xs = [t[k] for t in tails if k in t]
                 vals.append(f"{sum(xs) / len(xs):.3g}" if xs else "n/a")
             lines.append(f"| {env} | {len(whole)} | " + " | ".join(vals) + " |")
-        elif moc and f"moc-{env}" in legacy_diag:
-            lines.append(f"| {env} | {len(moc)} (rebuilt) | " + " | ".join(f"{legacy_diag[f'moc-{env}'].get(k, float('nan')):.3g}" for k in DIAG) + " |")
+        elif moc and (old := legacy_diag.get(f"moc-{env}", legacy_diag.get(f"moc-{env.removesuffix('-medium')}"))):  # the earlier page: medium rows, keyed by env
+            lines.append(f"| {env} | {len(moc)} (rebuilt) | " + " | ".join(f"{old.get(k, float('nan')):.3g}" for k in DIAG) + " |")
         for r in whole:  # the option-usage plots of every seed's final evaluation (while the run directory is here)
             src = ROOT / "outputs" / "results" / scale / r["name"] / "option_usage.png"
             if src.is_file():
-                shutil.copyfile(src, out / f"option_usage_{env}_{r['name'].rsplit('-', 1)[1]}.png")
+                shutil.copyfile(src, out / f"option_usage_{env}_{r['name'].rsplit('-', 1)[1]}.png")  # e.g. option_usage_hopper-medium_seed4.png
     lines += ["", "Per seed (final / best D4RL score, and where the best was: model-env frames, or gradient steps for the dataset agents):", ""]
     for r in listed:
         ev, unit = r["evals"], (r["summary"] or {}).get("unit", "frames")
