@@ -269,8 +269,8 @@ def _missing(scale: str) -> dict[str, str]:
     return out
 
 
-_HOPPER_ME = ("Not run yet beyond MOC. The models are fitted and cached (2026-12-04, one core beside other jobs: the 2M "
-              "transitions ~18 min, the ensemble's 20k steps ~26 min, the CVAE ~12 min); MOC's five seeds batched took ~15 min "
+_HOPPER_ME = ("Not run yet beyond MOC. The models are fitted and cached (2026-12-04, one core beside other jobs: each 1M-"
+              "transition part ~8-10 min, the ensemble's 20k steps ~20 min, the CVAE ~9 min); MOC's five seeds batched took ~15 min "
               "and ended below their untrained start: every untrained model episode ends at the pessimistic termination (model "
               "return ~200 against ~1,390 on hopper-medium), so the P-MDP as configured leaves the agents little to learn from "
               "on these data. The other model-env agents on the same models: PPO ~16 min for five seeds batched (stopped at a "
