@@ -26,6 +26,7 @@ import torch
 def evaluate(run: Path, episodes: int) -> dict:
     from torchrl_offhrl.recipes.evaluation import GoalEvaluator, latent_bound, load_run_agent
     from torchrl_offhrl.recipes.pipeline import make_real_env
+    from torchrl_offhrl.recipes.setting import eval_seed
 
     cfg, env, agent, _state, cvae = load_run_agent(run, num_envs=1, policy="last")
     n_goals = int(env.observation_spec["desired_goal"].shape[-1])  # one flag per goal
@@ -40,7 +41,7 @@ def evaluate(run: Path, episodes: int) -> dict:
         eval_env = agent.attach(make_real_env(env_id, cvae, num_envs=len(goals), latent_bound=latent_bound(cfg), goals=goals,
                                               max_episode_steps=max_steps))
         agent.policy.oracle_options = mode == "oracle"
-        rec = GoalEvaluator(eval_env, env_id, episodes, n_goals, horizon, max_steps, seed=int(cfg["seed"]) * 1000 + 7)(agent)
+        rec = GoalEvaluator(eval_env, env_id, episodes, n_goals, horizon, max_steps, seed=eval_seed(cfg["seed"]))(agent)
         eval_env.close(raise_if_closed=False)
         out[mode] = {"success_per_goal": rec["success_per_goal"], f"success_per_goal_h{max_steps}": rec[f"success_per_goal_h{max_steps}"]}
     agent.policy.oracle_options = False

@@ -38,6 +38,11 @@ from .sources import dataset_batches, env_collector, model_env_metrics, online_m
 __all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "setting_of"]
 
 
+def eval_seed(seed: int) -> int:
+    """The seed of a run's real-env evaluations, from the run's ``seed`` (every evaluation of a run starts from it)."""
+    return int(seed) * 1000 + 7
+
+
 @dataclass
 class Setting:
     """A run's parts (:func:`build_setting`): the loop runs ``phases`` with ``agent``; the report reads the rest."""
@@ -172,7 +177,7 @@ class Parts:
 
     @property
     def eval_seed(self) -> int:
-        return self.rc.seed * 1000 + 7
+        return eval_seed(self.rc.seed)
 
     def make_agent(self, env, algo: dict | None = None, latent: bool = True):
         """The config's agent, built for ``env``'s specs, acting in latent actions (``latent``) or real ones."""
