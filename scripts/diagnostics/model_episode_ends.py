@@ -56,6 +56,8 @@ def main(overrides: list[str]) -> None:
     for e in (env, real):
         agent.attach(e)
     print(f"pessimism {pessimism}, threshold {env.base_env.threshold:.3g}, member_mode {mcfg['env'].get('member_mode')}")
+    print(env.base_env.calibration_report())
+    data_sorted = env.base_env.calibration.discrepancies.double().sort().values
     for name, e in (("model", env), ("real", real)):
         td, alive, end, ret, length = rollout(e, agent.policy, seed=1)
         nobs = td["next", "observation"].reshape(EPISODES, alive.shape[1], -1)[end]
@@ -69,6 +71,17 @@ def main(overrides: list[str]) -> None:
         mask = torch.ones_like(z, dtype=torch.bool) if terminated is None else terminated
         line += f"; at terminal steps: z <= 0.7 in {int(((z <= 0.7) & mask).sum())}, |angle| >= 0.2 in {int(((angle.abs() >= 0.2) & mask).sum())}"
         print(line)
+        # The same discrepancy the P-MDP thresholds, on the pairs this policy visits (real actions, decoded):
+        # in the real env, where the policy is in the data's support; in the model, where it is ended.
+        with torch.no_grad():
+            obs, act = td["observation"][alive], td["action"][alive]
+            disc = ensemble.discrepancy(obs.float(), act.float(), mcfg["env"].get("discrepancy", "variance"))
+        q = torch.quantile(disc.double(), torch.tensor([0.5, 0.9, 0.99], dtype=torch.float64))
+        rank = torch.searchsorted(data_sorted, q, right=True).double() / data_sorted.numel()
+        ranks = " (the data's quantiles " + " / ".join(f"{r:.3f}" for r in rank) + ")"
+        print(f"  discrepancy on its {disc.numel()} visited pairs: median / 90% / 99% "
+              f"{q[0]:.3g} / {q[1]:.3g} / {q[2]:.3g}{ranks}; above the threshold: "
+              f"{100 * float((disc > env.base_env.threshold).double().mean()):.1f}%")
     real.close()
 
 
