@@ -782,7 +782,8 @@ def test_pages_name_the_command_that_rebuilds_them(tmp_path, monkeypatch):
 def test_ppo_bc_init_clones_the_data_and_the_kl_loss_trains():
     """algo.bc_init_steps: PPO's pretrain fits the actor to the dataset's actions (here a constant 0.5 in every dimension,
     which the cloned policy's deterministic action then reproduces); 0 does nothing; an agent acting in latent actions is
-    refused with the fix named. algo.loss_type=kl: TorchRL's KLPENPPOLoss, whose KL coefficient adapts after an update."""
+    refused with the fix named. algo.loss_type=kl: TorchRL's KLPENPPOLoss (as BatchableKLPENPPOLoss), whose KL coefficient
+    adapts in an update."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from torchrl_offhrl.agents import make_agent
@@ -809,6 +810,6 @@ def test_ppo_bc_init_clones_the_data_and_the_kl_loss_trains():
     with torch.no_grad():
         batch = env.rollout(64, agent.policy, break_when_any_done=False)
     agent.update(batch)
-    assert type(agent.loss).__name__ == "KLPENPPOLoss" and float(agent.loss.beta) != beta
+    assert type(agent.loss).__name__ == "BatchableKLPENPPOLoss" and float(agent.loss.beta) != beta
     with pytest.raises(ValueError, match="loss_type must be 'clip'"):
         make_agent("ppo", env, action_key="action", loss_type="trpo")

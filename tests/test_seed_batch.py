@@ -241,8 +241,8 @@ def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cac
     from torchrl_offhrl.recipes.seed_runs import batchable, refusal
     from torchrl_offhrl.utils import to_plain
 
-    # refused from the config, before any run is prepared: MOReL's KL-penalised PPO, MOC's policy average, a compiled loss
-    assert "loss_type=kl" in refusal(to_plain(compose("offline_train", ["algo=morel", f"dataset={hopper_file}"])))
+    # refused from the config, before any run is prepared: MOC's policy average, a compiled loss; MOReL's KL-penalised PPO batches
+    assert batchable(to_plain(compose("offline_train", ["algo=morel", f"dataset={hopper_file}"])))
     assert "policy_ema" in refusal(to_plain(compose("offline_train", ["algo=moc", "algo.policy_ema=0.1", f"dataset={hopper_file}"])))
     assert "compile" in refusal(to_plain(compose("offline_train", ["algo=iql", "algo.compile=true", f"dataset={hopper_file}"])))
     assert batchable(to_plain(compose("offline_train", ["algo=ppo", f"dataset={hopper_file}"])))
@@ -250,13 +250,15 @@ def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cac
 
 # ------------------------------------------------------------------ on-policy agents (PPO, MOC) on an env
 E_ON, T_ON = 2, 16
-ON_POLICY = {"ppo": {"max_grad_norm": 0.5}, "moc": {"max_grad_norm": 0.5, "eta": 0.5}}
+ON_POLICY = {"ppo": {"max_grad_norm": 0.5}, "moc": {"max_grad_norm": 0.5, "eta": 0.5},
+             # MOReL's trust region: PPO's adaptive KL penalty, a target low enough that the coefficient moves in these updates
+             "ppo_kl": {"max_grad_norm": 0.5, "loss_type": "kl", "kl_target": 1e-4}}
 
 
 def build_on_policy(env, name, seed, dtype=torch.float32):
     torch.manual_seed(seed)
-    agent = make_agent(name, env, {"hidden_sizes": [16, 16], "frames_per_batch": E_ON * T_ON, "minibatch_size": 8, "epochs": 2,
-                                   "fused_adam": False, **ON_POLICY[name]}, action_key="action")
+    agent = make_agent(name.split("_")[0], env, {"hidden_sizes": [16, 16], "frames_per_batch": E_ON * T_ON, "minibatch_size": 8,
+                                                 "epochs": 2, "fused_adam": False, **ON_POLICY[name]}, action_key="action")
     if dtype != torch.float32:  # the same initial weights, in double precision
         agent.loss.to(dtype)
         for opt in agent.optimizers():
@@ -285,7 +287,56 @@ def on_policy_batch(env, agents, seed=0):
     return torch.stack(out)
 
 
-@pytest.mark.parametrize("name", ["ppo", "moc"])
+def test_batchable_kl_loss_is_torchrl_s_kl_penalty_loss_on_the_same_draws(env):
+    """BatchableKLPENPPOLoss moves the KL coefficient's adaptation out of the forward pass, not what is computed. With the
+    coefficient held, TorchRL's KLPENPPOLoss from the same weights, batches, shuffles and RNG state gives the same losses
+    and weights, update after update; its adaptation rule gives the same coefficient as ``adapt_beta`` on every branch.
+    (Adapting, TorchRL's gradient differs: its ``beta.data *= ...`` also rewrites the tensor autograd saved, so the
+    penalty's gradient uses the coefficient already adapted to that minibatch, not the one its loss value used.) In double
+    precision, as the seed-batch checks below: Adam's first steps are about lr x the gradient's sign, and the first
+    minibatches' actor gradients are ~1e-9, where float32's rounding of the two sums decides the sign."""
+    from torchrl.objectives import KLPENPPOLoss
+
+    from torchrl_offhrl.agents.ppo import BatchableKLPENPPOLoss
+
+    collector = build_on_policy(env, "ppo_kl", 4)
+    ours, theirs = build_on_policy(env, "ppo_kl", 4, torch.float64), build_on_policy(env, "ppo_kl", 4, torch.float64)
+    theirs.loss.__class__ = KLPENPPOLoss  # the agent's observe_minibatch then leaves the coefficient to TorchRL's forward
+    assert isinstance(ours.loss, BatchableKLPENPPOLoss)
+    for a in (ours, theirs):
+        a.loss.increment = a.loss.decrement = 1.0
+        a.loss.beta.fill_(0.7)
+    for step in range(3):
+        data = as_double(on_policy_batch(env, [collector], seed=step)[0])
+        outs = []
+        for a in (ours, theirs):
+            a.generator = torch.Generator().manual_seed(step)
+            torch.manual_seed(11 + step)
+            outs.append(a.update(data.clone()))
+        for k in ("train/loss_objective", "train/loss_critic", "train/kl_approx"):
+            assert outs[0][k] == pytest.approx(outs[1][k], rel=1e-9, abs=1e-12), (k, outs[0][k], outs[1][k])
+    for k, v in float_state(theirs).items():
+        torch.testing.assert_close(float_state(ours)[k], v, rtol=1e-9, atol=1e-11)
+    # the rule, on a minibatch the trained policy has moved away from (KL > 0): up, down, unchanged
+    with torch.no_grad():
+        ours.prepare(data)
+    mb = data.reshape(-1)[:16]
+    torch.manual_seed(0)
+    kl = float(ours.loss(mb.clone())["kl"])
+    assert kl > 0
+    for dtarg, want in ((kl / 10, 2.0), (kl * 10, 0.5), (kl, 1.0)):
+        got = []
+        for a in (ours, theirs):
+            a.loss.dtarg, a.loss.increment, a.loss.decrement = dtarg, 2.0, 0.5
+            a.loss.beta.fill_(1.0)
+            torch.manual_seed(0)
+            out = a.loss(mb.clone())
+            a.observe_minibatch(out)  # ours adapts here; TorchRL's already did in its forward
+            got.append(float(a.loss.beta))
+        assert got == [want, want], (dtarg, got)
+
+
+@pytest.mark.parametrize("name", ["ppo", "moc", "ppo_kl"])
 def test_on_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
     # the same per-seed batches and shuffles, and (randomness="same") the same draws inside the loss (MOC's z): each seed's
     # weights and Adam moments after two batched updates are its separate agent's, with gradients clipped per seed. In
@@ -311,8 +362,12 @@ def test_on_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
         for g, w in zip(got, want):
             assert set(g) == set(w)  # every metric a single run logs (PPO's explained_variance is [1] per seed)
             assert g["updates"] == w["updates"] == 2 * (E_ON * T_ON // 8)
-            for k in ("train/loss_objective", "train/loss_critic"):
+            for k in ("train/loss_objective", "train/loss_critic") + (("train/kl",) if name == "ppo_kl" else ()):
                 assert g[k] == pytest.approx(w[k], rel=1e-6, abs=1e-9), (k, g[k], w[k])
+    if name == "ppo_kl":  # each seed's KL coefficient followed its own minibatches' KLs, and it did move
+        betas = [float(a.loss.beta) for a in separate]
+        torch.testing.assert_close(batched.worker.loss.beta, torch.tensor(betas, dtype=torch.float64))
+        assert all(b != 1.0 for b in betas)
     batched.sync()
     assert_seeds_are_their_separate_agents(separate, batched, [build_on_policy(env, name, s, torch.float64) for s in seeds],
                                            1e-9, 1e-11, "exp_avg", 1e-8, 1e-12)
@@ -345,12 +400,37 @@ def test_seed_batched_policy_acts_as_each_seed_s_policy(env, name):
         batched.policy(step[:4].clone())
     with pytest.raises(TypeError, match="on-policy agents"):
         OnPolicySeedBatch([build(env, "bc", 4), build(env, "bc", 5)])
-    if name == "ppo":  # PPO's adaptive KL penalty (MOReL's trust region) adapts its coefficient with data-dependent control flow
-        torch.manual_seed(0)
+    if name == "ppo":  # TorchRL's own KL-penalised loss adapts its coefficient with data-dependent control flow: refused
+        from torchrl.objectives import KLPENPPOLoss
+
         kl = [make_agent("ppo", env, {"hidden_sizes": [16, 16], "loss_type": "kl"}, action_key="action") for _ in range(2)]
+        kl[0].loss.__class__ = kl[1].loss.__class__ = KLPENPPOLoss
         with pytest.raises(NotImplementedError, match="KLPENPPOLoss"):
             OnPolicySeedBatch(kl)
-    assert isinstance(env, TransformedEnv) or True
+
+
+def test_train_seeds_batches_morel(hopper_file, cache, tmp_path):
+    # `offhrl train algo=morel --seeds 4 5`: each seed clones the data's actions on its own first (pretrain.json), then the
+    # seeds' KL-penalised PPO updates run as one, each seed's KL coefficient its own (stacked, adapted per seed)
+    import json
+    from pathlib import Path
+
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.seed_runs import train_seeds
+
+    cfg = compose("offline_train", ["algo=morel", f"dataset={hopper_file}", f"out_root={tmp_path}", "algo.hidden_sizes=[16,16]",
+                                    "algo.frames_per_batch=64", "algo.minibatch_size=32", "algo.epochs=2", "algo.bc_init_steps=20",
+                                    "algo.kl_target=1e-5", "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20",
+                                    "cvae.hidden_sizes=[16,16]", "cvae.fit.max_steps=20", "collector.num_envs=4",
+                                    "train.total_frames=128", "eval.every_frames=64", "eval.episodes=2", "eval.max_steps=20"])
+    runs = train_seeds(cfg, [4, 5], progress=False)
+    betas = []
+    for r in runs:
+        path = Path(r["run_dir"])
+        assert json.loads((path / "pretrain.json").read_text())["bc_init_steps"] == 20
+        assert [x["frames"] for x in json.loads((path / "evals.json").read_text())] == [0, 64, 128]
+        betas.append(float(torch.load(path / "checkpoint.pt", weights_only=True)["agent"]["loss"]["beta"]))
+    assert all(b != 1.0 for b in betas)  # each seed's coefficient adapted (kl_target 1e-5 is below any update's KL)
 
 
 def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path, monkeypatch):

@@ -303,6 +303,10 @@ class OnPolicyAgent(Agent):
         """What each minibatch step of :attr:`optimizer` minimises, from the loss's output (default: every ``loss_*`` term)."""
         return sum_losses(out)
 
+    def observe_minibatch(self, out: TensorDictBase) -> None:
+        """Called with each minibatch's loss outputs before its gradient step (under a seeds' batch, every entry has a
+        leading seed dimension): state a loss adapts between steps (PPO's KL coefficient). Default: nothing."""
+
     def finish_update(self, flat: TensorDictBase) -> None:
         """Called after the minibatch epochs with the whole prepared batch, flattened (``[envs * time]``; under a seeds' batch
         ``[N, envs * time]``): steps taken once per batch (MOC's termination and pi_O). Default: nothing."""
@@ -327,6 +331,7 @@ class OnPolicyAgent(Agent):
                     else torch.randperm(flat.numel(), generator=self.generator).to(flat.device))
             for idx in perm.split(self.minibatch_size):
                 out = self.minibatch_loss(flat[idx])
+                self.observe_minibatch(out)
                 optim.zero_grad()
                 objective(out).backward()
                 if self.max_grad_norm:

@@ -1,20 +1,91 @@
 """PPO (TorchRL :class:`~torchrl.objectives.ClipPPOLoss`) with a tanh-Gaussian actor and a state-value critic."""
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Sequence
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torch import nn
 from torchrl.modules import ValueOperator
-from torchrl.objectives import BCLoss, ClipPPOLoss, KLPENPPOLoss
+from torchrl.modules.distributions.utils import has_analytic_kl, sample_and_log_prob
+from torchrl.objectives import BCLoss, ClipPPOLoss, KLPENPPOLoss, PPOLoss
 
 from ..nets import NormalizedMLP, tanh_gaussian_actor
 from .base import OnPolicyAgent, action_box, adam
 from .registry import register_agent
 
-__all__ = ["PPOAgent"]
+__all__ = ["BatchableKLPENPPOLoss", "PPOAgent"]
+
+
+class BatchableKLPENPPOLoss(KLPENPPOLoss):
+    """TorchRL's :class:`~torchrl.objectives.KLPENPPOLoss`, the same objective, runnable under ``torch.vmap`` (seeds batched).
+
+    TorchRL's loss adapts its KL coefficient ``beta`` inside ``forward``
+    with Python control flow on the minibatch's KL (``if kl > 1.5 x dtarg:
+    beta *= increment``; ``elif kl < dtarg / 1.5: beta *= decrement``),
+    which ``torch.vmap`` refuses. Here ``forward`` only computes: PPO's
+    importance-weighted surrogate, entropy and critic terms
+    (:class:`~torchrl.objectives.PPOLoss`'s), plus ``beta`` times the KL
+    of the current policy from the one that collected the data (analytic
+    where the distributions have one, else ``samples_mc_kl`` draws), and
+    reports that KL's minibatch mean as ``"kl"``. The coefficient then moves
+    in :meth:`adapt_beta`, one elementwise ``torch.where`` that the caller
+    runs after the forward pass (:meth:`PPOAgent.observe_minibatch`): with
+    the seeds' ``beta`` stacked ``[N]`` and their KLs ``[N]``, each seed's
+    coefficient follows its own rule in one call. The loss a minibatch
+    is given uses the coefficient from before that minibatch, as TorchRL's,
+    and so does its gradient. (TorchRL's differs there: its in-place
+    ``beta.data *= ...`` also rewrites the tensor autograd saved for the
+    backward pass, so its penalty's gradient already uses the adapted
+    coefficient: a one-minibatch lag between the two.)
+    ``tests/test_seed_batch.py`` checks, against ``KLPENPPOLoss``, the
+    losses and weights update after update with the coefficient held, and
+    the coefficient's rule on each of its three branches.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        if self.delay_actor:
+            raise ValueError("BatchableKLPENPPOLoss measures the KL from the policy that collected the data; delay_actor=True "
+                             "(a proximal copy of the actor) is TorchRL's KLPENPPOLoss's")
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        kl = self._kl_from_behaviour(tensordict)  # first: TorchRL's loss draws the KL's samples before the entropy's
+        out = PPOLoss.forward(self, tensordict)  # the importance-weighted surrogate (no clip), entropy and critic terms
+        # a copy of the coefficient in the graph: adapt_beta may change the buffer before this loss's backward pass
+        penalty = self._reduce_loss((self.beta.clone() * kl).unsqueeze(-1), tensordict).squeeze(-1)
+        out.set("loss_objective", out.get("loss_objective") + penalty)
+        out.set("kl", kl.detach().mean())
+        return out
+
+    def _kl_from_behaviour(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``KL(collecting policy || current policy)`` per sample (``[*batch]``)."""
+        try:
+            previous = self.actor_network.build_dist_from_params(tensordict)
+        except KeyError as err:
+            raise KeyError(f"{type(self).__name__}: the batch lacks the collecting policy's distribution parameters "
+                           f"({err}); collect it with the agent's own policy, which writes them") from err
+        params = (self.actor_network_params.to_module(self.actor_network, preserve_module_state=False) if self.functional
+                  else contextlib.nullcontext())
+        with params:
+            current = self.actor_network.get_dist(tensordict.clone(False))
+        if has_analytic_kl(previous, current):
+            return torch.distributions.kl.kl_divergence(previous, current)
+        x, previous_log_prob = sample_and_log_prob(previous, (self.samples_mc_kl,))
+        return (previous_log_prob - current.log_prob(x)).mean(0)
+
+    @torch.no_grad()
+    def adapt_beta(self, kl: torch.Tensor) -> None:
+        """TorchRL's rule, elementwise: ``beta`` x ``increment`` where ``kl`` > 1.5 ``dtarg``, x ``decrement`` where < ``dtarg`` / 1.5.
+
+        ``kl`` has ``beta``'s shape: a scalar for one agent, ``[N]`` for a seeds' batch (whose ``beta`` is stacked).
+        """
+        beta = self.beta
+        kl = kl.detach().to(beta.dtype).reshape(beta.shape)
+        beta.copy_(torch.where(kl > self.dtarg * 1.5, beta * self.increment, torch.where(kl < self.dtarg / 1.5, beta * self.decrement, beta)))
 
 
 @register_agent("ppo")
@@ -27,7 +98,8 @@ class PPOAgent(OnPolicyAgent):
 
     ``loss_type``: ``"clip"`` (PPO's clipped ratio, TorchRL's
     :class:`~torchrl.objectives.ClipPPOLoss`) or ``"kl"`` (PPO's adaptive KL
-    penalty, TorchRL's :class:`~torchrl.objectives.KLPENPPOLoss`, with target
+    penalty, TorchRL's :class:`~torchrl.objectives.KLPENPPOLoss` as
+    :class:`BatchableKLPENPPOLoss`, which seeds can batch, with target
     ``kl_target``: a trust region on the policy's KL divergence per batch,
     this library's stand-in for MOReL's natural policy gradient, whose step
     is also bounded in KL).
@@ -86,7 +158,7 @@ class PPOAgent(OnPolicyAgent):
         if int(bc_init_steps) < 0:
             raise ValueError(f"algo.bc_init_steps must be >= 0 (0: no behaviour-cloning start), got {bc_init_steps}")
         self.bc_init = {"steps": int(bc_init_steps), "lr": float(bc_init_lr), "batch_size": int(bc_init_batch_size)}
-        loss_class, trust = (ClipPPOLoss, {"clip_epsilon": clip_epsilon}) if loss_type == "clip" else (KLPENPPOLoss, {"dtarg": float(kl_target)})
+        loss_class, trust = (ClipPPOLoss, {"clip_epsilon": clip_epsilon}) if loss_type == "clip" else (BatchableKLPENPPOLoss, {"dtarg": float(kl_target)})
         self.loss = loss_class(
             self.policy,
             critic,
@@ -101,6 +173,11 @@ class PPOAgent(OnPolicyAgent):
         self.loss.make_value_estimator(gamma=gamma, lmbda=lmbda)
         self.optimizer = adam(self.loss.parameters(), lr=lr, fused=fused_adam)
         self.action_key = action_key
+
+    def observe_minibatch(self, out: TensorDictBase) -> None:
+        """With ``loss_type="kl"``, the KL coefficient adapts to the minibatch's KL (:meth:`BatchableKLPENPPOLoss.adapt_beta`)."""
+        if isinstance(self.loss, BatchableKLPENPPOLoss):
+            self.loss.adapt_beta(out.get("kl"))
 
     def pretrain(self, data) -> dict:
         """MOReL's start: behaviour cloning of the dataset's actions (``bc_init_steps`` Adam steps; nothing when 0)."""

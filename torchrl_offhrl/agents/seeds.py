@@ -64,7 +64,8 @@ _NOT_VMAPPABLE = {"CQLLoss": "reads its parameters' .data inside the loss (log_a
                              "sampled actions), which torch.vmap forbids (torchrl_offhrl.agents.cql.BatchableCQLLoss is the same "
                              "loss without it: the CQL agent's)",
                  "KLPENPPOLoss": "adapts its KL coefficient with data-dependent control flow (if kl > 1.5 x target: beta *= 2), which "
-                                 "torch.vmap refuses (algo.loss_type=kl, MOReL's trust region)"}
+                                 "torch.vmap refuses (torchrl_offhrl.agents.ppo.BatchableKLPENPPOLoss is the same loss with the "
+                                 "adaptation outside it: the PPO agent's with loss_type=kl)"}
 
 #: leaf names of buffers that are constants of a run, kept unstacked when every seed holds the same values (an action
 #: box, the data's observation statistics); any other tensor is stacked per seed, even when the seeds hold it alike
@@ -597,6 +598,7 @@ class OnPolicySeedBatch(SeedBatch):
             perms = torch.stack([torch.randperm(size, generator=g) for g in self.generators]).to(flat.device)
             for idx in perms.split(w.minibatch_size, dim=1):
                 out = w.minibatch_loss(flat[rows, idx])
+                w.observe_minibatch(out)
                 w.optimizer.zero_grad()
                 backward(w.minibatch_objective(out))
                 if w.max_grad_norm:

@@ -113,10 +113,8 @@ def refusal(cfg: Mapping) -> str | None:
         return None
     if not _model_env_batchable(cfg):
         return (f"seeds=[...] batches the agents that learn from the dataset (bc, td3bc, iql, cql) and the agents on the model "
-                f"env (ppo, moc, sac, mopo; offline, one phase) for now; algo={algo['name']} "
+                f"env (ppo and morel, moc, sac, mopo; offline, one phase) for now; algo={algo['name']} "
                 f"{'in this setting ' if algo['name'] in MODEL_ENV else ''}runs one seed per run")
-    if algo.get("loss_type", "clip") != "clip":
-        return f"algo.loss_type={algo.get('loss_type')} (PPO's adaptive KL penalty adapts its coefficient with data-dependent control flow)"
     if algo.get("policy_ema") is not None:
         return "algo.policy_ema (MOC's averaged copy of the policy) is not batched yet"
     if algo.get("functional"):
