@@ -252,7 +252,7 @@ def test_aggregate_counts_dataset_runs_in_gradient_steps(tmp_path):
     assert height > width  # one row of panels per unit (frames, gradient steps), one column per env
 
 
-def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, ablation=None, algo_cfg=None, timing=None):
+def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, ablation=None, algo_cfg=None, timing=None, data_hash=None):
     d = base / f"{algo}-{env_id}-{dataset}-seed{seed}"
     d.mkdir(parents=True)
     steps = (0, 100, 200)
@@ -260,7 +260,7 @@ def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, a
                                               for s, v in zip(steps, scores)]))
     cfg = {"algo": {"name": "ppo" if algo == "morel" else algo, **({"label": "morel"} if algo == "morel" else {}), **(algo_cfg or {})},
            "env": {"env_id": env_id},
-           "dataset": dataset, "ablation": ablation or {}, "unit": unit, "seed": seed}
+           "dataset": dataset, "ablation": ablation or {}, "unit": unit, "seed": seed, **({"data_hash": data_hash} if data_hash else {})}
     (d / "config.json").write_text(json.dumps(cfg))
     (d / "summary.json").write_text(json.dumps({"unit": unit, "behaviour_normalized_d4rl": behaviour, **(timing or {})}))
     return d
@@ -309,6 +309,30 @@ def test_paper_table_layout(tmp_path):
     every = [_fake_run(tmp_path / "all", a, 0, "Hopper-v5", "medium", "frames", (1.0, 2.0, 3.0), algo_cfg={"bc_init_steps": 10} if a == "morel" else None)
              for a in ("moc", "ppo", "sac", "morel", "mopo", "iql", "cql", "td3bc", "bc")]
     assert "None: every column has its seeds." in paper_table(every, tmp_path / "n", min_seeds=1).split("## Missing")[1]
+
+
+def test_paper_table_says_which_dataset_instance_each_run_used(tmp_path):
+    """Runs of one row on two generated instances of its dataset (data_hash): the page lists them per instance and marks
+    the cell that pools seeds from both; a row on one instance is not listed."""
+    from torchrl_offhrl.recipes.report import paper_table
+
+    runs = [
+        _fake_run(tmp_path, "moc", 4, "Hopper-v5", "medium-expert", "frames", (10.0, 50.0, 40.0), data_hash="aaaa"),
+        _fake_run(tmp_path, "moc", 5, "Hopper-v5", "medium-expert", "frames", (10.0, 30.0, 60.0), data_hash="aaaa"),
+        _fake_run(tmp_path, "bc", 4, "Hopper-v5", "medium-expert", "updates", (1.0, 45.0, 42.0), data_hash="bbbb"),
+        _fake_run(tmp_path, "bc", 5, "Hopper-v5", "medium-expert", "updates", (1.0, 45.0, 44.0), data_hash="aaaa"),
+        _fake_run(tmp_path, "moc", 4, "Hopper-v5", "medium", "frames", (10.0, 20.0, 30.0), data_hash="cccc"),
+        _fake_run(tmp_path, "bc", 4, "Hopper-v5", "medium", "updates", (1.0, 25.0, 28.0), data_hash="cccc"),
+    ]
+    text = paper_table(runs, tmp_path / "t")
+    section = text.split("## Dataset instances")[1].split("## Published")[0]
+    assert "- hopper-medium-expert: `aaaa`: MOC s4 s5, BC s5; `bbbb`: BC s4" in section
+    assert "hopper-medium:" not in section  # one instance
+    final = text.split("## Final evaluation")[1].split("## Best")[0]
+    me = next(line for line in final.splitlines() if line.startswith("| hopper-medium-expert |"))
+    assert "(2) ‡" in me and me.count("‡") == 1  # BC pools the two instances; MOC's seeds share one
+    assert "‡" not in next(line for line in final.splitlines() if line.startswith("| hopper-medium |"))
+    assert "## Dataset instances" not in paper_table(runs[4:], tmp_path / "u")
 
 
 def test_paper_table_reports_the_sampled_policy_apart_where_runs_evaluated_it(tmp_path):

@@ -354,6 +354,37 @@ def _dataset_name(dataset: str) -> str:
 PER_SEED_KEY = {"score": "final", "best_score": "best", "last5": "last5", "selected": "selected", "sampled": "sampled"}
 
 
+def _dataset_instances(groups: Mapping[tuple, list], row_name: Mapping[tuple, str], columns: Sequence[str]) -> tuple[list[str], set]:
+    """Which generated instance of its dataset (the runs' ``data_hash``) each run of a row used: the page's section on rows
+    whose runs used more than one, and the cells ``(env_id, dataset, column)`` whose seeds mix instances (marked ``‡``).
+
+    Data generated on another machine differ in their floating-point details, so two instances of "hopper-medium" are
+    two datasets: runs on different ones are not the same experiment, and a cell that pools them says so.
+    """
+    per_row: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
+    mixed = set()
+    for key, rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], columns.index(kv[0][2]))):  # the page's column order
+        env_id, dataset, c = key
+        hashes = defaultdict(list)
+        for r in rs:
+            hashes[(r.get("config") or {}).get("data_hash") or "unknown"].append((r.get("config") or {}).get("seed"))
+        if len(hashes) > 1:
+            mixed.add(key)
+        for h, seeds in hashes.items():
+            per_row[row_name[env_id, dataset]][h].append(
+                f"{column_title(c)} " + " ".join(f"s{s}" for s in sorted(x for x in seeds if x is not None)))
+    rows = {row: hs for row, hs in per_row.items() if len(hs) > 1}
+    if not rows:
+        return [], mixed
+    lines = ["## Dataset instances", "",
+             "Data generated on another machine differ in their floating-point details (the runs' `data_hash`): runs on two "
+             "instances of one dataset are runs on two datasets. Rows whose runs used more than one instance (`unknown`: a run "
+             "rebuilt from an earlier page, whose data were not recorded); a cell marked ‡ pools seeds from more than one:", ""]
+    for row, hs in sorted(rows.items()):
+        lines.append(f"- {row}: " + "; ".join(f"`{h}`: {', '.join(cols)}" for h, cols in sorted(hs.items(), key=lambda x: -len(x[1]))))
+    return [*lines, ""], mixed
+
+
 def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets", min_seeds: int = 3,
                 missing_reasons: Mapping[str, str] | None = None, made_by: str | None = None) -> str:
     """The paper's Table I from run directories: rows env x dataset, one column per algorithm, the behaviour data last.
@@ -390,6 +421,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     present = {k[2] for k in groups}
     columns = [*TABLE_COLUMNS, *sorted(present - set(TABLE_COLUMNS))]  # every standard column (missing ones shown as —), then others
     titles = [column_title(c) for c in columns]
+    instances, mixed = _dataset_instances(groups, row_name, columns)
 
     def table(kind: str) -> list[str]:
         lines = ["| dataset | " + " | ".join(titles) + " | behaviour data |", "|" + "---|" * (len(columns) + 2)]
@@ -401,7 +433,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                     cells.append("—")
                     continue
                 n = sum(p[PER_SEED_KEY[kind]] is not None for p in st["per_seed"])
-                cells.append(fmt_iqm(st[f"{kind}_iqm"], st[f"{kind}_ci"], n) if n else "—")
+                mark = " ‡" if (env_id, dataset, c) in mixed else ""
+                cells.append(fmt_iqm(st[f"{kind}_iqm"], st[f"{kind}_ci"], n) + mark if n else "—")
                 if st["behaviour_score"] is not None:
                     beh.append(st["behaviour_score"])
             lines.append(f"| {row_name[env_id, dataset]} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
@@ -457,7 +490,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
              *table("sampled"), ""] if sampled else []),
           "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
           *table("best_score"), "",
-          "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing,
+          "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing, *instances,
           "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
           "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
           "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),
