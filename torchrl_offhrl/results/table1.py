@@ -104,7 +104,14 @@ NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by l
                  "runs the full 1000 steps, where under 0.99 the two are worth the same) are the full-scale recipe that issue 37 "
                  "adopts: chosen on the tuning seeds (3 of 3 above the data), run once on these seeds, where MOC kept its gait on 5 of 5 "
                  "on Hopper and ended above the data on 5 of 5 on HalfCheetah (PPO with it: 5 of 5 on both). BC and TD3+BC on hopper-medium ran seeds 4-8 with `--batch-seeds` "
-                 "(2026-12-03 and -04), replacing their rows rebuilt from an earlier page. `MOC, 1 option` on "
+                 "(2026-12-03 and -04), replacing their rows rebuilt from an earlier page. On hopper-medium-expert the columns "
+                 "`moc_pf108` and `ppo_pf108` (`--extra 'model_env.pessimism={fraction: 1.08, penalty: 30.0}' --tag pf108`, "
+                 "2026-12-04) set the threshold at 1.08 x the data's largest discrepancy (the paper's hopper-medium value) "
+                 "instead of the paper's 0.08 for this dataset, which on our ensemble is the data's 99th percentile and ended "
+                 "every model episode of the untrained policy after ~110 steps: chosen on the tuning seeds (3 of 3 above the "
+                 "data, against 2 of 3 for the quantile 0.999), run once on these seeds ([experiments.md](experiments.md)). "
+                 "MOReL's medium-expert runs (2026-12-04) batch their five seeds (`--batch-seeds`: the KL-penalised PPO loss "
+                 "with its coefficient adapted per seed). `MOC, 1 option` on "
                  "hopper-medium (`--algos moc_1opt --batch-seeds`, 2026-12-03) is MOC's column with one option: the same config, models "
                  "and seeds. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
@@ -245,17 +252,20 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
 
 
 # why a cell of the full-scale table has fewer than 3 seeds (paper_table's "Missing cells"; keys "<row>" or "<row>:<algo>")
-_MODEL_ENV_ME = ("Not run yet: the model-env agents (MOC, PPO, SAC, MOReL, MOPO) first need an ensemble and a CVAE fitted on the 2M "
-                 "transitions (the medium fits took ~35 min on one core: 25 for the ensemble's 20k steps, 9 for the CVAE's), then "
-                 "five seeds batched (`--batch-seeds`) take ~15-20 min per algorithm (MOC 13.4 and PPO 16.4 min for the medium "
-                 "rows' 205k frames, evaluations apart); the CPU went to the medium rows and issue 37's robustness runs first.")
+_OFF_POLICY_ME = ("SAC and MOPO: ~1.8 h of one core for the five seeds batched (31 frames/s per seed, `benchmarks/README.md`); "
+                  "not run yet.")
+_HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 2026-12-04 (MOC: seeds 4-8; MOReL: seeds 4-8, "
+                   "five batched); PPO ~16 min for five seeds batched, not run yet. " + _OFF_POLICY_ME)
 _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert MPS=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6` "
            "with the medium and expert packs, at the next lent GPU.")
 _SEEDS_7_8 = ("Not yet run on all of seeds 4-8 (a headline cell takes 5 seeds): `offhrl results table1 run --scale {scale} --envs {env} "
               "--algos ALGO --seeds 4 5 6 7 8` runs them (each run resumes from its checkpoint).")
-_NEW_PEERS = ("New agents (2026-12-02), not run at this scale yet: MOReL as its official code runs it (a behaviour-cloned start, "
-              "a KL-bounded step, 3 x max threshold; the old MOReL-style runs keep their own column) and MOPO (SAC on branched "
-              "rollouts with 5% dataset transitions per minibatch); ~1 h per seed for 205k frames on one core, as SAC.")
+_NEW_PEERS = ("New agents (2026-12-02), not run on the medium rows at this scale yet: MOReL as its official code runs it (a "
+              "behaviour-cloned start, a KL-bounded step, 3 x max threshold; the old MOReL-style runs keep their own column; five "
+              "seeds batched ~30 min, as on the medium-expert rows) and MOPO (SAC on branched rollouts with 5% dataset "
+              "transitions per minibatch; ~1.8 h for five seeds batched). The medium rows' data were generated on an earlier "
+              "machine and are lost: new runs there need the data generated again, which on this CPU gives another instance "
+              "(see Dataset instances), so their cells would pool two datasets; the row is best rerun whole.")
 
 
 def _missing(scale: str) -> dict[str, str]:
@@ -264,18 +274,16 @@ def _missing(scale: str) -> dict[str, str]:
     for env in ("hopper", "halfcheetah"):
         out[f"{env}-medium"] = _SEEDS_7_8.format(scale=scale, env=env)
         for algo in ("morel", "mopo"):
-            for dataset in ("medium", "medium-expert"):
-                out[f"{env}-{dataset}:{algo}"] = _NEW_PEERS
+            out[f"{env}-medium:{algo}"] = _NEW_PEERS
     return out
 
 
-_HOPPER_ME = ("Not run yet beyond MOC. The models are fitted and cached (2026-12-04, one core beside other jobs: each 1M-"
-              "transition part ~8-10 min, the ensemble's 20k steps ~20 min, the CVAE ~9 min); MOC's five seeds batched took ~15 min "
-              "and ended below their untrained start: every untrained model episode ends at the pessimistic termination (model "
-              "return ~200 against ~1,390 on hopper-medium), so the P-MDP as configured leaves the agents little to learn from "
-              "on these data. The other model-env agents on the same models: PPO ~16 min for five seeds batched (stopped at a "
-              "few per cent this session to free the core; it resumes), SAC and MOPO ~1.7 h per seed, MOReL ~1 h per seed.")
-MISSING = {"full": {"hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _MODEL_ENV_ME,
+_HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside other jobs: each 1M-transition part ~8-10 min, "
+              "the ensemble's 20k steps ~20 min, the CVAE ~9 min). MOC and PPO with the paper's threshold for this dataset (0.08 "
+              "x max: on our ensemble the data's 99th percentile, which ended every model episode) are the MOC column; with "
+              "1.08 x max, chosen on the tuning seeds, the columns `moc_pf108` and `ppo_pf108` ([experiments.md](experiments.md)). "
+              "MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
+MISSING = {"full": {"hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
                     "hopper-medium-expert:cql": _CQL_ME,
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
                                                                 "wheels: rebuild the medium part in a first call, the expert part in "
