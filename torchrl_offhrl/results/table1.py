@@ -282,7 +282,7 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
               "the ensemble's 20k steps ~20 min, the CVAE ~9 min). MOC with the paper's threshold for this dataset (0.08 x max: "
               "on our ensemble the data's 99th percentile, which ended every model episode) is the MOC column; with 1.08 x max, "
               "chosen on the tuning seeds, the columns `moc_pf108` and `ppo_pf108` ([experiments.md](experiments.md)); PPO ran "
-              "with 1.08 x max only (~25 min for five seeds batched), since the paper's threshold leaves nothing to learn. BC, "
+              "with 1.08 x max only (five seeds batched, ~40 min beside the test suite and the demo), since the paper's threshold leaves nothing to learn. BC, "
               "IQL and TD3+BC ran on an earlier instance of this dataset (see Dataset instances); their seeds 4-8 on this one "
               "(BC ~0.1 h, TD3+BC ~0.6 h, IQL ~0.4 h per seed on one core, as measured below) are not run yet. "
               "MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
