@@ -75,7 +75,7 @@ def main(overrides: list[str]) -> None:
         # in the real env, where the policy is in the data's support; in the model, where it is ended.
         with torch.no_grad():
             obs, act = td["observation"][alive], td["action"][alive]
-            disc = ensemble.discrepancy(obs.float(), act.float(), mcfg["env"].get("discrepancy", "variance"))
+            disc = ensemble.discrepancy(obs.float(), act.float(), env.base_env.discrepancy_kind)
         q = torch.quantile(disc.double(), torch.tensor([0.5, 0.9, 0.99], dtype=torch.float64))
         rank = torch.searchsorted(data_sorted, q, right=True).double() / data_sorted.numel()
         ranks = " (the data's quantiles " + " / ".join(f"{r:.3f}" for r in rank) + ")"

@@ -367,7 +367,8 @@ def _dataset_instances(groups: Mapping[tuple, list], row_name: Mapping[tuple, st
         env_id, dataset, c = key
         hashes = defaultdict(list)
         for r in rs:
-            hashes[(r.get("config") or {}).get("data_hash") or "unknown"].append((r.get("config") or {}).get("seed"))
+            cfg = r.get("config") or {}
+            hashes[cfg.get("data_hash") or "unknown"].append(cfg.get("seed"))
         if len(hashes) > 1:
             mixed.add(key)
         for h, seeds in hashes.items():

@@ -60,6 +60,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+from collections import defaultdict
 from pathlib import Path
 
 from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
@@ -329,9 +330,13 @@ def report(scale: str, tuning: bool = False) -> str:
              "The same runs in the paper's Table I layout (every algorithm side by side, published scores apart): [table.md](table.md).", "",
              table, "", "## MOC option diagnostics at the end of training (mean over seeds of the last 5 logged batches)", "",
              "| env | seeds | " + " | ".join(DIAG) + " |", "|---|---|" + "---|" * len(DIAG)]
-    for env in sorted({r["name"].rsplit("-seed", 1)[0].split("-", 1)[1] for r in listed if r["name"].startswith("moc-")}):
-        # one row per dataset ("hopper-medium", "hopper-medium-expert"): MOC's own runs, not its variants (moc_<tag>-...)
-        moc = [r for r in listed if r["name"].rsplit("-seed", 1)[0] == f"moc-{env}"]
+    # one row per dataset ("hopper-medium", "hopper-medium-expert"): MOC's own runs, not its variants (moc_<tag>-...)
+    moc_runs = defaultdict(list)
+    for r in listed:
+        algo, _, row = r["name"].rsplit("-seed", 1)[0].partition("-")
+        if algo == "moc":
+            moc_runs[row].append(r)
+    for env, moc in sorted(moc_runs.items()):
         whole = [r for r in moc if not r.get("partial")]
         if whole:
             tails = [json.loads((Path(r["dir"]) / "diagnostics.json").read_text())["train_tail_means"] for r in whole
