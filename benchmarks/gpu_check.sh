@@ -3,6 +3,8 @@
 #     bash benchmarks/gpu_check.sh OUT_DIR [PYTHON]           # everything
 #     bash benchmarks/gpu_check.sh OUT_DIR [PYTHON] offline   # tests/test_cuda.py, then the dataset agents' updates eager
 #                                                             # against captured as CUDA graphs (cudagraphs=true), ~5 min
+#     bash benchmarks/gpu_check.sh OUT_DIR [PYTHON] seeds     # the captured seed batch's CUDA tests, then benchmarks/seed_batch.py
+#                                                             # eager and with --cudagraphs (IQL, CQL; 1, 5, 10 seeds)
 # Runs the CUDA tests (tests/test_cuda.py and the CUDA cases beside what they check),
 # then benchmarks/{offline_updates,ensemble_training,env_throughput,recipe_throughput}.py
 # with --device cuda. Each step has its own time limit and writes its log to OUT_DIR,
@@ -20,6 +22,12 @@ step() {  # step NAME SECONDS COMMAND...
     echo "=== $name: exit $rc after $((SECONDS - t0)) s"
 }
 step env 30 "$py" -c "import torch, torchrl, tensordict, gymnasium, mujoco; print(torch.__version__, torchrl.__version__, tensordict.__version__, gymnasium.__version__, mujoco.__version__); print(torch.cuda.get_device_name(), torch.cuda.get_device_properties(0).total_memory // 2**30, 'GiB')"
+if [ "$what" = seeds ]; then  # seeds as a batch dimension (issue 38): the captured seed batch's tests, then eager against captured
+    step tests 150 "$py" -m pytest -q -p no:cacheprovider -n 4 tests/test_cuda.py -k "captured"
+    step seed_batch_eager 150 "$py" benchmarks/seed_batch.py --device cuda --algos iql cql --seeds 1 5 10 --threads 1 --updates 50
+    step seed_batch_captured 200 "$py" benchmarks/seed_batch.py --device cuda --cudagraphs --algos iql cql --seeds 1 5 10 --threads 1 --updates 200
+    exit 0
+fi
 if [ "$what" = offline ]; then
     step tests 150 "$py" -m pytest -q -p no:cacheprovider -n 8 tests/test_cuda.py
     step offline_updates 330 "$py" benchmarks/offline_updates.py --device cuda --updates 500 --algos cql iql td3bc bc \

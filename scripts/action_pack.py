@@ -7,7 +7,7 @@
 refuses the result unless it has the packed content hash; it then writes the
 dataset where :func:`~torchrl_offhrl.data.named_dataset` looks for it
 (``$TORCHRL_OFFHRL_CACHE/datasets/``), so ``offhrl train dataset=medium``
-and ``torchrl_offhrl/results/table1.py run`` find it and a run there resumes anywhere on
+and ``offhrl results table1 run`` find it and a run there resumes anywhere on
 the original data. What it is for: ``scripts/gpu_runs.sh``, on a lent GPU
 machine whose minutes would not cover generating the dataset.
 """

@@ -4,7 +4,7 @@
 # e.g. bash scripts/gpu_runs.sh $OUT python3 430 hopper,halfcheetah cql 4 5 6
 # 1. rebuilds each .packs/ENV-medium.pt into the dataset cache (scripts/action_pack.py unpack: refused unless it is
 #    the same data, bit for bit, as on the machines that generated it), the envs side by side;
-# 2. as soon as an env's data is there, runs `torchrl_offhrl/results/table1.py run --scale full --envs ENV --algos ALGO --seeds SEED`
+# 2. as soon as an env's data is there, runs `python -m torchrl_offhrl.cli results table1 run --scale full --envs ENV --algos ALGO --seeds SEED`
 #    for each seed at once, with --speed $SPEED (default: device=cuda algo.cudagraphs=true); every run is stopped
 #    SECONDS after the script started.
 # DATASET=medium-expert (default medium) trains on medium-expert, rebuilt from the packs of its two parts
@@ -13,12 +13,14 @@
 # rebuilt; UNPACK_ONLY=1 stops after rebuilding. HalfCheetah's medium-expert (two packs, 36 MiB, too much beside the
 # wheels): call 1 carries .whl and .packs/halfcheetah-medium.pt with UNPACK_ONLY=1; call 2, at once (a machine idle
 # for 30 s is given back), carries .packs/halfcheetah-expert.pt only and skips the pip install (/tmp/site stays).
+# With BATCH=1 the seeds train as one process (`--batch-seeds`: one vmapped update for all of them, captured as CUDA graphs
+# with algo.cudagraphs=true), its log run-ENV-batch.log.
 # With MPS=1 in the environment it first starts CUDA's MPS daemon and checks that a process can use the GPU through
 # it (if not, it quits it and the runs share the GPU by time slices: ~770 updates/s together, measured below).
 # 3. every 20 s, and at the end, packs each run directory (checkpoint, evaluations, logs) into OUT_DIR/<run>.tgz.
 # A run cut short by the time limit resumes from its last checkpoint wherever its .tgz is unpacked under
-# outputs/results/full/ (`torchrl_offhrl/results/table1.py run` again, on a CPU or a GPU); a finished one is archived and
-# reported by `torchrl_offhrl/results/table1.py report --scale full`. Run directories carried into outputs/results/full/
+# outputs/results/full/ (`python -m torchrl_offhrl.cli results table1 run` again, on a CPU or a GPU); a finished one is archived and
+# reported by `python -m torchrl_offhrl.cli results table1 report --scale full`. Run directories carried into outputs/results/full/
 # resume here.
 # Measured (2026-11-27, H100, CQL on hopper-medium, seeds 4-6, SPEED="device=cuda algo.cudagraphs=true algo.compile=true"):
 # unpacking took 46 s; the three runs shared the GPU at ~770 updates/s together (each 10k-update block took 38-40 s,
@@ -61,8 +63,14 @@ for env in ${envs//,/ }; do
         done
         echo "$env unpacked after $((SECONDS - t0)) s"
         [ "${UNPACK_ONLY:-0}" = 1 ] && exit 0
+        if [ "${BATCH:-0}" = 1 ]; then  # the seeds as one process, one vmapped (and, with cudagraphs, captured) update
+            timeout $((limit - (SECONDS - t0))) "$py" -m torchrl_offhrl.cli results table1 run --scale full --envs "$env" --algos "$algo" --seeds "${seeds[@]}" \
+                --datasets "$dataset" --batch-seeds --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-$env-batch.log" 2>&1
+            echo "$env: the batch exited with $? after $((SECONDS - t0)) s"
+            exit 0
+        fi
         for s in "${seeds[@]}"; do
-            timeout $((limit - (SECONDS - t0))) "$py" torchrl_offhrl/results/table1.py run --scale full --envs "$env" --algos "$algo" --seeds "$s" --datasets "$dataset" \
+            timeout $((limit - (SECONDS - t0))) "$py" -m torchrl_offhrl.cli results table1 run --scale full --envs "$env" --algos "$algo" --seeds "$s" --datasets "$dataset" \
                 --speed ${SPEED:-device=cuda algo.cudagraphs=true} > "$out/run-$env-seed$s.log" 2>&1 &
         done
         wait
@@ -79,9 +87,10 @@ while [ -n "$(jobs -rp)" ]; do sleep 20; pack; done
 wait
 pack
 [ "${MPS:-0}" = 1 ] && echo quit | nvidia-cuda-mps-control 2>/dev/null
-for env in ${envs//,/ }; do for s in "${seeds[@]}"; do
-    [ -f "$out/run-$env-seed$s.log" ] || continue
-    echo "--- $env seed $s"; tr '\r' '\n' < "$out/run-$env-seed$s.log" | grep -E "real .* return|final|Error|error" | tail -n 14
+for env in ${envs//,/ }; do for s in "${seeds[@]}" batch; do
+    log="$out/run-$env-seed$s.log"; [ "$s" = batch ] && log="$out/run-$env-batch.log"
+    [ -f "$log" ] || continue
+    echo "--- $env seed $s"; tr '\r' '\n' < "$log" | grep -E "real .* return|final|Error|error" | tail -n 14
 done; done
 # the logs travel as one archive: a call returns at most 8 files (six runs' archives and their eight logs lost six logs)
 (cd "$out" && tar czf logs.tgz ./*.log && rm -f ./*.log)

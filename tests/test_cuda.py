@@ -147,3 +147,71 @@ def test_captured_update_on_cuda_captures_each_form(algo, extra, forms):
     cpu.load_state_dict(torch.utils._pytree.tree_map(lambda t: t.cpu() if torch.is_tensor(t) else t, state))
     assert cpu.steps == 12 and not any(g["capturable"] for o in cpu.optimizers() for g in o.param_groups)
     cpu.update(env.rollout(8, break_when_any_done=False).reshape(-1))
+
+
+def _seed_batches(algo, extra, cudagraphs_values, seeds=(4, 5, 6), updates=8, batch=8):
+    """One SeedBatch of ``algo`` on Pendulum per value of ``cudagraphs``, the agents of each built from the same seeds, each
+    batch given the same ``updates`` stacked minibatches; returns ``[(seed batch, [per-seed metrics per update])]``."""
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.agents.seeds import SeedBatch
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")
+    td = env.rollout(updates * batch * len(seeds), break_when_any_done=False).reshape(-1).to("cuda")
+    out = []
+    for value in cudagraphs_values:
+        agents = []
+        for s in seeds:
+            torch.manual_seed(s)
+            agents.append(make_agent(algo, env, {"hidden_sizes": [8], "batch_size": batch, "cudagraphs": value, **extra},
+                                     action_key="action", device="cuda"))
+        sb = SeedBatch(agents)
+        per = len(seeds) * batch
+        out.append((sb, [sb.update(td[per * k: per * (k + 1)].reshape(len(seeds), batch).clone()) for k in range(updates)]))
+    return out
+
+
+@pytest.mark.parametrize("algo", ["bc", "iql"])
+def test_captured_seed_batch_on_cuda_matches_eager(algo):
+    """cudagraphs=true captures the seeds' vmapped update (losses, backward, one Adam step for all seeds, target step) as a
+    CUDA graph: for BC and IQL (no sampling inside) every seed's weights and metrics match the eager seed batch's."""
+    (eager, m_eager), (captured, m_captured) = _seed_batches(algo, {}, (False, True))
+    fns = captured.worker.__dict__["_step_fns"]
+    assert set(fns) == {None} and type(fns[None]).__name__ == "CudaGraphModule" and fns[None].counter == 3
+    assert "_step_fns" not in eager.worker.__dict__ or type(eager.worker.__dict__["_step_fns"][None]).__name__ != "CudaGraphModule"
+    eager.sync(), captured.sync()
+    for a_e, a_c in zip(eager.agents, captured.agents):
+        for (name, a), b in zip(a_e.loss.state_dict().items(), a_c.loss.state_dict().values()):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=name)
+    for per_e, per_c in zip(m_eager, m_captured):
+        for a, b in zip(per_e, per_c):
+            for k in a:
+                if k != "updates":
+                    torch.testing.assert_close(torch.as_tensor(a[k]).float(), torch.as_tensor(b[k]).float(), rtol=1e-4, atol=1e-5, msg=k)
+    # the seeds stay distinct: each started from its own weights and still differs from the others
+    s0, s1 = (captured.agents[i].loss.state_dict() for i in (0, 1))
+    assert any(v.is_floating_point() and not torch.equal(v, s1[k]) for k, v in s0.items())
+
+
+def test_captured_seed_batch_on_cuda_captures_cql_forms_and_restacks():
+    """CQL's seed batch captures its behaviour-cloning and CQL forms as two graphs; stacking again (as after loading
+    checkpoints) drops them, and the next updates capture again and keep learning, finite."""
+    ((sb, metrics),) = _seed_batches("cql", {"policy_eval_start": 5, "num_random": 2}, (True,), updates=12)
+    fns = sb.worker.__dict__["_step_fns"]
+    assert set(fns) == {True, False} and all(f.counter == 3 for f in fns.values())
+    assert [float(m[0]["train/bc_phase"]) for m in metrics] == [1.0] * 5 + [0.0] * 7
+    sb.sync()
+    before = [{k: v.clone() for k, v in a.loss.state_dict().items()} for a in sb.agents]
+    sb.stack()
+    assert "_step_fns" not in sb.worker.__dict__
+    from torchrl_offhrl.data import make_gym_env
+
+    td = make_gym_env("Pendulum-v1").rollout(4 * 24, break_when_any_done=False).reshape(-1).to("cuda")
+    for k in range(4):
+        sb.update(td[24 * k: 24 * (k + 1)].reshape(3, 8).clone())
+    sb.sync()
+    assert sb.worker.__dict__["_step_fns"][False].counter == 3
+    for b, a in zip(before, sb.agents):
+        now = a.loss.state_dict()
+        assert all(torch.isfinite(v).all() for v in now.values())
+        assert any(not torch.equal(b[k], now[k]) for k in b)

@@ -97,6 +97,40 @@ def test_seed_batch_resumes_from_the_agents_states(env):
             torch.testing.assert_close(float_state(b)[k], v, rtol=1e-4, atol=1e-5)
 
 
+def test_seed_batch_stacks_each_seed_s_optimiser_moments_scalar_parameters_too(env):
+    """Stacking trained agents (as after loading checkpoints) gives every parameter's Adam moments a seed dimension, also
+    a scalar parameter's (CQL's temperature ``log_alpha``: its moments are 0-dim, and were once taken from seed 4 alone
+    for all seeds, which a fused GPU Adam refused); ``sync`` hands each seed its own slice back."""
+    import threading
+
+    data = batches(2)
+    agents = [build(env, "cql", s, policy_eval_start=0) for s in (4, 5, 6)]
+    for i, a in enumerate(agents):
+        for t in range(2):  # each its own data: different moments
+            a.update(data[t, i])
+    agents[0].__dict__["_step_fns"] = {None: threading.Lock()}  # e.g. a captured update (a CUDA stream): not copyable
+    batched = SeedBatch(agents)
+    assert "_step_fns" not in batched.worker.__dict__ and isinstance(agents[0].__dict__["_step_fns"][None], type(threading.Lock()))
+    scalars = 0
+    for w_opt, opts in zip(batched.worker.optimizers(), zip(*(a.optimizers() for a in agents))):
+        for j, wp in enumerate(p for g in w_opt.param_groups for p in g["params"]):
+            own = [[p for g in o.param_groups for p in g["params"]][j] for o in opts]
+            if "exp_avg" not in opts[0].state.get(own[0], {}):  # not stepped yet
+                continue
+            scalars += own[0].dim() == 0
+            for name in ("exp_avg", "exp_avg_sq"):
+                assert w_opt.state[wp][name].shape == wp.shape == (3, *own[0].shape)
+                torch.testing.assert_close(w_opt.state[wp][name], torch.stack([o.state[q][name] for o, q in zip(opts, own)]))
+    assert scalars >= 1
+    batched.update(data[3])
+    batched.sync()
+    for a in agents:
+        for o in a.optimizers():
+            for q in (p for g in o.param_groups for p in g["params"]):
+                if "exp_avg" in o.state.get(q, {}):
+                    assert o.state[q]["exp_avg"].shape == q.shape
+
+
 def test_seed_batch_sampling_streams_and_refusals(env):
     from torchrl.data import LazyTensorStorage, ReplayBuffer
 
@@ -117,6 +151,10 @@ def test_seed_batch_sampling_streams_and_refusals(env):
         sb.update(batches()[0, 0])
     with pytest.raises(TypeError, match="one class"):
         SeedBatch([build(env, "bc", 4), build(env, "iql", 5)])
+    with pytest.raises(ValueError, match="agree on cudagraphs"):
+        SeedBatch([build(env, "bc", 4), build(env, "bc", 5, cudagraphs=True)])
+    with pytest.raises(ValueError, match="compile=False"):
+        SeedBatch([build(env, "bc", 4, compile=True), build(env, "bc", 5, compile=True)])
     with pytest.raises(ValueError, match="share one config"):
         SeedBatch([build(env, "bc", 4), make_agent("bc", env, {"hidden_sizes": [8], "batch_size": B}, action_key="action")])
     from torchrl.objectives import CQLLoss
@@ -126,6 +164,35 @@ def test_seed_batch_sampling_streams_and_refusals(env):
         a.loss.__class__ = CQLLoss  # TorchRL's own loss reads .data: refused, with the reason
     with pytest.raises(NotImplementedError, match="vmap forbids"):
         SeedBatch(plain)
+
+
+@pytest.mark.parametrize("name", ["bc", "iql", "cql", "td3bc"])
+def test_seed_batch_reads_its_constants_from_the_loss_not_the_networks_own_buffers(env, name):
+    """A TorchRL loss's networks keep buffers of their own beside the loss's copies, and ``loss.to(device)`` leaves them
+    behind (on a GPU they stay on the CPU: the seed batch's update then failed). The constants every seed shares (the
+    data's observation statistics) must come from the loss: with the networks' own copies poisoned (NaN), every seed's
+    update is still its separate agent's."""
+    separate = [build(env, name, s, **({"policy_noise": 0.0} if name == "td3bc" else {})) for s in (4, 5, 6)]
+    batched = SeedBatch([build(env, name, s, **({"policy_noise": 0.0} if name == "td3bc" else {})) for s in (4, 5, 6)],
+                        randomness="same" if name == "cql" else "different")
+    poisoned = 0
+    for net in ("actor_network", "qvalue_network", "value_network"):
+        m = getattr(batched.worker.loss, net, None)
+        for n, b in (m.named_buffers() if m is not None else ()):
+            if n.endswith(("loc", "scale")):
+                b.data.fill_(float("nan"))
+                poisoned += 1
+    assert poisoned and batched._shared_params is not None
+    data = batches()[0]
+    torch.manual_seed(0)
+    metrics = batched.update(data.clone())
+    assert all(torch.isfinite(torch.as_tensor(v)).all() for m in metrics for v in m.values())
+    if name != "cql":  # CQL's draws inside the loss differ from separate agents' (the CQL test covers its equivalence)
+        batched.sync()
+        for i, a in enumerate(separate):
+            a.update(data[i].clone())
+            for k, v in float_state(a).items():
+                torch.testing.assert_close(float_state(batched.agents[i])[k], v, rtol=1e-4, atol=1e-5)
 
 
 def test_batchable_cql_loss_is_torchrl_s_cql_loss_on_the_same_draws(env):

@@ -96,6 +96,13 @@ def _flat_params(opt: torch.optim.Optimizer) -> list:
     return [p for g in opt.param_groups for p in g["params"]]
 
 
+def _per_element(name: str, value, param: torch.Tensor) -> bool:
+    """Whether an optimiser's state entry holds one value per element of its parameter (Adam's moments: stacked and
+    sliced per seed) rather than a counter (``step``). By shape, not by dimension: the moments of a scalar parameter (a
+    SAC or CQL temperature, ``log_alpha``) are 0-dim too, and each seed has its own."""
+    return name != "step" and torch.is_tensor(value) and value.shape == param.shape
+
+
 def _leaves(loss) -> list[tuple]:
     """The key paths of the loss's tensors (``TensorDict.from_module``), each tensor once (a network shared by two
     parts of a loss, e.g. a value estimator, appears under several keys)."""
@@ -109,8 +116,8 @@ def _leaves(loss) -> list[tuple]:
     return keys
 
 
-def _with_seed_dim(td: TensorDict, n: int, loss) -> TensorDict:
-    """The same tensors (not copies) under a tree whose batch sizes gain the leading seed dimension ``n``.
+def _with_seed_dim(td: TensorDict, n: int | None, loss) -> TensorDict:
+    """The same tensors (not copies) under a tree whose batch sizes gain the leading seed dimension ``n`` (None: none).
 
     ``TensorDict.from_module`` gives every sub-tree batch size ``[]``; a
     loss's parameter sets may have their own (TorchRL's expanded Q-networks:
@@ -123,11 +130,12 @@ def _with_seed_dim(td: TensorDict, n: int, loss) -> TensorDict:
             out.set(k, tree(v, batch) if isinstance(v, TensorDictBase) else v)
         return out
 
-    out = TensorDict(batch_size=[n])
+    lead = [] if n is None else [n]
+    out = TensorDict(batch_size=lead)
     for k, v in td.items():
         own = getattr(loss, k, None)
         extra = own.batch_size if isinstance(own, TensorDictBase) else torch.Size([])
-        out.set(k, tree(v, torch.Size([n, *extra])) if isinstance(v, TensorDictBase) else v)
+        out.set(k, tree(v, torch.Size([*lead, *extra])) if isinstance(v, TensorDictBase) else v)
     return out
 
 
@@ -219,20 +227,23 @@ class SeedBatch:
         if type(agents[0].loss).__name__ in _NOT_VMAPPABLE:
             raise NotImplementedError(f"SeedBatch: {type(agents[0]).__name__}'s loss ({type(agents[0].loss).__name__}) "
                                       f"{_NOT_VMAPPABLE[type(agents[0].loss).__name__]}; train its seeds as separate runs")
-        if any(getattr(a, "compile", False) or getattr(a, "cudagraphs", False) for a in agents):
-            raise ValueError(f"{type(self).__name__}: build the agents with compile=False and cudagraphs=False (the vmapped update is "
-                             "not compiled yet)")
+        if any(getattr(a, "compile", False) for a in agents):
+            raise ValueError(f"{type(self).__name__}: build the agents with compile=False (the vmapped update is not compiled "
+                             "yet; cudagraphs=True captures it as CUDA graphs on a GPU)")
+        if len({bool(getattr(a, "cudagraphs", False)) for a in agents}) > 1:
+            raise ValueError(f"{type(self).__name__}: the agents must agree on cudagraphs (one worker steps them all)")
         self.agents, self.n = agents, len(agents)
         self.randomness = randomness
         self.generators = list(generators) if generators is not None else [torch.Generator().manual_seed(i) for i in range(self.n)]
         if len(self.generators) != self.n:
             raise ValueError(f"SeedBatch: one generator per agent ({self.n}), got {len(self.generators)}")
-        self.worker = copy.deepcopy(agents[0])
+        # agent 0's captured updates (CUDA graphs, streams: not copyable) stay its own; the worker captures its own
+        fns = agents[0].__dict__.get("_step_fns")
+        self.worker = copy.deepcopy(agents[0], memo={} if fns is None else {id(fns): {}})
         self._keys = _leaves(self.worker.loss)
         self._check_same_shapes()
         self._rebind_optimizers()
         self._rebind_target_updater()
-        self.worker.__dict__.pop("_step_fns", None)
         self.worker.loss_fn = self._vmapped_loss_fn  # the agent's step code reaches its losses here
         self._policy = None
         self.stack()
@@ -278,7 +289,12 @@ class SeedBatch:
             u.__dict__[attr] = fresh
 
     def stack(self) -> None:
-        """Stack the agents' tensors, optimiser states and step counts into the worker (at the start, and after loading checkpoints)."""
+        """Stack the agents' tensors, optimiser states and step counts into the worker (at the start, and after loading checkpoints).
+
+        With ``cudagraphs`` on a GPU, the worker's captured updates are dropped: stacking gives its tensors new storage, which
+        a graph captured before would not see; the next update captures them again.
+        """
+        self.worker.__dict__.pop("_step_fns", None)
         w = TensorDict.from_module(self.worker.loss, as_module=False)
         per = [TensorDict.from_module(a.loss, as_module=False) for a in self.agents]
         # constants every seed holds alike (an action box, the data's observation statistics: buffers, no target network)
@@ -298,6 +314,10 @@ class SeedBatch:
                     w.get(k).data = torch.stack(ts)
         # agent 0's batch sizes: the worker's hold stacked tensors
         self._params = _with_seed_dim(w.exclude(*self._shared) if self._shared else w, self.n, self.agents[0].loss)
+        # ... and are swapped into the loss with the seeds' slices: a TorchRL loss's networks keep buffers of their own
+        # beside the loss's copies, which ``loss.to(device)`` does not move (they stay on the CPU), so a constant left
+        # out of the swap would be read from there
+        self._shared_params = _with_seed_dim(w.select(*self._shared), None, self.agents[0].loss) if self._shared else None
         for w_opt, opts in zip(self.worker.optimizers(), zip(*(a.optimizers() for a in self.agents))):
             own = [_flat_params(o) for o in opts]
             w_opt.state.clear()
@@ -305,7 +325,8 @@ class SeedBatch:
                 states = [o.state.get(params[j]) for o, params in zip(opts, own)]
                 if any(s is None for s in states):
                     continue
-                w_opt.state[wp] = {name: (torch.stack([s[name] for s in states]) if torch.is_tensor(v) and v.dim() > 0 else v.clone() if torch.is_tensor(v) else v)
+                w_opt.state[wp] = {name: (torch.stack([s[name] for s in states]) if _per_element(name, v, own[0][j]) else
+                                          v.clone() if torch.is_tensor(v) else v)
                                    for name, v in states[0].items()}
         if hasattr(self.agents[0], "steps"):
             self.worker.steps = self.agents[0].steps
@@ -326,7 +347,7 @@ class SeedBatch:
                     for j, wp in enumerate(_flat_params(w_opt)):
                         if wp not in w_opt.state:
                             continue
-                        opt.state[own[j]] = {name: (v[i].clone() if torch.is_tensor(v) and v.dim() > 0 else v.clone() if torch.is_tensor(v) else v)
+                        opt.state[own[j]] = {name: (v[i].clone() if _per_element(name, v, wp) else v.clone() if torch.is_tensor(v) else v)
                                              for name, v in w_opt.state[wp].items()}
                 if hasattr(a, "steps"):
                     a.steps = self.worker.steps
@@ -369,6 +390,8 @@ class SeedBatch:
         extra = ((), {})
 
         def one_seed(params, batch):
+            if self._shared_params is not None:  # the constants every seed holds alike: one tensor, not vmapped
+                params = params.update(self._shared_params)
             with params.to_module(loss), _vmap_safe_reduction(loss):
                 # a loss without a target copy of a network reads its detached weights as the target (TorchRL's
                 # LossModule.__getattr__ takes ``.data``, which vmap forbids): the same values, detached here instead

@@ -107,8 +107,8 @@ def batchable(cfg: Mapping) -> bool:
 def refusal(cfg: Mapping) -> str | None:
     """Why a config's seeds cannot train as one batch (None: they can), known from the config before any run is prepared."""
     algo = cfg["algo"]
-    if algo.get("compile") or algo.get("cudagraphs"):
-        return "algo.compile / algo.cudagraphs are set (the vmapped update is not compiled yet)"
+    if algo.get("compile"):
+        return "algo.compile is set (the vmapped update is not compiled yet; algo.cudagraphs=true captures it on a GPU)"
     if learns_from_dataset(cfg):
         return None
     if not _model_env_batchable(cfg):
