@@ -124,11 +124,13 @@ def test_seed_batch_stacks_each_seed_s_optimiser_moments_scalar_parameters_too(e
     assert scalars >= 1
     batched.update(data[3])
     batched.sync()
-    for a in agents:
-        for o in a.optimizers():
-            for q in (p for g in o.param_groups for p in g["params"]):
-                if "exp_avg" in o.state.get(q, {}):
+    for i, a in enumerate(agents):  # seed i's own slice of every moment, scalars' included
+        for o, w_opt in zip(a.optimizers(), batched.worker.optimizers()):
+            for q, wp in zip((p for g in o.param_groups for p in g["params"]), (p for g in w_opt.param_groups for p in g["params"])):
+                if "exp_avg" in w_opt.state.get(wp, {}):
                     assert o.state[q]["exp_avg"].shape == q.shape
+                    torch.testing.assert_close(o.state[q]["exp_avg"], w_opt.state[wp]["exp_avg"][i])
+                    torch.testing.assert_close(o.state[q]["exp_avg_sq"], w_opt.state[wp]["exp_avg_sq"][i])
 
 
 def test_seed_batch_sampling_streams_and_refusals(env):
@@ -403,6 +405,37 @@ def test_batchable_kl_loss_is_torchrl_s_kl_penalty_loss_on_the_same_draws(env):
         assert got == [want, want], (dtarg, got)
 
 
+def poison_network_buffers(*roots) -> int:
+    """NaN into every ``loc``/``scale`` buffer reachable from ``roots`` (modules, and objects such as a value estimator
+    holding them) that is not one of the first root's (a loss's) own tensors: the networks' own copies, which a TorchRL
+    loss keeps beside its own and ``loss.to(device)`` leaves on the CPU, so that on a GPU they must never be read.
+    Returns how many were poisoned."""
+    own = {id(t) for t in TensorDict.from_module(roots[0], as_module=False).values(True, True)}
+    seen, count = set(), 0
+
+    def visit(obj):
+        nonlocal count
+        if id(obj) in seen or obj is None:
+            return
+        seen.add(id(obj))
+        if isinstance(obj, torch.nn.Module):
+            for name, b in obj.named_buffers(recurse=False):
+                if name in ("loc", "scale") and id(b) not in own and b.is_floating_point():
+                    b.data.fill_(float("nan"))
+                    count += 1
+            children = list(obj._modules.values())
+        else:
+            children = []
+        children += [v for v in vars(obj).values() if isinstance(v, torch.nn.Module) or type(v).__name__.endswith("Estimate")
+                     or type(v).__name__.endswith("GAE")]
+        for c in children:
+            visit(c)
+
+    for r in roots:
+        visit(r)
+    return count
+
+
 @pytest.mark.parametrize("name", ["ppo", "moc", "ppo_kl"])
 def test_on_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
     # the same per-seed batches and shuffles, and (randomness="same") the same draws inside the loss (MOC's z): each seed's
@@ -418,6 +451,9 @@ def test_on_policy_seed_batch_updates_each_seed_as_its_own_agent(env, name):
                                 generators=[torch.Generator().manual_seed(i) for i in range(3)])
     for i, a in enumerate(separate):
         a.generator = torch.Generator().manual_seed(i)
+    # the networks' own copies of the shared constants (CPU-bound on a GPU) must not be read: poisoned, nothing changes
+    poisoned = poison_network_buffers(batched.worker.loss, batched.worker.loss.value_estimator)
+    assert poisoned > 0 if name == "moc" else poisoned == 0  # TorchRL's PPO losses are not functional: no copies
     for step in range(2):
         data = as_double(on_policy_batch(env, actors, seed=step))
         state = torch.get_rng_state()
@@ -459,6 +495,20 @@ def test_seed_batched_policy_acts_as_each_seed_s_policy(env, name):
             mine = a.policy(step.reshape(3, E_ON)[i].clone())
             for k in keys:
                 torch.testing.assert_close(out[i][k], mine[k], rtol=1e-5, atol=1e-6)
+    # on a GPU, Agent.to moves the policy and the loss apart: their constant buffers stop sharing memory, and the batched
+    # policy keeps the module's own (each seed holds the same), acting as before
+    apart = [build_on_policy(env, name, s) for s in (4, 5, 6)]
+    unshared = 0
+    for a in apart:
+        for n_, b in a.policy.named_buffers():
+            if n_.rsplit(".", 1)[-1] in ("loc", "scale", "low", "high"):
+                b.data = b.data.clone()
+                unshared += 1
+    assert unshared > 0
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        again = OnPolicySeedBatch(apart).policy(step.clone()).reshape(3, E_ON)
+        for k in keys:
+            torch.testing.assert_close(again[k], out[k])
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
         same_state = step.reshape(3, E_ON)[0:1].expand(3, E_ON).reshape(-1).clone()
         a1 = batched.policy(same_state.clone())["action"].reshape(3, E_ON, -1)

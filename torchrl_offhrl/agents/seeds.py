@@ -96,6 +96,13 @@ def _flat_params(opt: torch.optim.Optimizer) -> list:
     return [p for g in opt.param_groups for p in g["params"]]
 
 
+def _is_constant(key, t: torch.Tensor, others: Sequence[torch.Tensor]) -> bool:
+    """Whether a module's tensor is a run constant (:data:`_CONSTANT_LEAVES`, no parameter) every seed holds alike."""
+    leaf = key if isinstance(key, str) else key[-1]
+    return (leaf in _CONSTANT_LEAVES and not isinstance(t, torch.nn.Parameter)
+            and all(o.shape == t.shape and torch.equal(o.to(t.device), t) for o in others))
+
+
 def _per_element(name: str, value, param: torch.Tensor) -> bool:
     """Whether an optimiser's state entry holds one value per element of its parameter (Adam's moments: stacked and
     sliced per seed) rather than a counter (``step``). By shape, not by dimension: the moments of a scalar parameter (a
@@ -314,9 +321,7 @@ class SeedBatch:
                     w.get(k).data = torch.stack(ts)
         # agent 0's batch sizes: the worker's hold stacked tensors
         self._params = _with_seed_dim(w.exclude(*self._shared) if self._shared else w, self.n, self.agents[0].loss)
-        # ... and are swapped into the loss with the seeds' slices: a TorchRL loss's networks keep buffers of their own
-        # beside the loss's copies, which ``loss.to(device)`` does not move (they stay on the CPU), so a constant left
-        # out of the swap would be read from there
+        # ... and are swapped into the loss with the seeds' slices (_with_shared)
         self._shared_params = _with_seed_dim(w.select(*self._shared), None, self.agents[0].loss) if self._shared else None
         for w_opt, opts in zip(self.worker.optimizers(), zip(*(a.optimizers() for a in self.agents))):
             own = [_flat_params(o) for o in opts]
@@ -370,10 +375,15 @@ class SeedBatch:
             where.setdefault((t.data_ptr(), tuple(t.shape)), k)
         a0_policy = TensorDict.from_module(self.agents[0].policy, as_module=False)
         worker_loss = TensorDict.from_module(self.worker.loss, as_module=False)
+        policies = [TensorDict.from_module(a.policy, as_module=False) for a in self.agents[1:]]
         out, foreign = TensorDict(), []
         for k in a0_policy.keys(True, True):
             t = a0_policy.get(k)
             lk = where.get((t.data_ptr(), tuple(t.shape)))
+            if lk is None and _is_constant(k, t, [p.get(k) for p in policies]):
+                # a buffer the loss holds a copy of, not the same memory (after ``Agent.to``, which moves the policy and
+                # the loss apart): a constant every seed's policy holds alike stays the module's own, as shared ones do
+                continue
             if lk is None:
                 foreign.append(k if isinstance(k, str) else ".".join(k))
             elif lk not in self._shared:  # a constant of every seed stays the module's own
@@ -384,15 +394,19 @@ class SeedBatch:
         return _with_seed_dim(out, self.n, module)
 
     # -------------------------------------------------------------- updates
+    def _with_shared(self, params: TensorDictBase) -> TensorDictBase:
+        """One seed's tensors inside the vmap, with the constants every seed holds alike (one tensor, not vmapped) added:
+        a TorchRL loss's networks keep buffers of their own beside the loss's copies, which ``loss.to(device)`` does not
+        move, so a constant left out of a ``to_module`` swap would be read from the CPU on a GPU."""
+        return params if self._shared_params is None else params.update(self._shared_params)
+
     def _vmapped_loss_fn(self, method: str | None = None):
         """The loss (or its ``method``) of every seed on ``[N, ...]`` data, in one vmap; extra arguments are passed as they are."""
         loss = self.worker.loss
         extra = ((), {})
 
         def one_seed(params, batch):
-            if self._shared_params is not None:  # the constants every seed holds alike: one tensor, not vmapped
-                params = params.update(self._shared_params)
-            with params.to_module(loss), _vmap_safe_reduction(loss):
+            with self._with_shared(params).to_module(loss), _vmap_safe_reduction(loss):
                 # a loss without a target copy of a network reads its detached weights as the target (TorchRL's
                 # LossModule.__getattr__ takes ``.data``, which vmap forbids): the same values, detached here instead
                 aliases = [f"target_{name}" for name, m in loss._modules.items() if name.endswith("_params") and not name.startswith("target_")
@@ -584,7 +598,7 @@ class OnPolicySeedBatch(SeedBatch):
             prepare = self._vmapped_loss_fn("prepare_batch")
             if hasattr(est, "gae_inputs"):  # an estimator split in two (OptionGAE): networks per seed, one recursion for all
                 def inputs(params, td):
-                    with params.to_module(loss):
+                    with self._with_shared(params).to_module(loss):
                         return est.gae_inputs(td)
 
                 est.write(batch, *est.advantage_from_inputs(torch.vmap(inputs, (0, 0))(self._params, batch), time_dim=batch.ndim - 1))
@@ -596,7 +610,7 @@ class OnPolicySeedBatch(SeedBatch):
         critic, key = est.value_network, est.tensor_keys.value
 
         def values(params, td):
-            with params.to_module(loss):
+            with self._with_shared(params).to_module(loss):
                 return (critic(td.select(*critic.in_keys).copy()).get(key),
                         critic(td.get("next").select(*critic.in_keys).copy()).get(key))
 
