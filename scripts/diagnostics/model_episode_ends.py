@@ -3,6 +3,7 @@
     python scripts/diagnostics/model_episode_ends.py [hydra overrides of configs/demo.yaml ...]
     python scripts/diagnostics/model_episode_ends.py model_env.member_mode=mean ensemble.fit.max_steps=20000
     python scripts/diagnostics/model_episode_ends.py --config=offline_train ensemble.fit.lr=1e-3   # full scale (first argument)
+    python scripts/diagnostics/model_episode_ends.py --run=outputs/results/full/ppo-halfcheetah-medium-expert-seed6
 
 Rolls the untrained MOC agent's deterministic policy (the CVAE decoder's mean
 action) out for 50 episodes in the model env built exactly as `offhrl train`
@@ -11,6 +12,12 @@ return, the episode length, what ended each model episode (pessimism penalty,
 task termination, horizon) and, for terminations, which Hopper health
 condition fired. A model whose episodes end much earlier than the real ones
 trains the agent on a different problem than the one it is evaluated on.
+
+With ``--run=RUN_DIR`` it rolls out that run's trained policy instead (its
+last checkpoint; the run's own config, models and P-MDP): where a policy's
+model return rises while its real one falls, whether the pairs it visits lie
+beyond the threshold (the pessimism could catch them) or below it (the
+members agree, and are wrong, where the policy goes).
 """
 from __future__ import annotations
 
@@ -20,7 +27,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_offhrl.agents import make_agent
-from torchrl_offhrl.recipes.config import compose, model_config, model_env_config, resolve_dataset
+from torchrl_offhrl.recipes.config import compose, latent_bound, model_config, model_env_config, resolve_dataset
 from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env, make_real_env
 from torchrl_offhrl.rollouts import first_episode_mask
 from torchrl_offhrl.utils import to_plain
@@ -40,10 +47,20 @@ def rollout(env, policy, seed: int):
 
 def main(overrides: list[str]) -> None:
     torch.set_num_threads(1)
-    name = "demo"
+    name, run = "demo", None
     if overrides and overrides[0].startswith("--config="):  # e.g. --config=offline_train: the full-scale settings
         name, overrides = overrides[0].split("=", 1)[1], overrides[1:]
-    cfg = to_plain(compose(name, overrides))
+    if overrides and overrides[0].startswith("--run="):  # a trained run's policy, in its own P-MDP
+        run, overrides = overrides[0].split("=", 1)[1], overrides[1:]
+        if overrides:
+            raise SystemExit(f"--run takes the run's own config; drop the overrides {overrides}")
+    if run is not None:
+        from torchrl_offhrl.recipes.evaluation import load_run_agent
+
+        cfg, _, trained, state, _ = load_run_agent(run)
+        print(f"{run}: its policy after {state.get('frames')} frames")
+    else:
+        cfg = to_plain(compose(name, overrides))
     data = resolve_dataset(cfg)
     mcfg = model_config(cfg)
     ensemble, cvae, _ = fit_or_load_models(mcfg, data, progress=False)
@@ -51,8 +68,8 @@ def main(overrides: list[str]) -> None:
     torch.manual_seed(0)
     env = make_model_env(mcfg, ensemble, cvae, data, batch_size=EPISODES)
     stats = data.stats()
-    agent = make_agent("moc", env, cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std)
-    real = make_real_env(cfg["env"]["env_id"], cvae, num_envs=EPISODES)
+    agent = trained if run is not None else make_agent("moc", env, cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std)
+    real = make_real_env(cfg["env"]["env_id"], cvae, num_envs=EPISODES, latent_bound=latent_bound(cfg))
     for e in (env, real):
         agent.attach(e)
     print(f"pessimism {pessimism}, threshold {env.base_env.threshold:.3g}, member_mode {mcfg['env'].get('member_mode')}")
