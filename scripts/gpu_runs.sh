@@ -31,9 +31,15 @@
 # about 6 min, the whole call in 471 s with the 47 s of unpacking. So: MPS=1, and six runs to a call.
 # A call returns at most 8 files: six run archives and logs.tgz fit.
 # What travels: carry .whl and the packs (the folder .packs, or single files such as .packs/hopper-medium.pt), 64 MiB
-# in all with the repository's ~12.5 MB. Packs: hopper-medium 9.7 MiB, hopper-expert 9.6, halfcheetah-medium 17.6,
-# halfcheetah-expert 18.3. .whl is 23 MB without pyopengl (no run here renders); glfw (0.25 MB) must stay: Gymnasium's
-# MuJoCo envs import it when MUJOCO_GL is unset. Both medium packs fit one call (61 MiB); medium-expert, one env a call.
+# in all with the repository's tracked files (23.5 MiB on 2026-12-04, 18 of them docs/results: move that folder out of
+# the checkout for the call, `mv docs/results /tmp/`, and back after; the runs do not read it). Packs: hopper-medium
+# 9.7 MiB, hopper-expert 9.6, halfcheetah-medium 17.6, halfcheetah-expert 18.3. .whl is 23 MiB (torchrl 0.14.1,
+# tensordict 0.14.3, gymnasium 1.4.0, mujoco 3.11.0, glfw, hydra-core 1.3.8, omegaconf 2.3.1, antlr4-python3-runtime
+# 4.9.3 built here with `pip wheel`, farama-notifications, orjson, pyvers, importlib_metadata; cp312 manylinux), without
+# pyopengl (no run here renders); glfw (0.25 MB) must stay: Gymnasium's MuJoCo envs import it when MUJOCO_GL is unset.
+# Both medium packs fit one call; medium-expert, one env a call (hopper's two packs with docs/results moved out).
+# Install on the machine: python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl and
+# PYTHONPATH=/tmp/site:$PWD.
 out=${1:?usage: gpu_runs.sh OUT_DIR PYTHON SECONDS ENV[,ENV...] ALGO SEED...}; py=${2:?}; limit=${3:?}; envs=${4:?}; algo=${5:?}; shift 5
 seeds=("$@")
 dataset=${DATASET:-medium}; parts=$dataset; [ "$dataset" = medium-expert ] && parts="medium expert"
