@@ -288,9 +288,11 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
               "the ensemble's 20k steps ~20 min, the CVAE ~9 min). MOC with the paper's threshold for this dataset (0.08 x max: "
               "on our ensemble the data's 99th percentile, which ended every model episode) is the MOC column; with 1.08 x max, "
               "chosen on the tuning seeds, the columns `moc_pf108` and `ppo_pf108` ([experiments.md](experiments.md)); PPO ran "
-              "with 1.08 x max only (five seeds batched, ~40 min beside the test suite and the demo), since the paper's threshold leaves nothing to learn. BC, "
-              "IQL and TD3+BC ran on an earlier instance of this dataset (see Dataset instances); their seeds 4-8 on this one "
-              "(BC ~0.1 h, TD3+BC ~0.6 h, IQL ~0.4 h per seed on one core, as measured below) are not run yet. "
+              "with 1.08 x max only (five seeds batched, ~40 min beside the test suite and the demo), since the paper's threshold leaves nothing to learn. BC: "
+              "seeds 4-8 on this machine's instance, five batched (2026-12-04, ~65 min beside other jobs), replacing its seeds "
+              "4-6 on an earlier instance. IQL and TD3+BC ran on an earlier instance of this dataset (see Dataset instances); "
+              "their seeds 4-8 on this one (TD3+BC ~0.6 h, IQL ~0.4 h per seed on one core, as measured below; IQL's five "
+              "batched were at 41k of 100k updates when the session ended, and resume) are not run yet. "
               "MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
 MISSING = {"full": {"hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
                     "hopper-medium-expert:cql": _CQL_ME,
