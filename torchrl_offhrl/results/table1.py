@@ -262,8 +262,10 @@ _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 
                    "model return 5,544, real 1,554; the pairs it visits in the model sit at the data's median discrepancy, those it "
                    "visits in the real env at the data's 99.9th percentile: the members agree along the model's rollouts, which stay "
                    "data-like where the real states do not, so no threshold on their disagreement ends these episodes. " + _OFF_POLICY_ME)
-_CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert MPS=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6` "
-           "with the medium and expert packs, at the next lent GPU.")
+_CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert BATCH=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6 7 8` "
+           "(the five seeds as one captured update; or MPS=1, one process per seed) with the medium and expert packs, at the "
+           "next lent GPU. On 2026-12-04 an H200 rebuilt Hopper's two parts from this machine's packs bit for bit; the call's "
+           "run then failed on the script's own table1 call (fixed since), and new loans were paused.")
 _SEEDS_7_8 = ("Not yet run on all of seeds 4-8 (a headline cell takes 5 seeds): `offhrl results table1 run --scale {scale} --envs {env} "
               "--algos ALGO --seeds 4 5 6 7 8` runs them (each run resumes from its checkpoint).")
 _NEW_PEERS = ("New agents (2026-12-02), not run on the medium rows at this scale yet: MOReL as its official code runs it (a "
