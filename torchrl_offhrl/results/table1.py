@@ -254,7 +254,7 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
 
 # why a cell of the full-scale table has fewer than 3 seeds (paper_table's "Missing cells"; keys "<row>" or "<row>:<algo>")
 _OFF_POLICY_ME = ("SAC and MOPO: ~1.8 h of one core for the five seeds batched (31 frames/s per seed, `benchmarks/README.md`); "
-                  "not run yet.")
+                  "not run yet (MOPO on hopper-medium-expert started 2026-12-04 with its config's h 5, lambda 5; it resumes).")
 _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 2026-12-04 (MOC: seeds 4-8; MOReL and PPO: seeds "
                    "4-8, five batched, PPO's ~38 min beside other jobs). PPO, like MOReL, exploits the model: its model return rises "
                    "5.0k -> 6.1k while the real one falls on 3 of 5 seeds, and the pessimism (0.0101 x max, above 99.91% of the data's "
@@ -294,7 +294,7 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
               "seeds 4-8 on this machine's instance, five batched (2026-12-04, ~65 min beside other jobs), replacing its seeds "
               "4-6 on an earlier instance. IQL and TD3+BC ran on an earlier instance of this dataset (see Dataset instances); "
               "their seeds 4-8 on this one (TD3+BC ~0.6 h, IQL ~0.4 h per seed on one core, as measured below; IQL's five "
-              "batched were at 41k of 100k updates when the session ended, and resume) are not run yet. "
+              "batched stand at 50k of 100k updates, checkpointed, and resume) are not run yet. "
               "MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
 MISSING = {"full": {"hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
                     "hopper-medium-expert:cql": _CQL_ME,
