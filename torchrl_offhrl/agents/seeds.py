@@ -312,9 +312,7 @@ class SeedBatch:
             for k in self._keys:
                 ts = [p.get(k).detach() for p in per]
                 name = k if isinstance(k, str) else ".".join(k)
-                leaf = k if isinstance(k, str) else k[-1]
-                if (leaf in _CONSTANT_LEAVES and not isinstance(per[0].get(k), torch.nn.Parameter) and "target_" not in name
-                        and all(t.shape == ts[0].shape and torch.equal(t, ts[0]) for t in ts[1:])):
+                if "target_" not in name and _is_constant(k, per[0].get(k), ts[1:]):
                     self._shared.add(k)
                     w.get(k).data = ts[0].clone()
                 else:
