@@ -1,5 +1,6 @@
 """Model-free offline agents (IQL, CQL, TD3+BC, BC): trained on the dataset itself, evaluated like every agent."""
 import json
+import math
 import os
 import subprocess
 import sys
@@ -137,6 +138,44 @@ def test_dataset_agents_learn_from_scaled_rewards_and_leave_the_batch_alone():
     torch.testing.assert_close(batch["next", "reward"], torch.ones(4, 1))
     with pytest.raises(ValueError, match="resolved from the data"):
         make_agent("iql", env, {"reward_scale": "return_range"}, action_key="action")
+
+
+def test_iql_paper_actor_is_a_normal_around_the_squashed_mean_with_one_scale_per_dimension():
+    # actor=tanh_mean_gaussian (the IQL paper's): the deterministic action is low + (high - low) (tanh(net) + 1) / 2, the scale
+    # exp(log_std) is the same in every state, and the log-likelihood of an action at the box's edge is the Normal's, finite
+    # (a tanh-Gaussian takes atanh of it); samples are projected into the box
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_gym_env
+
+    env = make_gym_env("Pendulum-v1")  # action box [-2, 2]
+    agent = make_agent("iql", env, {"hidden_sizes": [8], "batch_size": 4, "actor": "tanh_mean_gaussian", "log_std_min": -5.0},
+                       action_key="action")
+    mean_net, tanh, scale_mod = agent.policy.module[0].module
+    with torch.no_grad():
+        scale_mod.module.state_independent_scale.copy_(torch.tensor([-0.5]))
+    obs = torch.randn(6, 3, generator=torch.Generator().manual_seed(0))
+    td = TensorDict(observation=obs, batch_size=[6])
+    raw = mean_net.module(obs)
+    expected_mean = -2 + 4 * (torch.tanh(raw) + 1) / 2
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        torch.testing.assert_close(agent.policy(td.clone())["action"], expected_mean)
+    with torch.no_grad():
+        dist = agent.policy.get_dist(td.clone())
+    torch.testing.assert_close(dist.base_dist.scale, torch.full((6, 1), math.exp(-0.5)))
+    edge = torch.full((6, 1), 2.0)
+    normal = torch.distributions.Normal(expected_mean, math.exp(-0.5))
+    torch.testing.assert_close(dist.log_prob(edge), normal.log_prob(edge).squeeze(-1))
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        scale_mod.module.state_independent_scale.fill_(3.0)  # wide: many raw samples fall outside the box
+        sampled = agent.policy(td.expand(200, 6).clone())["action"]
+    assert sampled.abs().max() <= 2.0 and (sampled.abs() == 2.0).any()
+    with torch.no_grad():  # the floor: log-std -7 gives the scale exp(-5)
+        scale_mod.module.state_independent_scale.fill_(-7.0)
+        torch.testing.assert_close(agent.policy.get_dist(td.clone()).base_dist.scale, torch.full((6, 1), math.exp(-5.0)))
+    with pytest.raises(ValueError, match="tanh_mean_gaussian"):
+        make_agent("iql", env, {"hidden_sizes": [8], "actor": "normal"}, action_key="action")
 
 
 def test_td3bc_steps_its_actor_every_second_update():

@@ -51,7 +51,8 @@ def assert_seeds_are_their_separate_agents(separate, batched, fresh, rtol, atol,
     assert any(not torch.allclose(float_state(batched.agents[0])[k], float_state(batched.agents[1])[k]) for k in float_state(batched.agents[0]))
 
 
-@pytest.mark.parametrize("name,kw", [("bc", {}), ("iql", {}), ("td3bc", {"policy_noise": 0.0, "policy_update_delay": 2})])
+@pytest.mark.parametrize("name,kw", [("bc", {}), ("iql", {}), ("iql", {"actor": "tanh_mean_gaussian"}),
+                                     ("td3bc", {"policy_noise": 0.0, "policy_update_delay": 2})])
 def test_seed_batch_trains_each_seed_as_its_own_agent(env, name, kw):
     # N agents updated one by one, and the same N agents (same seeds) updated as one batched computation, on the same
     # per-seed minibatches: every weight, target network and optimiser state agrees up to float rounding

@@ -22,11 +22,11 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from .networks import action_box, deterministic_actor, gaussian_actor, q_network
+from .networks import action_box, deterministic_actor, gaussian_actor, q_network, tanh_mean_gaussian_actor
 from .optim import COMPILE_MODES, adam, compile_setting, make_capturable
 
 __all__ = [
-    "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "backward", "compile_setting", "deterministic_actor", "gaussian_actor", "make_capturable", "q_network", "scalar_metrics", "sum_losses",
+    "COMPILE_MODES", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "backward", "compile_setting", "deterministic_actor", "gaussian_actor", "make_capturable", "q_network", "scalar_metrics", "sum_losses", "tanh_mean_gaussian_actor",
 ]
 
 

@@ -7,7 +7,8 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import IQLLoss, SoftUpdate, group_optimizers
 
 from ..nets import NormalizedMLP
-from .base import DatasetAgent, adam, backward, compile_setting, gaussian_actor, q_network, scalar_metrics, sum_losses
+from .base import (DatasetAgent, adam, backward, compile_setting, gaussian_actor, q_network, scalar_metrics, sum_losses,
+                   tanh_mean_gaussian_actor)
 from .registry import register_agent
 
 __all__ = ["IQLAgent"]
@@ -52,6 +53,8 @@ class IQLAgent(DatasetAgent):
         reward_scale: float = 1.0,
         default_policy_scale: float = 1.0,
         scale_lb: float = 0.1,
+        actor: str = "tanh_normal",
+        log_std_min: float = -5.0,
         fused_adam: bool = True,
         compile: bool | str = False,
         cudagraphs: bool = False,
@@ -59,7 +62,15 @@ class IQLAgent(DatasetAgent):
         self.compile = compile_setting(compile)
         self.cudagraphs = bool(cudagraphs)
         obs_dim = env.observation_spec["observation"].shape[-1]
-        self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
+        if actor == "tanh_normal":
+            self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
+        elif actor == "tanh_mean_gaussian":
+            self.policy = tanh_mean_gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, log_std_min)
+        else:
+            raise ValueError(f"IQLAgent: actor={actor!r} is not one of 'tanh_normal' (TorchRL's sota script: a tanh-Gaussian, "
+                             "state-dependent scale) or 'tanh_mean_gaussian' (the IQL paper's: a Gaussian around a squashed mean, "
+                             "one learned scale per action dimension)")
+        self.actor = actor
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         value = ValueOperator(NormalizedMLP(obs_dim, 0, 1, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=["observation"],
                               out_keys=["state_value"])

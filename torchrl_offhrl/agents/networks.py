@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["action_box", "deterministic_actor", "gaussian_actor", "q_network"]
+__all__ = ["action_box", "deterministic_actor", "gaussian_actor", "q_network", "tanh_mean_gaussian_actor"]
 
 
 def action_box(env, key: str) -> tuple[int, torch.Tensor, torch.Tensor]:
@@ -47,6 +47,42 @@ def gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=N
         NormalParamExtractor(scale_mapping=f"biased_softplus_{float(default_scale)}", scale_lb=float(scale_lb)),
     )
     return tanh_gaussian_actor(TensorDictModule(net, in_keys=in_keys, out_keys=["loc", "scale"]), low, high, action_key)
+
+
+def tanh_mean_gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, log_std_min: float = -5.0):
+    """A Gaussian actor whose mean is squashed into the box and whose scale is one learned number per action dimension.
+
+    The IQL paper's actor for the D4RL locomotion tasks (its official
+    ``learner.py``: ``NormalTanhPolicy(state_dependent_std=False,
+    tanh_squash_distribution=False, log_std_min=-5)``): the distribution is a
+    plain Normal, not squashed, so the log-likelihood of a dataset action at
+    the edge of the box stays finite and its gradient bounded (a tanh-Gaussian
+    takes ``atanh`` of it). Its deterministic action is the mean, inside the
+    box; a sample is projected into the box (``safe``). Built from TorchRL's
+    ``TanhModule``, TensorDict's ``AddStateIndependentNormalScale`` (scale
+    ``exp(log_std)``, at least ``exp(log_std_min)``, log-std starting at 0) and
+    ``IndependentNormal``.
+    """
+    import math
+
+    from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule, TensorDictSequential
+    from torchrl.data import Bounded
+    from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhModule
+
+    from ..nets import NormalizedMLP
+
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim, low, high = action_box(env, action_key)
+    mean = TensorDictSequential(
+        TensorDictModule(NormalizedMLP(obs_dim, 0, act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=["observation"],
+                         out_keys=["loc_param"]),
+        TanhModule(in_keys=["loc_param"], out_keys=["loc_squashed"], low=low, high=high),
+        TensorDictModule(AddStateIndependentNormalScale(act_dim, scale_mapping="exp", scale_lb=math.exp(log_std_min)),
+                         in_keys=["loc_squashed"], out_keys=["loc", "scale"]),
+    )
+    box = Bounded(low=low, high=high, shape=(act_dim,))
+    return ProbabilisticActor(mean, in_keys=["loc", "scale"], out_keys=[action_key], distribution_class=IndependentNormal,
+                              spec=box, safe=True, return_log_prob=True)
 
 
 def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, goal_key: str | None = None):
