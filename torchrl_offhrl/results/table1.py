@@ -254,14 +254,17 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
 
 # why a cell of the full-scale table has fewer than 3 seeds (paper_table's "Missing cells"; keys "<row>" or "<row>:<algo>")
 _OFF_POLICY_ME = ("SAC and MOPO: ~1.8 h of one core for the five seeds batched (31 frames/s per seed, `benchmarks/README.md`); "
-                  "not run yet (MOPO on hopper-medium-expert started 2026-12-04 with its config's h 5, lambda 5; it resumes).")
+                  "not run yet (MOPO on hopper-medium-expert was started on 2026-12-04 and lost with that machine before its first "
+                  "checkpoint; on the models' instance it needs their machine type).")
 _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 2026-12-04 (MOC: seeds 4-8; MOReL and PPO: seeds "
                    "4-8, five batched, PPO's ~38 min beside other jobs). PPO, like MOReL, exploits the model: its model return rises "
                    "5.0k -> 6.1k while the real one falls on 3 of 5 seeds, and the pessimism (0.0101 x max, above 99.91% of the data's "
                    "pairs) ends 4 of 50 model episodes. Seed 6's final policy (`scripts/diagnostics/model_episode_ends.py --run=...`): "
                    "model return 5,544, real 1,554; the pairs it visits in the model sit at the data's median discrepancy, those it "
                    "visits in the real env at the data's 99.9th percentile: the members agree along the model's rollouts, which stay "
-                   "data-like where the real states do not, so no threshold on their disagreement ends these episodes. " + _OFF_POLICY_ME)
+                   "data-like where the real states do not, so no threshold on their disagreement ends these episodes. BC: seeds 4-8 "
+                   "on the models' instance, five batched (2026-12-04). TD3+BC: seeds 4-6 on an earlier instance "
+                   "(`d3e6ae8b6cf5f604`); its seeds 7-8 there need that instance's machine type. " + _OFF_POLICY_ME)
 _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert BATCH=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6 7 8` "
            "(the five seeds as one captured update; or MPS=1, one process per seed) with the medium and expert packs, at the "
            "next lent GPU. On 2026-12-04 an H200 rebuilt Hopper's two parts from this machine's packs bit for bit; the call's "
@@ -272,8 +275,9 @@ _NEW_PEERS = ("New agents (2026-12-02), not run on the medium rows at this scale
               "behaviour-cloned start, a KL-bounded step, 3 x max threshold; the old MOReL-style runs keep their own column; five "
               "seeds batched ~30 min, as on the medium-expert rows) and MOPO (SAC on branched rollouts with 5% dataset "
               "transitions per minibatch; ~1.8 h for five seeds batched). The medium rows' data were generated on an earlier "
-              "machine and are lost: new runs there need the data generated again, which on this CPU gives another instance "
-              "(see Dataset instances), so their cells would pool two datasets; the row is best rerun whole.")
+              "machine and their cache is lost; a machine of the same CPU type regenerates them bit for bit (hopper-medium, "
+              "2026-12-04: content hash `b58175caa7699ce9`, the row's), where another type gives another instance (see Dataset "
+              "instances), so these cells run only on that type.")
 
 
 def _missing(scale: str) -> dict[str, str]:
@@ -290,12 +294,12 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
               "the ensemble's 20k steps ~20 min, the CVAE ~9 min). MOC with the paper's threshold for this dataset (0.08 x max: "
               "on our ensemble the data's 99th percentile, which ended every model episode) is the MOC column; with 1.08 x max, "
               "chosen on the tuning seeds, the columns `moc_pf108` and `ppo_pf108` ([experiments.md](experiments.md)); PPO ran "
-              "with 1.08 x max only (five seeds batched, ~40 min beside the test suite and the demo), since the paper's threshold leaves nothing to learn. BC: "
-              "seeds 4-8 on this machine's instance, five batched (2026-12-04, ~65 min beside other jobs), replacing its seeds "
-              "4-6 on an earlier instance. IQL and TD3+BC ran on an earlier instance of this dataset (see Dataset instances); "
-              "their seeds 4-8 on this one (TD3+BC ~0.6 h, IQL ~0.4 h per seed on one core, as measured below; IQL's five "
-              "batched stand at 50k of 100k updates, checkpointed, and resume) are not run yet. "
-              "MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
+              "with 1.08 x max only (five seeds batched, ~40 min beside the test suite and the demo), since the paper's threshold leaves nothing to learn. BC and "
+              "IQL: seeds 4-8 on the models' instance, five batched each (2026-12-04; ~65 and ~78 min beside other jobs), "
+              "replacing their seeds 4-6 on an earlier instance; IQL's evaluations swing between a fall and 35-95 from one "
+              "checkpoint to the next ([experiments.md](experiments.md)). TD3+BC: the earlier instance (`420234e673acf9a7`), "
+              "which a machine of that CPU type regenerates bit for bit (2026-12-04); the models' instance came from another "
+              "machine and its cache is lost. MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
 MISSING = {"full": {"hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
                     "hopper-medium-expert:cql": _CQL_ME,
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
