@@ -271,13 +271,14 @@ _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert BATC
            "run then failed on the script's own table1 call (fixed since), and new loans were paused.")
 _SEEDS_7_8 = ("Not yet run on all of seeds 4-8 (a headline cell takes 5 seeds): `offhrl results table1 run --scale {scale} --envs {env} "
               "--algos ALGO --seeds 4 5 6 7 8` runs them (each run resumes from its checkpoint).")
-_NEW_PEERS = ("New agents (2026-12-02), not run on the medium rows at this scale yet: MOReL as its official code runs it (a "
-              "behaviour-cloned start, a KL-bounded step, 3 x max threshold; the old MOReL-style runs keep their own column; five "
-              "seeds batched ~30 min, as on the medium-expert rows) and MOPO (SAC on branched rollouts with 5% dataset "
-              "transitions per minibatch; ~1.8 h for five seeds batched). The medium rows' data were generated on an earlier "
-              "machine and their cache is lost; a machine of the same CPU type regenerates them bit for bit (hopper-medium, "
-              "2026-12-04: content hash `b58175caa7699ce9`, the row's), where another type gives another instance (see Dataset "
-              "instances), so these cells run only on that type.")
+_NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a behaviour-cloned start, a KL-bounded step, "
+              "3 x max threshold; the old MOReL-style runs keep their own column) and MOPO (SAC on branched rollouts with 5% "
+              "dataset transitions per minibatch; ~1.8 h of one core for five seeds batched). The medium rows' data were "
+              "generated on an earlier machine and their cache is lost; a machine of the same CPU type regenerates them bit for "
+              "bit (hopper-medium, 2026-12-04: content hash `b58175caa7699ce9`, the row's), where another type gives another "
+              "instance (see Dataset instances), so these cells run only on that type. MOReL on hopper-medium ran there "
+              "(2026-12-05: the models refitted, ~32 min of one core, then the five seeds ~20 min); on halfcheetah-medium the "
+              "data and models need the same again (~20 + ~35 min) before the five seeds.")
 
 
 def _missing(scale: str) -> dict[str, str]:
