@@ -300,7 +300,7 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
               "replacing their seeds 4-6 on an earlier instance; IQL's evaluations swing between a fall and 35-95 from one "
               "checkpoint to the next ([experiments.md](experiments.md)). TD3+BC: seeds 4-8 on the earlier instance "
               "(`420234e673acf9a7`, which a machine of that CPU type regenerates bit for bit; the models' instance came from "
-              "another machine type), five batched (2026-12-04, ~1.8 h beside other jobs); its seeds 4-6 on the same data had "
+              "another machine type), five batched (2026-12-04, ~1.5 h beside other jobs); its seeds 4-6 on the same data had "
               "given 46.0 before (separate runs, two threads, 10 evaluation episodes): its evaluations too swing between a "
               "fall and ~100 from one checkpoint to the next, and the final cell is one draw of that swing. MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
 MISSING = {"full": {"hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
