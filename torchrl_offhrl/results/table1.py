@@ -275,10 +275,11 @@ _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a be
               "3 x max threshold; the old MOReL-style runs keep their own column) and MOPO (SAC on branched rollouts with 5% "
               "dataset transitions per minibatch; ~1.8 h of one core for five seeds batched). The medium rows' data were "
               "generated on an earlier machine and their cache is lost; a machine of the same CPU type regenerates them bit for "
-              "bit (hopper-medium, 2026-12-04: content hash `b58175caa7699ce9`, the row's), where another type gives another "
+              "bit (2026-12-04/05: hopper-medium's content hash `b58175caa7699ce9` and halfcheetah-medium's `0fb4d7d6eac8354a`, "
+              "the rows'), where another type gives another "
               "instance (see Dataset instances), so these cells run only on that type. MOReL on hopper-medium at the full scale ran there "
               "(2026-12-05: the models refitted, ~32 min of one core, then the five seeds ~20 min); on halfcheetah-medium the "
-              "data and models need the same again (~20 + ~35 min) before the five seeds.")
+              "data (~7 min) and models (~35 min) need the same before the five seeds.")
 
 
 def _missing(scale: str) -> dict[str, str]:
