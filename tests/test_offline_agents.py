@@ -152,7 +152,8 @@ def test_iql_paper_actor_is_a_normal_around_the_squashed_mean_with_one_scale_per
     env = make_gym_env("Pendulum-v1")  # action box [-2, 2]
     agent = make_agent("iql", env, {"hidden_sizes": [8], "batch_size": 4, "actor": "tanh_mean_gaussian", "log_std_min": -5.0},
                        action_key="action")
-    mean_net, tanh, scale_mod = agent.policy.module[0].module
+    squashed_mean, scale_mod = agent.policy.module[0].module  # deterministic_actor's MLP and tanh, then the scale
+    mean_net = squashed_mean.module[0]
     with torch.no_grad():
         scale_mod.module.state_independent_scale.copy_(torch.tensor([-0.5]))
     obs = torch.randn(6, 3, generator=torch.Generator().manual_seed(0))

@@ -70,7 +70,6 @@ class IQLAgent(DatasetAgent):
             raise ValueError(f"IQLAgent: actor={actor!r} is not one of 'tanh_normal' (TorchRL's sota script: a tanh-Gaussian, "
                              "state-dependent scale) or 'tanh_mean_gaussian' (the IQL paper's: a Gaussian around a squashed mean, "
                              "one learned scale per action dimension)")
-        self.actor = actor
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         value = ValueOperator(NormalizedMLP(obs_dim, 0, 1, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=["observation"],
                               out_keys=["state_value"])

@@ -67,16 +67,11 @@ def tanh_mean_gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, o
 
     from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule, TensorDictSequential
     from torchrl.data import Bounded
-    from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhModule
+    from torchrl.modules import IndependentNormal, ProbabilisticActor
 
-    from ..nets import NormalizedMLP
-
-    obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim, low, high = action_box(env, action_key)
     mean = TensorDictSequential(
-        TensorDictModule(NormalizedMLP(obs_dim, 0, act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=["observation"],
-                         out_keys=["loc_param"]),
-        TanhModule(in_keys=["loc_param"], out_keys=["loc_squashed"], low=low, high=high),
+        deterministic_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, out_key="loc_squashed"),
         TensorDictModule(AddStateIndependentNormalScale(act_dim, scale_mapping="exp", scale_lb=math.exp(log_std_min)),
                          in_keys=["loc_squashed"], out_keys=["loc", "scale"]),
     )
@@ -85,8 +80,13 @@ def tanh_mean_gaussian_actor(env, action_key: str, hidden_sizes, obs_loc=None, o
                               spec=box, safe=True, return_log_prob=True)
 
 
-def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, goal_key: str | None = None):
-    """A deterministic actor: an MLP squashed into ``env``'s action box by TorchRL's ``TanhModule`` (TD3+BC, BC); with ``goal_key``, also on that goal."""
+def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None, goal_key: str | None = None,
+                        out_key: str | None = None):
+    """A deterministic actor: an MLP squashed into ``env``'s action box by TorchRL's ``TanhModule`` (TD3+BC, BC); with ``goal_key``, also on that goal.
+
+    It writes ``out_key`` (default ``action_key``): another key makes it the
+    squashed mean of a stochastic actor (:func:`tanh_mean_gaussian_actor`).
+    """
     from tensordict.nn import TensorDictModule, TensorDictSequential
     from torchrl.modules import TanhModule
 
@@ -96,7 +96,7 @@ def deterministic_actor(env, action_key: str, hidden_sizes, obs_loc=None, obs_sc
     act_dim, low, high = action_box(env, action_key)
     in_keys, goal_dim = _inputs(env, goal_key)
     net = TensorDictModule(NormalizedMLP(obs_dim, goal_dim, act_dim, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=in_keys, out_keys=["param"])
-    return TensorDictSequential(net, TanhModule(in_keys=["param"], out_keys=[action_key], low=low, high=high))
+    return TensorDictSequential(net, TanhModule(in_keys=["param"], out_keys=[out_key or action_key], low=low, high=high))
 
 
 def q_network(env, action_key: str, hidden_sizes, obs_loc=None, obs_scale=None):
