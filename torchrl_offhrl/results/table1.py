@@ -267,7 +267,9 @@ _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 
                    "(`d3e6ae8b6cf5f604`); its seeds 7-8 there need that instance's machine type. " + _OFF_POLICY_ME)
 _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert BATCH=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6 7 8` "
            "(the five seeds as one captured update; or MPS=1, one process per seed) with the medium and expert packs, at the "
-           "next lent GPU. On 2026-12-04 an H200 rebuilt Hopper's two parts from this machine's packs bit for bit; the call's "
+           "next lent GPU. On 2026-12-04 an H200 rebuilt Hopper's two parts bit for bit from the packs of the machine that held "
+           "the models' instance (lost with it since; packs made on the medium rows' CPU type are of instance "
+           "`420234e673acf9a7`); the call's "
            "run then failed on the script's own table1 call (fixed since), and new loans were paused.")
 _SEEDS_7_8 = ("Not yet run on all of seeds 4-8 (a headline cell takes 5 seeds): `offhrl results table1 run --scale {scale} --envs {env} "
               "--algos ALGO --seeds 4 5 6 7 8` runs them (each run resumes from its checkpoint).")
@@ -276,9 +278,8 @@ _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a be
               "dataset transitions per minibatch; ~1.8 h of one core for five seeds batched). The medium rows' data were "
               "generated on an earlier machine and their cache is lost; a machine of the same CPU type regenerates them bit for "
               "bit (2026-12-04/05: hopper-medium's content hash `b58175caa7699ce9` and halfcheetah-medium's `0fb4d7d6eac8354a`, "
-              "the rows'), where another type gives another "
-              "instance (see Dataset instances), so these cells run only on that type. MOReL on hopper-medium at the full scale ran there "
-              "(2026-12-05: the models refitted, ~32 min of one core, then the five seeds ~20 min); on halfcheetah-medium the "
+              "the rows'), where another type gives another instance (see Dataset instances), so these cells run only on that "
+              "type. MOReL on hopper-medium at the full scale ran there (2026-12-05: the models refitted, ~32 min of one core, then the five seeds ~20 min); on halfcheetah-medium the "
               "data (~7 min) and models (~35 min) need the same before the five seeds.")
 
 
