@@ -375,6 +375,27 @@ def test_paper_table_says_which_dataset_instance_each_run_used(tmp_path):
     assert "## Dataset instances" not in paper_table(runs[4:], tmp_path / "u")
 
 
+def test_paper_table_marks_cells_pooling_different_evaluation_episodes(tmp_path):
+    """Seeds of one cell evaluated on 10 and on 30 episodes: the cell carries § in every table and the section lists each
+    count's seeds; a cell whose seeds share a count, and a page where all do, carry neither."""
+    from torchrl_offhrl.recipes.report import paper_table
+
+    runs = []
+    for algo, seed, episodes in (("iql", 4, 30), ("iql", 5, 10), ("iql", 6, 10), ("moc", 4, 30), ("moc", 5, 30)):
+        d = _fake_run(tmp_path, algo, seed, "Hopper-v5", "medium", "frames" if algo == "moc" else "updates", (1.0, 40.0, 42.0))
+        cfg = json.loads((d / "config.json").read_text())
+        (d / "config.json").write_text(json.dumps({**cfg, "eval": {"episodes": episodes}}))
+        runs.append(d)
+    text = paper_table(runs, tmp_path / "t", min_seeds=1)
+    section = text.split("## Evaluation episodes")[1].split("## Published")[0]
+    assert "- hopper-medium, IQL: 10 episodes: s5 s6; 30 episodes: s4" in section
+    assert "MOC" not in section
+    for name in ("## Final evaluation", "## Best evaluation"):
+        row = next(x for x in text.split(name)[1].splitlines() if x.startswith("| hopper-medium |"))
+        assert row.count("§") == 1 and "(3) §" in row  # IQL's three seeds; MOC's two share 30 episodes
+    assert "§" not in paper_table([r for r in runs if r.name.startswith("moc")], tmp_path / "u", min_seeds=1)
+
+
 def test_paper_table_reports_the_sampled_policy_apart_where_runs_evaluated_it(tmp_path):
     """Runs with ``eval.sampled``: a table of the sampled policy's final scores and a sampled value per seed; pages without it keep their layout."""
     from torchrl_offhrl.recipes.report import paper_table
@@ -464,6 +485,29 @@ def test_archived_run_reads_like_its_run_directory(tmp_path):
     (run / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="has not finished"):
         archive_run(run, tmp_path / "docs" / "again")
+
+
+def test_archive_overwrites_only_the_same_run(tmp_path):
+    """Archiving again after a resume (more evaluations, same config) updates the archive; another run of the same name (here
+    another algorithm config) raises and leaves the old archive byte for byte as it was."""
+    from torchrl_offhrl.recipes.report import archive_run
+
+    run = _fake_run(tmp_path / "a", "morel", 4, "Hopper-v5", "medium", "frames", (1.0, 30.0), behaviour=37.0)
+    kept = archive_run(run, tmp_path / "docs" / "morel-hopper-medium-seed4")
+    resumed = _fake_run(tmp_path / "b", "morel", 4, "Hopper-v5", "medium", "frames", (1.0, 30.0, 50.0), behaviour=37.0)
+    cfg = json.loads((resumed / "config.json").read_text())
+    cfg["eval"] = {**(cfg.get("eval") or {}), "episodes": 30}  # an evaluation setting: still the same run
+    (resumed / "config.json").write_text(json.dumps(cfg))
+    archive_run(resumed, kept)
+    assert (kept / "evals.json").read_bytes() == (resumed / "evals.json").read_bytes()
+    other = _fake_run(tmp_path / "c", "morel", 4, "Hopper-v5", "medium", "frames", (2.0, 60.0), behaviour=37.0)
+    cfg = json.loads((other / "config.json").read_text())
+    cfg["algo"] = {**cfg["algo"], "bc_init_steps": 1000}  # MOReL from a behaviour-cloned start: another run
+    (other / "config.json").write_text(json.dumps(cfg))
+    before = {p.name: p.read_bytes() for p in kept.iterdir()}
+    with pytest.raises(FileExistsError, match="archives another run"):
+        archive_run(other, kept)
+    assert {p.name: p.read_bytes() for p in kept.iterdir()} == before
 
 
 def test_partial_runs_count_in_the_tables_but_draw_no_curves(tmp_path):

@@ -386,6 +386,33 @@ def _dataset_instances(groups: Mapping[tuple, list], row_name: Mapping[tuple, st
     return [*lines, ""], mixed
 
 
+def _eval_episodes(groups: Mapping[tuple, list], row_name: Mapping[tuple, str], columns: Sequence[str]) -> tuple[list[str], set]:
+    """The cells ``(env_id, dataset, column)`` whose seeds were evaluated on different numbers of episodes (the runs'
+    ``eval.episodes``; marked ``§``), and the page's section listing them with each count's seeds.
+
+    A score over 10 episodes is a noisier estimate of the same policy's return than one over 30: the cell's IQM pools
+    them as equals, so the page says which seeds had which.
+    """
+    lines, mixed = [], set()
+    for key, rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], columns.index(kv[0][2]))):
+        counts = defaultdict(list)
+        for r in rs:
+            cfg = r.get("config") or {}
+            counts[(cfg.get("eval") or {}).get("episodes")].append(cfg.get("seed"))
+        if len(counts) > 1:
+            mixed.add(key)
+            env_id, dataset, c = key
+            lines.append(f"- {row_name[env_id, dataset]}, {column_title(c)}: " + "; ".join(
+                f"{n if n is not None else 'unknown'} episodes: " + " ".join(f"s{x}" for x in sorted(v for v in seeds if v is not None))
+                for n, seeds in sorted(counts.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))))
+    if not lines:
+        return [], mixed
+    return ["## Evaluation episodes", "",
+            "A cell marked § pools seeds evaluated on different numbers of episodes (earlier runs on 10, today's protocol 30; "
+            "`unknown`: a run rebuilt from an earlier page): each seed's score is the mean over its own episodes, the fewer the "
+            "noisier.", "", *lines, ""], mixed
+
+
 def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets", min_seeds: int = 3,
                 missing_reasons: Mapping[str, str] | None = None, made_by: str | None = None) -> str:
     """The paper's Table I from run directories: rows env x dataset, one column per algorithm, the behaviour data last.
@@ -423,6 +450,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     columns = [*TABLE_COLUMNS, *sorted(present - set(TABLE_COLUMNS))]  # every standard column (missing ones shown as —), then others
     titles = [column_title(c) for c in columns]
     instances, mixed = _dataset_instances(groups, row_name, columns)
+    episodes, mixed_episodes = _eval_episodes(groups, row_name, columns)
 
     def table(kind: str) -> list[str]:
         lines = ["| dataset | " + " | ".join(titles) + " | behaviour data |", "|" + "---|" * (len(columns) + 2)]
@@ -434,7 +462,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                     cells.append("—")
                     continue
                 n = sum(p[PER_SEED_KEY[kind]] is not None for p in st["per_seed"])
-                mark = " ‡" if (env_id, dataset, c) in mixed else ""
+                mark = (" ‡" if (env_id, dataset, c) in mixed else "") + (" §" if (env_id, dataset, c) in mixed_episodes else "")
                 cells.append(fmt_iqm(st[f"{kind}_iqm"], st[f"{kind}_ci"], n) + mark if n else "—")
                 if st["behaviour_score"] is not None:
                     beh.append(st["behaviour_score"])
@@ -491,7 +519,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
              *table("sampled"), ""] if sampled else []),
           "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
           *table("best_score"), "",
-          "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing, *instances,
+          "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing, *instances, *episodes,
           "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
           "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
           "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),

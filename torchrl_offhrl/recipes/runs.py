@@ -59,12 +59,23 @@ def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:
     training scalar (``{"train_tail_means": {key: value}}``, the numbers
     :func:`logged_tail_mean` gives), and the files named in ``extra`` that the
     run has (e.g. ``option_usage.pt``). :func:`load_run` reads the archive
-    like the run directory it came from.
+    like the run directory it came from. An archive already at ``dest`` is
+    overwritten only by the same run (the same
+    :func:`~torchrl_offhrl.recipes.config.config_fingerprint`: resumed, or run
+    longer); another run's raises :class:`FileExistsError`.
     """
     src, dest = Path(run_dir), Path(dest)
     if not (src / "summary.json").is_file():
         raise FileNotFoundError(f"{src} has no summary.json: the run has not finished; archive it once it has")
-    load_run(src)  # fails with the reason if the run's files are damaged, before anything is written
+    run = load_run(src)  # fails with the reason if the run's files are damaged, before anything is written
+    if (dest / "config.json").is_file():
+        from .config import config_fingerprint
+
+        kept = _read_json(dest / "config.json")
+        if config_fingerprint(kept) != config_fingerprint(run["config"]):
+            raise FileExistsError(f"{dest} archives another run than {src} (their configs differ in more than budget, evaluation and "
+                                  "speed settings): archiving would overwrite it; move the old archive to a name of its own "
+                                  f"(e.g. {dest.parent / ('old_' + dest.name)}) or delete it, then archive again")
     dest.mkdir(parents=True, exist_ok=True)
     for name in ("config.json", "evals.json", "summary.json", *extra):
         if (src / name).is_file():
