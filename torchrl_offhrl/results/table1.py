@@ -279,8 +279,9 @@ _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a be
               "generated on an earlier machine and their cache is lost; a machine of the same CPU type regenerates them bit for "
               "bit (2026-12-04/05: hopper-medium's content hash `b58175caa7699ce9` and halfcheetah-medium's `0fb4d7d6eac8354a`, "
               "the rows'), where another type gives another instance (see Dataset instances), so these cells run only on that "
-              "type. MOReL on hopper-medium at the full scale ran there (2026-12-05: the models refitted, ~32 min of one core, then the five seeds ~20 min); on halfcheetah-medium the "
-              "data (~7 min) and models (~35 min) need the same before the five seeds.")
+              "type. MOReL at the full scale ran there on both rows (2026-12-05: the models refitted and cached, ~32 min of one "
+              "core on hopper-medium and ~28 min on halfcheetah-medium, then the five seeds batched, ~20 and ~17 min); MOPO, "
+              "on the same models, needs only its own ~1.8 h where they are still cached.")
 
 
 def _missing(scale: str) -> dict[str, str]:
@@ -305,7 +306,11 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
               "another machine type), five batched (2026-12-04, ~1.5 h beside other jobs); its seeds 4-6 on the same data had "
               "given 46.0 before (separate runs, two threads, 10 evaluation episodes): its evaluations too swing between a "
               "fall and ~100 from one checkpoint to the next, and the final cell is one draw of that swing. MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
-MISSING = {"full": {"hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
+_CQL_MEDIUM = ("Seeds 4-6 ran on a lent H100 (2026-11-27: the same config, the data rebuilt bit for bit from the row's action "
+               "pack, ~6 min per 100k updates); seeds 7-8 need a GPU again (~8 h per seed on one core): `BATCH=1 bash "
+               "scripts/gpu_runs.sh ... ENV cql 7 8` with the row's pack made on its CPU type, at the next lent GPU.")
+MISSING = {"full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": _CQL_MEDIUM,
+                    "hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
                     "hopper-medium-expert:cql": _CQL_ME,
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
                                                                 "wheels: rebuild the medium part in a first call, the expert part in "
