@@ -354,6 +354,19 @@ def _dataset_name(dataset: str) -> str:
 PER_SEED_KEY = {"score": "final", "best_score": "best", "last5": "last5", "selected": "selected", "sampled": "sampled"}
 
 
+def _seeds_by(groups: Mapping[tuple, list], columns: Sequence[str], value) -> list[tuple[tuple, dict]]:
+    """Each cell ``(env_id, dataset, column)`` in the page's order with its runs' seeds split by ``value(config)``:
+    ``[(key, {value: [seed, ...]})]`` (the sections on cells that pool runs of different kinds)."""
+    out = []
+    for key, rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], columns.index(kv[0][2]))):
+        split = defaultdict(list)
+        for r in rs:
+            cfg = r.get("config") or {}
+            split[value(cfg)].append(cfg.get("seed"))
+        out.append((key, split))
+    return out
+
+
 def _dataset_instances(groups: Mapping[tuple, list], row_name: Mapping[tuple, str], columns: Sequence[str]) -> tuple[list[str], set]:
     """Which generated instance of its dataset (the runs' ``data_hash``) each run of a row used: the page's section on rows
     whose runs used more than one, and the cells ``(env_id, dataset, column)`` whose seeds mix instances (marked ``‡``).
@@ -363,12 +376,8 @@ def _dataset_instances(groups: Mapping[tuple, list], row_name: Mapping[tuple, st
     """
     per_row: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
     mixed = set()
-    for key, rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], columns.index(kv[0][2]))):  # the page's column order
+    for key, hashes in _seeds_by(groups, columns, lambda cfg: cfg.get("data_hash") or "unknown"):
         env_id, dataset, c = key
-        hashes = defaultdict(list)
-        for r in rs:
-            cfg = r.get("config") or {}
-            hashes[cfg.get("data_hash") or "unknown"].append(cfg.get("seed"))
         if len(hashes) > 1:
             mixed.add(key)
         for h, seeds in hashes.items():
@@ -394,11 +403,7 @@ def _eval_episodes(groups: Mapping[tuple, list], row_name: Mapping[tuple, str], 
     them as equals, so the page says which seeds had which.
     """
     lines, mixed = [], set()
-    for key, rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], columns.index(kv[0][2]))):
-        counts = defaultdict(list)
-        for r in rs:
-            cfg = r.get("config") or {}
-            counts[(cfg.get("eval") or {}).get("episodes")].append(cfg.get("seed"))
+    for key, counts in _seeds_by(groups, columns, lambda cfg: (cfg.get("eval") or {}).get("episodes")):
         if len(counts) > 1:
             mixed.add(key)
             env_id, dataset, c = key
@@ -408,9 +413,8 @@ def _eval_episodes(groups: Mapping[tuple, list], row_name: Mapping[tuple, str], 
     if not lines:
         return [], mixed
     return ["## Evaluation episodes", "",
-            "A cell marked § pools seeds evaluated on different numbers of episodes (earlier runs on 10, today's protocol 30; "
-            "`unknown`: a run rebuilt from an earlier page): each seed's score is the mean over its own episodes, the fewer the "
-            "noisier.", "", *lines, ""], mixed
+            "A cell marked § pools seeds evaluated on different numbers of episodes (`unknown`: a run rebuilt from an earlier "
+            "page): each seed's score is the mean over its own episodes, the fewer the noisier.", "", *lines, ""], mixed
 
 
 def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our datasets", min_seeds: int = 3,
