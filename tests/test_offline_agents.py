@@ -903,7 +903,7 @@ def test_ppo_bc_init_clones_the_data_and_the_kl_loss_trains():
     torch.manual_seed(0)
     agent = make_agent("ppo", env, action_key="action", hidden_sizes=[16], bc_init_steps=300, bc_init_lr=3e-3, loss_type="kl")
     agent.attach(env)
-    out = agent.pretrain(d)
+    out = agent.pretrain(d, progress=True)  # with its progress bar (on stderr): the steps are the same
     assert out["bc_init_steps"] == 300 and out["bc_init_nll_last"] < out["bc_init_nll_first"]
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         act = agent.policy(d[:64].select("observation").clone())["action"]

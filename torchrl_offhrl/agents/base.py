@@ -178,10 +178,11 @@ class Agent:
         """Called when a model-env run is built (fresh or resumed), with the offline dataset and the reward scale of the env's
         rewards; default: nothing (MOPO mixes the dataset's transitions into its minibatches)."""
 
-    def pretrain(self, data) -> dict:
+    def pretrain(self, data, progress: bool = False) -> dict:
         """Called once, with the offline dataset, when a run starts from scratch (not when it resumes); default: nothing.
 
-        Returns metrics to record in the run's summary (``{}``: none).
+        ``progress``: show a progress bar over the pretraining steps. Returns metrics to record in the run's summary
+        (``{}``: none).
         """
         return {}
 

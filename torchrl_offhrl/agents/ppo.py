@@ -179,8 +179,11 @@ class PPOAgent(OnPolicyAgent):
         if isinstance(self.loss, BatchableKLPENPPOLoss):
             self.loss.adapt_beta(out.get("kl"))
 
-    def pretrain(self, data) -> dict:
-        """MOReL's start: behaviour cloning of the dataset's actions (``bc_init_steps`` Adam steps; nothing when 0)."""
+    def pretrain(self, data, progress: bool = False) -> dict:
+        """MOReL's start: behaviour cloning of the dataset's actions (``bc_init_steps`` Adam steps; nothing when 0), with a
+        progress bar when ``progress``."""
+        from tqdm.auto import tqdm
+
         steps = self.bc_init["steps"]
         if not steps:
             return {}
@@ -195,7 +198,7 @@ class PPOAgent(OnPolicyAgent):
         device = next(self.policy.parameters()).device
         n, size = len(data), min(self.bc_init["batch_size"], len(data))
         first = last = None
-        for _ in range(steps):
+        for _ in tqdm(range(steps), desc="behaviour-cloning start", unit="step", disable=not progress, leave=False):
             idx = torch.randint(n, (size,))
             batch = data[idx].select("observation", self.action_key).to(device)
             loss = bc(batch)["loss_bc"]

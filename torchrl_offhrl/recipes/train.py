@@ -115,7 +115,7 @@ class PreparedRun:
         previous_summary = None
         resumed = run.resume(agent, s.device)
         if not resumed:  # a start from the dataset before training (e.g. MOReL's behaviour cloning); a resumed run has it in its weights
-            pretrained = agent.pretrain(s.data)
+            pretrained = agent.pretrain(s.data, progress=progress)
             if pretrained:
                 run.write_json("pretrain.json", pretrained)
         if resumed and (run.path / "summary.json").is_file():
