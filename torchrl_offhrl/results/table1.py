@@ -266,8 +266,10 @@ _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 
                    "model return 5,544, real 1,554; the pairs it visits in the model sit at the data's median discrepancy, those it "
                    "visits in the real env at the data's 99.9th percentile: the members agree along the model's rollouts, which stay "
                    "data-like where the real states do not, so no threshold on their disagreement ends these episodes. BC: seeds 4-8 "
-                   "on the models' instance, five batched (2026-12-04). TD3+BC: seeds 4-6 on an earlier instance "
-                   "(`d3e6ae8b6cf5f604`); its seeds 7-8 there need that instance's machine type. " + _OFF_POLICY_ME)
+                   "on the models' instance, five batched (2026-12-04). TD3+BC and IQL run on another instance, `d3e6ae8b6cf5f604` "
+                   "(TD3+BC's seeds 4-6 and IQL's seed 4 on an earlier machine), which a machine of the medium rows' CPU type "
+                   "regenerates bit for bit (2026-12-05, ~4.5 min per 1M-transition part): TD3+BC's seeds 7-8 ran there "
+                   "(two batched, ~37 min of one core). " + _OFF_POLICY_ME)
 _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert BATCH=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6 7 8` "
            "(the five seeds as one captured update; or MPS=1, one process per seed) with the medium and expert packs, at the "
            "next lent GPU. On 2026-12-04 an H200 rebuilt Hopper's two parts bit for bit from the packs of the machine that held "
@@ -320,7 +322,8 @@ MISSING = {"full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": 
                                                                 "a second on the still warm machine."),
                     "halfcheetah-medium-expert:iql": ("Seed 4 only: IQL's 100k updates ran at 11-16 updates/s on one core with "
                                                        "three seeds batched (~2 h for the three, 2026-12-04, beside other jobs), "
-                                                       "so seeds 5-8 need ~3 h of one core, or a lent GPU (`scripts/gpu_runs.sh`).")}}
+                                                       "so seeds 5-8 need ~3 h of one core, or a lent GPU (`scripts/gpu_runs.sh`), on seed 4's instance "
+                                                       "(`d3e6ae8b6cf5f604`: the medium rows' CPU type regenerates it).")}}
 
 
 def report(scale: str, tuning: bool = False) -> str:
