@@ -280,13 +280,15 @@ _SEEDS_7_8 = ("Not yet run on all of seeds 4-8 (a headline cell takes 5 seeds): 
               "--algos ALGO --seeds 4 5 6 7 8` runs them (each run resumes from its checkpoint).")
 _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a behaviour-cloned start, a KL-bounded step, "
               "3 x max threshold; the old MOReL-style runs keep their own column) and MOPO (SAC on branched rollouts with 5% "
-              "dataset transitions per minibatch; ~1.8 h of one core for five seeds batched). The medium rows' data were "
+              "dataset transitions per minibatch; ~1.8 h of one core for five seeds batched on an otherwise idle machine, twice that beside another job). The medium rows' data were "
               "generated on an earlier machine and their cache is lost; a machine of the same CPU type regenerates them bit for "
               "bit (2026-12-04/05: hopper-medium's content hash `b58175caa7699ce9` and halfcheetah-medium's `0fb4d7d6eac8354a`, "
               "the rows'), where another type gives another instance (see Dataset instances), so these cells run only on that "
               "type. MOReL at the full scale ran there on both rows (2026-12-05: the models refitted and cached, ~32 min of one "
               "core on hopper-medium and ~28 min on halfcheetah-medium, then the five seeds batched, ~20 and ~17 min); MOPO, "
-              "on the same models, needs only its own ~1.8 h where they are still cached.")
+              "on the same models, needs only its own time where they are still cached: on hopper-medium its five seeds "
+              "batched ran at 13-18 frames/s per seed beside another job (2026-12-05), ~3.5 h of one core, and were "
+              "stopped at a checkpoint that the same command resumes.")
 
 
 def _missing(scale: str) -> dict[str, str]:
@@ -322,8 +324,10 @@ MISSING = {"full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": 
                                                                 "a second on the still warm machine."),
                     "halfcheetah-medium-expert:iql": ("Seed 4 only: IQL's 100k updates ran at 11-16 updates/s on one core with "
                                                        "three seeds batched (~2 h for the three, 2026-12-04, beside other jobs), "
-                                                       "so seeds 5-8 need ~3 h of one core, or a lent GPU (`scripts/gpu_runs.sh`), on seed 4's instance "
-                                                       "(`d3e6ae8b6cf5f604`: the medium rows' CPU type regenerates it).")}}
+                                                       "so seeds 5-8 need more than an hour of one core (four batched: ~21 updates/s per seed "
+                                                       "beside another job, 2026-12-05, started and checkpointed), or a lent GPU "
+                                                       "(`scripts/gpu_runs.sh`), on seed 4's instance (`d3e6ae8b6cf5f604`: the medium "
+                                                       "rows' CPU type regenerates it).")}}
 
 
 def report(scale: str, tuning: bool = False) -> str:
