@@ -31,7 +31,7 @@ def test_specs_of_composed_env(make_env, fitted_cvae, batch_size):
 
 
 def test_out_of_distribution_actions_end_with_penalty(make_env):
-    for kind in ("variance", "max_pairwise"):
+    for kind in ("variance", "std", "max_pairwise"):
         env = make_env(batch_size=[512], penalty=7.0, discrepancy=kind)
         td = env.reset()
         g = torch.Generator().manual_seed(1)
@@ -189,7 +189,7 @@ def test_calibration_quantile_and_fraction(toy_data, fitted_ensemble, tmp_path):
 
 def test_bad_arguments(toy_data, fitted_ensemble):
     with pytest.raises(ValueError, match="discrepancy must be one of"):
-        PessimisticModelEnv(fitted_ensemble, toy_data, discrepancy="std")
+        PessimisticModelEnv(fitted_ensemble, toy_data, discrepancy="stdev")
     with pytest.raises(ValueError, match="member_mode"):
         PessimisticModelEnv(fitted_ensemble, toy_data, member_mode="random")
     with pytest.raises(ValueError, match="quantile must be in"):

@@ -60,6 +60,8 @@ def test_discrepancy_hand_computed():
     var = DynamicsEnsemble.discrepancy_of(delta, "variance")
     # per-dim population variance: dim0 of {0,3,0} = 2, dim1 of {0,0,4} = 32/9
     assert var.item() == pytest.approx(2.0 + 32.0 / 9.0)
+    std = DynamicsEnsemble.discrepancy_of(delta, "std")
+    assert std.item() == pytest.approx((2.0 + 32.0 / 9.0) ** 0.5)  # the norm of the members' standard deviations
     mp = DynamicsEnsemble.discrepancy_of(delta, "max_pairwise")
     assert mp.item() == pytest.approx(5.0)  # |(3,0) - (0,4)|
     with pytest.raises(ValueError, match="discrepancy must be one of"):

@@ -27,7 +27,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_offhrl.agents import make_agent
-from torchrl_offhrl.recipes.config import compose, latent_bound, model_config, model_env_config, resolve_dataset
+from torchrl_offhrl.recipes.config import acts_in_latent_space, compose, latent_bound, model_config, model_env_config, resolve_dataset
 from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env, make_real_env
 from torchrl_offhrl.rollouts import first_episode_mask
 from torchrl_offhrl.utils import to_plain
@@ -66,10 +66,11 @@ def main(overrides: list[str]) -> None:
     ensemble, cvae, _ = fit_or_load_models(mcfg, data, progress=False)
     mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"), data)
     torch.manual_seed(0)
-    env = make_model_env(mcfg, ensemble, cvae, data, batch_size=EPISODES)
+    latent = acts_in_latent_space(cfg)  # a run with ablation.no_cvae (e.g. MOPO) acts in real actions
+    env = make_model_env(mcfg, ensemble, cvae, data, batch_size=EPISODES, latent=latent)
     stats = data.stats()
     agent = trained if run is not None else make_agent("moc", env, cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std)
-    real = make_real_env(cfg["env"]["env_id"], cvae, num_envs=EPISODES, latent_bound=latent_bound(cfg))
+    real = make_real_env(cfg["env"]["env_id"], cvae if latent else None, num_envs=EPISODES, latent_bound=latent_bound(cfg))
     for e in (env, real):
         agent.attach(e)
     print(f"pessimism {pessimism}, threshold {env.base_env.threshold:.3g}, member_mode {mcfg['env'].get('member_mode')}")

@@ -59,8 +59,9 @@ class PessimisticModelEnv(EnvBase):
             ``reward_penalty * discrepancy`` out of its reward (default 0: the
             paper's P-MDP, which only ends episodes above the threshold).
             Measured on the demo in ``docs/results/demo_robustness_notes.md``.
-        discrepancy (str): ``"variance"`` (the paper) or ``"max_pairwise"``
-            (MOReL).
+        discrepancy (str): ``"variance"`` (the paper), ``"std"`` (its square
+            root: in the state's units, the scale of MOPO's uncertainty) or
+            ``"max_pairwise"`` (MOReL).
         quantile / fraction: calibration, see ``threshold``.
         termination_fn: ``"auto"`` (by the dataset's env id), a callable
             ``f(next_obs) -> bool[...]``, or ``None`` (never).

@@ -13,7 +13,7 @@ from .ensemble import EnsembleMLP
 __all__ = ["DynamicsEnsemble", "DISCREPANCIES"]
 
 _LOSSES = ("l1", "mse", "nll")
-DISCREPANCIES = ("variance", "max_pairwise")
+DISCREPANCIES = ("variance", "std", "max_pairwise")
 _LOGVAR_MIN, _LOGVAR_MAX = -10.0, 2.0
 
 
@@ -174,11 +174,17 @@ class DynamicsEnsemble(FitMixin, nn.Module):
 
         * ``"variance"`` (the paper): the variance across members, summed over
           state dimensions (the trace of the members' covariance);
+        * ``"std"``: the square root of that trace, the L2 norm of the
+          members' standard deviations: in the state's units, as MOPO's
+          uncertainty (the norm of a learned standard deviation) and
+          MOReL's distance are, where the variance is in squared units;
         * ``"max_pairwise"`` (MOReL): the largest L2 distance between two
           members' predictions.
         """
         if kind == "variance":
             return delta.var(0, unbiased=False).sum(-1)
+        if kind == "std":
+            return delta.var(0, unbiased=False).sum(-1).sqrt()
         if kind == "max_pairwise":
             d = delta.transpose(0, 1)  # [N, K, D]
             return torch.cdist(d, d).flatten(1).max(-1).values
