@@ -107,8 +107,8 @@ NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by l
                  "on Hopper and ended above the data on 5 of 5 on HalfCheetah (PPO with it: 5 of 5 on both). BC and TD3+BC on hopper-medium ran seeds 4-8 with `--batch-seeds` "
                  "(2026-12-03 and -04), replacing their rows rebuilt from an earlier page. On 2026-12-05 the medium rows' cells "
                  "with seeds 4-6 only got their seeds 7-8 (IQL on hopper-medium also 4), batched, on the rows' data "
-                 "regenerated bit for bit, MOReL ran on halfcheetah-medium, and TD3+BC's halfcheetah-medium-expert cell got its "
-                 "seeds 7-8 on its own instance: these new runs are evaluated on 30 episodes "
+                 "regenerated bit for bit, MOReL ran on halfcheetah-medium, and on halfcheetah-medium-expert TD3+BC's cell got its "
+                 "seeds 7-8 and IQL's its seeds 5-8 on their own instance: these new runs are evaluated on 30 episodes "
                  "where the earlier seeds had 10 (cells marked § on [table.md](table.md)). On hopper-medium-expert the columns "
                  "`moc_pf108` and `ppo_pf108` (`--extra 'model_env.pessimism={fraction: 1.08, penalty: 30.0}' --tag pf108`, "
                  "2026-12-04) set the threshold at 1.08 x the data's largest discrepancy (the paper's hopper-medium value) "
@@ -270,7 +270,8 @@ _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 
                    "on the models' instance, five batched (2026-12-04). TD3+BC and IQL run on another instance, `d3e6ae8b6cf5f604` "
                    "(TD3+BC's seeds 4-6 and IQL's seed 4 on an earlier machine), which a machine of the medium rows' CPU type "
                    "regenerates bit for bit (2026-12-05, ~4.5 min per 1M-transition part): TD3+BC's seeds 7-8 ran there "
-                   "(two batched, ~37 min of one core). " + _OFF_POLICY_ME)
+                   "(two batched, ~37 min of one core), and IQL's seeds 5-8 (four batched, ~1.9 h of one core beside other "
+                   "jobs, 14-21 updates/s per seed). " + _OFF_POLICY_ME)
 _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert BATCH=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6 7 8` "
            "(the five seeds as one captured update; or MPS=1, one process per seed) with the medium and expert packs, at the "
            "next lent GPU. On 2026-12-04 an H200 rebuilt Hopper's two parts bit for bit from the packs of the machine that held "
@@ -323,13 +324,7 @@ MISSING = {"full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": 
                     "hopper-medium-expert:cql": _CQL_ME,
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
                                                                 "wheels: rebuild the medium part in a first call, the expert part in "
-                                                                "a second on the still warm machine."),
-                    "halfcheetah-medium-expert:iql": ("Seed 4 only: IQL's 100k updates ran at 11-16 updates/s on one core with "
-                                                       "three seeds batched (~2 h for the three, 2026-12-04, beside other jobs), "
-                                                       "so seeds 5-8 need more than an hour of one core (four batched: ~21 updates/s per seed "
-                                                       "beside another job, 2026-12-05, started and checkpointed), or a lent GPU "
-                                                       "(`scripts/gpu_runs.sh`), on seed 4's instance (`d3e6ae8b6cf5f604`: the medium "
-                                                       "rows' CPU type regenerates it).")}}
+                                                                "a second on the still warm machine.")}}
 
 
 def report(scale: str, tuning: bool = False) -> str:
