@@ -290,8 +290,10 @@ _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a be
               "type. MOReL at the full scale ran there on both rows (2026-12-05: the models refitted and cached, ~32 min of one "
               "core on hopper-medium and ~28 min on halfcheetah-medium, then the five seeds batched, ~20 and ~17 min); MOPO, "
               "on the same models, needs only its own time where they are still cached: on hopper-medium its five seeds "
-              "batched ran at 13-18 frames/s per seed beside another job (2026-12-05), ~3.5 h of one core, and were "
-              "stopped at a checkpoint that the same command resumes.")
+              "batched ran at 13-18 frames/s per seed beside another job (2026-12-05), ~3.5 h of one core in all; they "
+              "stand at their 122,880-frame checkpoint (~1.5 h of one core left; the same command resumes them), where "
+              "they score 0.9 / 2.7 / 44.2 / 25.3 / 39.1: the seeds whose SAC critic diverges fall "
+              "([experiments.md](experiments.md)).")
 
 
 def _missing(scale: str) -> dict[str, str]:
