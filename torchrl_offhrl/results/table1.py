@@ -293,7 +293,7 @@ _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a be
               "batched ran at 13-18 frames/s per seed beside another job (2026-12-05), ~3.5 h of one core in all; they "
               "stand at their 122,880-frame checkpoint (~1.5 h of one core left; the same command resumes them), where "
               "they score 0.9 / 2.7 / 44.2 / 25.3 / 39.1: the seeds whose SAC critic diverges fall "
-              "([experiments.md](experiments.md)).")
+              "(`docs/results/full/experiments.md`).")
 
 
 def _missing(scale: str) -> dict[str, str]:
