@@ -181,10 +181,9 @@ class DynamicsEnsemble(FitMixin, nn.Module):
         * ``"max_pairwise"`` (MOReL): the largest L2 distance between two
           members' predictions.
         """
-        if kind == "variance":
-            return delta.var(0, unbiased=False).sum(-1)
-        if kind == "std":
-            return delta.var(0, unbiased=False).sum(-1).sqrt()
+        if kind in ("variance", "std"):
+            trace = delta.var(0, unbiased=False).sum(-1)
+            return trace.sqrt() if kind == "std" else trace
         if kind == "max_pairwise":
             d = delta.transpose(0, 1)  # [N, K, D]
             return torch.cdist(d, d).flatten(1).max(-1).values
