@@ -611,6 +611,25 @@ def test_mopo_config_is_sac_on_penalised_short_rollouts(toy_data, fitted_ensembl
     assert not td["next", "penalized"].any() and td["next", "truncated"][:, -1].all()  # MOPO never ends an episode by disagreement
 
 
+@pytest.mark.parametrize("env,dataset,horizon,penalty", [
+    ("hopper", "medium", 5, 5.0), ("hopper", "medium-expert", 5, 1.0),          # MOPO's official d4rl configs
+    ("halfcheetah", "medium", 1, 1.0), ("halfcheetah", "medium-expert", 5, 5.0),
+    ("hopper", "random", 5, 5.0), ("halfcheetah", "/data/robot_logs.hdf5", 5, 5.0),  # no entry: the config's defaults
+])
+def test_mopo_takes_its_papers_rollout_length_and_penalty_per_dataset(env, dataset, horizon, penalty):
+    from torchrl_offhrl.recipes.config import config_fingerprint
+
+    cfg = to_plain(compose("offline_train", ["algo=mopo", f"env={env}", f"dataset={dataset}"]))
+    assert (cfg["model_env"]["horizon"], cfg["model_env"]["reward_penalty"]) == (horizon, penalty)
+    assert isinstance(cfg["model_env"]["horizon"], int) and isinstance(cfg["model_env"]["reward_penalty"], float)
+    mine = to_plain(compose("offline_train", ["algo=mopo", f"env={env}", f"dataset={dataset}", "model_env.horizon=3",
+                                              "model_env.reward_penalty=0.5"]))
+    assert (mine["model_env"]["horizon"], mine["model_env"]["reward_penalty"]) == (3, 0.5)  # the command line wins
+    # the table is not part of a run's identity, what the run took from it is: a run made before the table existed resumes
+    before = {**cfg, "env": {k: v for k, v in cfg["env"].items() if k != "mopo"}}
+    assert config_fingerprint(before) == config_fingerprint(cfg) != config_fingerprint(mine)
+
+
 def test_on_record_sees_every_evaluation_after_its_checkpoint(hopper_file, cache, tmp_path):
     seen = []
 

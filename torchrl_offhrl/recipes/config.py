@@ -252,6 +252,9 @@ LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01
 def config_fingerprint(cfg: Mapping) -> str:
     """The config minus :data:`RESUMABLE_KEYS`, as canonical JSON: a checkpoint resumes only under the same fingerprint."""
     kept = {k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS}
+    if isinstance(kept.get("env"), Mapping) and "mopo" in kept["env"]:
+        # a lookup table (MOPO's settings per dataset): what a run uses of it is in its model_env, resolved
+        kept["env"] = {k: v for k, v in kept["env"].items() if k != "mopo"}
     if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}
