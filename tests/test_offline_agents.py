@@ -306,6 +306,21 @@ def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, a
     return d
 
 
+def test_table_column_leaves_out_the_ablations_an_algorithm_is_made_of():
+    """MOPO's config turns off the CVAE and the P-MDP's termination itself (configs/algo/mopo.yaml): its runs are the MOPO
+    column, not an ablation of it; another algorithm's same switches, or MOPO with one of its own turned back on, say so."""
+    from torchrl_offhrl.recipes.report import table_column
+
+    def run(name, **ablation):
+        return {"config": {"algo": {"name": name}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": ablation}}
+
+    assert table_column(run("mopo", no_cvae=True, no_pessimism=True)) == "mopo"
+    assert table_column(run("mopo", no_cvae=True, no_pessimism=False)) == "mopo [no_pessimism=false]"
+    assert table_column(run("sac", no_cvae=True, no_pessimism=True)) == "sac [no_cvae,no_pessimism]"
+    assert table_column(run("moc")) == "moc" and table_column(run("moc", no_cvae=True)) == "moc [no_cvae]"
+    assert table_column(run("my_own_algo", no_cvae=True)) == "my_own_algo [no_cvae]"  # no shipped config: nothing is its own
+
+
 def test_paper_table_layout(tmp_path):
     """Rows env x dataset, the paper's columns in order (missing ones as —), final and best apart, published scores apart."""
     from torchrl_offhrl.recipes.report import paper_table
@@ -346,7 +361,8 @@ def test_paper_table_layout(tmp_path):
     cheetah = next(line for line in missing.splitlines() if line.startswith("- halfcheetah-medium:"))
     assert cheetah.startswith("- halfcheetah-medium: MOC (1 seed), PPO (no run)") and cheetah.endswith("BC (no run). No reason given.")
     assert "MOC (2" not in missing  # hopper's MOC has its 2 seeds
-    every = [_fake_run(tmp_path / "all", a, 0, "Hopper-v5", "medium", "frames", (1.0, 2.0, 3.0), algo_cfg={"bc_init_steps": 10} if a == "morel" else None)
+    every = [_fake_run(tmp_path / "all", a, 0, "Hopper-v5", "medium", "frames", (1.0, 2.0, 3.0), algo_cfg={"bc_init_steps": 10} if a == "morel" else None,
+                       ablation={"no_cvae": True, "no_pessimism": True} if a == "mopo" else None)  # as configs/algo/mopo.yaml sets it
              for a in ("moc", "ppo", "sac", "morel", "mopo", "iql", "cql", "td3bc", "bc")]
     assert "None: every column has its seeds." in paper_table(every, tmp_path / "n", min_seeds=1).split("## Missing")[1]
 

@@ -22,6 +22,7 @@ from torchrl_offhrl.results import PRESETS
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
+GUIDE = ROOT / "docs" / "guides" / "offline.md"
 #: what a page must say about where it comes from: a command that makes it, or that no command does
 MARKERS = ("offhrl results ", "offhrl tune ", "Not rebuilt by any command", "Hand-written record")
 
@@ -86,13 +87,50 @@ def test_a_folder_that_is_no_checkout_is_refused(tmp_path):
 def test_rebuild_remakes_the_committed_pages_exactly(tmp_path):
     """The committed archives give back the committed pages (in a copy of docs/results/, via $TORCHRL_OFFHRL_ROOT)."""
     shutil.copytree(RESULTS, tmp_path / "docs" / "results")
+    (tmp_path / "docs" / "guides").mkdir()
+    shutil.copyfile(GUIDE, tmp_path / "docs" / "guides" / "offline.md")  # Table I's report rewrites its summary there
     env = {**os.environ, "TORCHRL_OFFHRL_ROOT": str(tmp_path), "MPLBACKEND": "Agg"}
     res = subprocess.run([sys.executable, "-m", "torchrl_offhrl.cli", "results", "rebuild"], env=env, capture_output=True, text=True,
                          cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     rebuilt = [line.split("rebuilt: ", 1)[1] for line in res.stdout.splitlines() if line.startswith("rebuilt: ")]
     assert len(rebuilt) == sum(len(p.rebuild) for p in PRESETS.values())
-    changed = [str(p.relative_to(tmp_path)) for p in sorted((tmp_path / "docs" / "results").rglob("*.md"))
+    changed = [str(p.relative_to(tmp_path)) for p in [*sorted((tmp_path / "docs" / "results").rglob("*.md")), tmp_path / "docs" / "guides" / "offline.md"]
                if p.read_text() != (ROOT / p.relative_to(tmp_path)).read_text()]
     assert not changed, f"pages the rebuild changed: {changed} (rerun `offhrl results rebuild` and commit)"
     assert all(shlex.split(c)[2] in PRESETS for c in rebuilt)
+
+
+def test_the_guides_summary_is_the_pages_table(tmp_path):
+    """The offline guide's summary block is what table1's report writes from the pages' table.csv: hand-made csvs give a
+    hand-written block (IQM [CI] (seeds), empty where no run, the behaviour row), and the committed guide holds the block of
+    the committed csvs."""
+    from torchrl_offhrl.results.table1 import GUIDE_BEGIN, GUIDE_END, guide_summary, write_guide_summary
+
+    head = "env,dataset,algo,seeds,score_iqm,score_ci,behaviour_score\n"
+    for scale, rows in {"demo": ["Hopper-v5,medium,moc,5,55.14,\"(28.41, 84.56)\",35.89"],
+                        "full": ["Hopper-v5,medium-expert,td3bc,5,91.3,\"(57.8, 102.04)\",53.17",
+                                 "Hopper-v5,medium-expert,bc,5,57.0,\"(33.4, 93.1)\",53.08",
+                                 "HalfCheetah-v5,medium,cql,3,38.77,\"(24.59, 46.17)\",38.04"]}.items():
+        (tmp_path / "docs" / "results" / scale).mkdir(parents=True)
+        (tmp_path / "docs" / "results" / scale / "table.csv").write_text(head + "\n".join(rows) + "\n")
+    lines = guide_summary(tmp_path).splitlines()
+    assert lines[0] == GUIDE_BEGIN and lines[-1] == GUIDE_END
+    assert lines[2] == ("| final evaluation, IQM [95% CI] (seeds) | hopper-medium, demo | hopper-medium, full | hopper-medium-expert, full "
+                        "| halfcheetah-medium, demo | halfcheetah-medium, full | halfcheetah-medium-expert, full |")
+    assert lines[4:-2] == ["| MOC | 55.1 [28.4, 84.6] (5) |  |  |  |  |  |",
+                           "| CQL |  |  |  |  | 38.8 [24.6, 46.2] (3) |  |",
+                           "| TD3+BC |  |  | 91.3 [57.8, 102.0] (5) |  |  |  |",
+                           "| BC |  |  | 57.0 [33.4, 93.1] (5) |  |  |  |",
+                           "| behaviour data | 35.9 |  | 53.2 |  | 38.0 |  |"]  # the first run's behaviour score of a column
+    guide = tmp_path / "docs" / "guides" / "offline.md"
+    assert write_guide_summary(tmp_path) is False  # no guide here: nothing to keep in step
+    guide.parent.mkdir(parents=True)
+    guide.write_text("# Offline\n\nno block\n")
+    with pytest.raises(SystemExit, match="summary block"):
+        write_guide_summary(tmp_path)
+    guide.write_text(f"before\n{GUIDE_BEGIN}\nstale\n{GUIDE_END}\nafter\n")
+    assert write_guide_summary(tmp_path) is True and write_guide_summary(tmp_path) is False
+    assert guide.read_text() == "before\n" + guide_summary(tmp_path) + "\nafter\n"
+    text = GUIDE.read_text()  # the committed guide: its block is the committed pages'
+    assert text[text.index(GUIDE_BEGIN):text.index(GUIDE_END) + len(GUIDE_END)] == guide_summary(ROOT)

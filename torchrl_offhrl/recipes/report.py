@@ -13,6 +13,7 @@ mean ± std over seeds).
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import statistics
 from collections import defaultdict
@@ -322,7 +323,24 @@ def table_column(run: dict) -> str:
     label, _, _, abl = group_key(run)
     if label == "morel":
         return "morel" if (run["config"].get("algo") or {}).get("bc_init_steps") else "morel_style"
+    own = _own_ablations(str((run["config"].get("algo") or {}).get("name", "")))  # MOPO is SAC without CVAE or P-MDP by design
+    parts = [a for a in abl.split(",") if a != "-"]
+    abl = ",".join([*(a for a in parts if a not in own), *(f"{a}=false" for a in sorted(own - set(parts)))]) or "-"
     return label if abl == "-" else f"{label} [{abl}]"
+
+
+@functools.lru_cache(maxsize=None)
+def _own_ablations(algo: str) -> frozenset[str]:
+    """The ablation switches an algorithm's shipped config turns on itself (``configs/algo/mopo.yaml``: no_cvae,
+    no_pessimism): part of what the algorithm is, not an ablation of it."""
+    import yaml
+
+    from .config import config_dir
+
+    path = config_dir() / "algo" / f"{algo}.yaml"
+    if not algo or not path.is_file():
+        return frozenset()
+    return frozenset(k for k, v in ((yaml.safe_load(path.read_text()) or {}).get("ablation") or {}).items() if v)
 
 
 def column_title(column: str) -> str:

@@ -116,7 +116,8 @@ NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by l
                  "every model episode of the untrained policy after ~110 steps: chosen on the tuning seeds (3 of 3 above the "
                  "data, against 2 of 3 for the quantile 0.999), run once on these seeds ([experiments.md](experiments.md)). "
                  "MOReL's medium-expert runs (2026-12-04) batch their five seeds (`--batch-seeds`: the KL-penalised PPO loss "
-                 "with its coefficient adapted per seed). `MOC, 1 option` on "
+                 "with its coefficient adapted per seed), and so do MOPO's hopper-medium runs (2026-12-05: one model env for the five, "
+                 "each seed its own replay buffer; resumed from their checkpoints across sessions). `MOC, 1 option` on "
                  "hopper-medium (`--algos moc_1opt --batch-seeds`, 2026-12-03) is MOC's column with one option: the same config, models "
                  "and seeds. On the 2-core CPU machine the runs go "
                  "one at a time in the background and span sessions (every run resumes from its checkpoint), so this page lists what has "
@@ -282,18 +283,19 @@ _SEEDS_7_8 = ("Not yet run on all of seeds 4-8 (a headline cell takes 5 seeds): 
               "--algos ALGO --seeds 4 5 6 7 8` runs them (each run resumes from its checkpoint).")
 _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a behaviour-cloned start, a KL-bounded step, "
               "3 x max threshold; the old MOReL-style runs keep their own column) and MOPO (SAC on branched rollouts with 5% "
-              "dataset transitions per minibatch; ~1.8 h of one core for five seeds batched on an otherwise idle machine, "
-              "twice that beside another job). The medium rows' data were "
+              "dataset transitions per minibatch, with the official code's rollout length and penalty for each dataset: h 5 "
+              "lambda 5 on hopper-medium, h 1 lambda 1 on halfcheetah-medium). The medium rows' data were "
               "generated on an earlier machine and their cache is lost; a machine of the same CPU type regenerates them bit for "
               "bit (2026-12-04/05: hopper-medium's content hash `b58175caa7699ce9` and halfcheetah-medium's `0fb4d7d6eac8354a`, "
               "the rows'), where another type gives another instance (see Dataset instances), so these cells run only on that "
               "type. MOReL at the full scale ran there on both rows (2026-12-05: the models refitted and cached, ~32 min of one "
               "core on hopper-medium and ~28 min on halfcheetah-medium, then the five seeds batched, ~20 and ~17 min); MOPO, "
               "on the same models, needs only its own time where they are still cached: on hopper-medium its five seeds "
-              "batched ran at 13-18 frames/s per seed beside another job (2026-12-05), ~3.5 h of one core in all; they "
-              "stand at their 122,880-frame checkpoint (~1.5 h of one core left; the same command resumes them), where "
-              "they score 0.9 / 2.7 / 44.2 / 25.3 / 39.1: the seeds whose SAC critic diverges fall "
-              "(`docs/results/full/experiments.md`).")
+              "batched took ~3.5 h of one core in all (13-25 frames/s per seed, 2026-12-05); on halfcheetah-medium they run "
+              "at ~15 frames/s per seed beside another job, ~3.7 h of one core, and stand at their "
+              "{hc_mopo} checkpoint (the same command resumes them: `offhrl results table1 run --scale full --batch-seeds "
+              "--envs halfcheetah --datasets medium --algos mopo`).")
+_HC_MOPO_CHECKPOINT = "0-frame"  # where halfcheetah-medium's MOPO runs stand (a checkpoint every 40,960 frames)
 
 
 def _missing(scale: str) -> dict[str, str]:
@@ -302,7 +304,7 @@ def _missing(scale: str) -> dict[str, str]:
     for env in ("hopper", "halfcheetah"):
         out[f"{env}-medium"] = _SEEDS_7_8.format(scale=scale, env=env)
         for algo in ("morel", "mopo"):
-            out[f"{env}-medium:{algo}"] = _NEW_PEERS
+            out[f"{env}-medium:{algo}"] = _NEW_PEERS.format(hc_mopo=_HC_MOPO_CHECKPOINT)
     return out
 
 
@@ -394,7 +396,68 @@ def report(scale: str, tuning: bool = False) -> str:
         lines += _criteria_section(runs)
     text = "\n".join(lines) + "\n"
     (out / "README.md").write_text(text)
+    if not tuning and name in ("demo", "full"):
+        write_guide_summary()  # the offline guide's summary reads the table.csv just written
     return text
+
+
+#: the offline guide's (docs/guides/offline.md) summary of both scales' final evaluations, rewritten by every non-tuning report
+GUIDE_BEGIN = "<!-- table1 summary: written by `offhrl results table1 report` from docs/results/{demo,full}/table.csv; edits here are overwritten -->"
+GUIDE_END = "<!-- end of the table1 summary -->"
+#: the summary's rows: Table I's columns, then the variants the guide discusses (run label -> title)
+SUMMARY_ROWS = {"moc": "MOC", "moc_fit60k_g998": "MOC, recipe (60k fit, gamma 0.998)", "moc_pf108": "MOC, threshold 1.08 x max",
+                "ppo": "PPO", "ppo_fit60k_g998": "PPO, recipe (60k fit, gamma 0.998)", "ppo_pf108": "PPO, threshold 1.08 x max",
+                "sac": "SAC", "morel": "MOReL", "mopo": "MOPO", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC"}
+_SUMMARY_COLS = [("demo", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium-expert"),
+                 ("demo", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium-expert")]
+
+
+def guide_summary(root: Path = ROOT) -> str:
+    """The guide's table: final evaluation, IQM [95% CI] (seeds), one row per algorithm, one column per (scale, dataset).
+
+    Read from the pages' ``table.csv`` (what ``report`` just wrote), so the guide and the pages cannot disagree.
+    """
+    import csv
+
+    cells, behaviour = {}, {}
+    for scale in ("demo", "full"):
+        path = root / "docs" / "results" / scale / "table.csv"
+        if not path.is_file():
+            continue
+        with path.open() as f:
+            for r in csv.DictReader(f):
+                key = (scale, r["env"], r["dataset"])
+                lo, hi = (float(x) for x in r["score_ci"].strip("()").split(","))
+                cells[(r["algo"], *key)] = f"{float(r['score_iqm']):.1f} [{lo:.1f}, {hi:.1f}] ({r['seeds']})"
+                if r["behaviour_score"]:
+                    behaviour.setdefault(key, f"{float(r['behaviour_score']):.1f}")
+    head = [f"{env.split('-')[0].lower()}-{ds}, {scale}" for scale, env, ds in _SUMMARY_COLS]
+    lines = [GUIDE_BEGIN, "", "| final evaluation, IQM [95% CI] (seeds) | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+    for algo, title in SUMMARY_ROWS.items():
+        row = [cells.get((algo, *c), "") for c in _SUMMARY_COLS]
+        if any(row):
+            lines.append(f"| {title} | " + " | ".join(row) + " |")
+    lines += ["| behaviour data | " + " | ".join(behaviour.get(c, "") for c in _SUMMARY_COLS) + " |", "", GUIDE_END]
+    return "\n".join(lines)
+
+
+def write_guide_summary(root: Path = ROOT) -> bool:
+    """Replace the guide's summary block with :func:`guide_summary`; whether it changed.
+
+    A root without the guide (a copy of ``docs/results/`` alone) is left as it is; a guide without the block is an error.
+    """
+    path = root / "docs" / "guides" / "offline.md"
+    if not path.is_file():
+        return False
+    text = path.read_text()
+    start, end = text.find(GUIDE_BEGIN), text.find(GUIDE_END)
+    if start < 0 or end < start:
+        raise SystemExit(f"{path}: the table1 summary block ({GUIDE_BEGIN!r} ... {GUIDE_END!r}) is missing; put both markers back "
+                         "where the summary belongs")
+    new = text[:start] + guide_summary(root) + text[end + len(GUIDE_END):]
+    if new != text:
+        path.write_text(new)
+    return new != text
 
 
 def _criteria_section(runs: list[dict]) -> list[str]:
