@@ -258,9 +258,9 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
 
 
 # why a cell of the full-scale table has fewer than 3 seeds (paper_table's "Missing cells"; keys "<row>" or "<row>:<algo>")
-_OFF_POLICY_ME = ("SAC and MOPO: ~1.8 h of one core for the five seeds batched (31 frames/s per seed, `benchmarks/README.md`); "
-                  "not run yet (MOPO on hopper-medium-expert was started on 2026-12-04 and lost with that machine before its first "
-                  "checkpoint; on the models' instance it needs their machine type).")
+_OFF_POLICY_ME = ("SAC and MOPO: SAC ~1.8 h of one core for the five seeds batched (31 frames/s per seed, "
+                  "`benchmarks/README.md`), MOPO ~3.5 h (13-25 frames/s per seed on hopper-medium, 2026-12-05); on this row's "
+                  "dataset instance of the medium rows' CPU type `{instance}` {where}")
 _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 2026-12-04 (MOC: seeds 4-8; MOReL and PPO: seeds "
                    "4-8, five batched, PPO's ~38 min beside other jobs). PPO, like MOReL, exploits the model: its model return rises "
                    "5.0k -> 6.1k while the real one falls on 3 of 5 seeds, and the pessimism (0.0101 x max, above 99.91% of the data's "
@@ -272,7 +272,8 @@ _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 
                    "(TD3+BC's seeds 4-6 and IQL's seed 4 on an earlier machine), which a machine of the medium rows' CPU type "
                    "regenerates bit for bit (2026-12-05, ~4.5 min per 1M-transition part): TD3+BC's seeds 7-8 ran there "
                    "(two batched, ~37 min of one core), and IQL's seeds 5-8 (four batched, ~1.9 h of one core beside other "
-                   "jobs, 14-21 updates/s per seed). " + _OFF_POLICY_ME)
+                   "jobs, 14-21 updates/s per seed). " + _OFF_POLICY_ME.format(
+                       instance="d3e6ae8b6cf5f604", where="(IQL's and TD3+BC's) the models must first be fitted (~30 min of one core)."))
 _CQL_ME = ("Needs a GPU (~8 h per seed on one core): `DATASET=medium-expert BATCH=1 bash scripts/gpu_runs.sh ... ENV cql 4 5 6 7 8` "
            "(the five seeds as one captured update; or MPS=1, one process per seed) with the medium and expert packs, at the "
            "next lent GPU. On 2026-12-04 an H200 rebuilt Hopper's two parts bit for bit from the packs of the machine that held "
@@ -295,7 +296,9 @@ _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a be
               "at ~15 frames/s per seed beside another job, ~3.7 h of one core, and stand at their "
               "{hc_mopo} checkpoint (the same command resumes them: `offhrl results table1 run --scale full --batch-seeds "
               "--envs halfcheetah --datasets medium --algos mopo`).")
-_HC_MOPO_CHECKPOINT = "0-frame"  # where halfcheetah-medium's MOPO runs stand (a checkpoint every 40,960 frames)
+#: where the unfinished batches stand (a checkpoint every 40,960 frames): halfcheetah-medium's MOPO, hopper-medium-expert's SAC
+_HC_MOPO_CHECKPOINT = "0-frame"
+_HOPPER_SAC_CHECKPOINT = "0-frame"
 
 
 def _missing(scale: str) -> dict[str, str]:
@@ -312,19 +315,27 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
               "the ensemble's 20k steps ~20 min, the CVAE ~9 min). MOC with the paper's threshold for this dataset (0.08 x max: "
               "on our ensemble the data's 99th percentile, which ended every model episode) is the MOC column; with 1.08 x max, "
               "chosen on the tuning seeds, the columns `moc_pf108` and `ppo_pf108` ([experiments.md](experiments.md)); PPO ran "
-              "with 1.08 x max only (five seeds batched, ~40 min beside the test suite and the demo), since the paper's threshold leaves nothing to learn. BC and "
+              "with 1.08 x max (`ppo_pf108`: five seeds batched, ~40 min beside the test suite and the demo) on the models' instance, "
+              "and with the paper's threshold (PPO's column) on 2026-12-05 on `420234e673acf9a7` (the models fitted there, "
+              "~30 min of one core beside another job; the five seeds batched, ~19 min): 20.7 / 35.8 / 94.7 / 36.3 / 21.7, "
+              "where MOC with the same threshold on the models' instance ends at 10-21. BC and "
               "IQL: seeds 4-8 on the models' instance, five batched each (2026-12-04; ~65 and ~78 min beside other jobs), "
               "replacing their seeds 4-6 on an earlier instance; IQL's evaluations swing between a fall and 35-95 from one "
               "checkpoint to the next ([experiments.md](experiments.md)). TD3+BC: seeds 4-8 on the earlier instance "
               "(`420234e673acf9a7`, which a machine of that CPU type regenerates bit for bit; the models' instance came from "
               "another machine type), five batched (2026-12-04, ~1.5 h beside other jobs); its seeds 4-6 on the same data had "
               "given 46.0 before (separate runs, two threads, 10 evaluation episodes): its evaluations too swing between a "
-              "fall and ~100 from one checkpoint to the next, and the final cell is one draw of that swing. MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME)
+              "fall and ~100 from one checkpoint to the next, and the final cell is one draw of that swing. MOReL: seeds 4-8, five batched (~30 min). " + _OFF_POLICY_ME.format(
+                  instance="420234e673acf9a7", where="(TD3+BC's and PPO's) the models are fitted (cached on the machine that fitted them; ~30 min of one core to "
+                  "refit elsewhere): SAC's seeds 4-8 started there on "
+                  "2026-12-05 and stand at their {hopper_sac} checkpoint (the same command resumes them: `offhrl results table1 run "
+                  "--scale full --batch-seeds --envs hopper --datasets medium-expert --algos sac`); MOPO (h 5, lambda 1 on this "
+                  "dataset) not run yet."))
 _CQL_MEDIUM = ("Seeds 4-6 ran on a lent H100 (2026-11-27: the same config, the data rebuilt bit for bit from the row's action "
                "pack, ~6 min per 100k updates); seeds 7-8 need a GPU again (~8 h per seed on one core): `BATCH=1 bash "
                "scripts/gpu_runs.sh ... ENV cql 7 8` with the row's pack made on its CPU type, at the next lent GPU.")
 MISSING = {"full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": _CQL_MEDIUM,
-                    "hopper-medium-expert": _HOPPER_ME, "halfcheetah-medium-expert": _HALFCHEETAH_ME,
+                    "hopper-medium-expert": _HOPPER_ME.format(hopper_sac=_HOPPER_SAC_CHECKPOINT), "halfcheetah-medium-expert": _HALFCHEETAH_ME,
                     "hopper-medium-expert:cql": _CQL_ME,
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
                                                                 "wheels: rebuild the medium part in a first call, the expert part in "
