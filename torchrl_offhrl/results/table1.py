@@ -297,7 +297,7 @@ _NEW_PEERS = ("New agents (2026-12-02): MOReL as its official code runs it (a be
               "{hc_mopo} checkpoint (the same command resumes them: `offhrl results table1 run --scale full --batch-seeds "
               "--envs halfcheetah --datasets medium --algos mopo`).")
 #: where the unfinished batches stand (a checkpoint every 40,960 frames): halfcheetah-medium's MOPO, hopper-medium-expert's SAC
-_HC_MOPO_CHECKPOINT = "40,960-frame"
+_HC_MOPO_CHECKPOINT = "81,920-frame"
 _HOPPER_SAC_CHECKPOINT = "0-frame"
 
 
