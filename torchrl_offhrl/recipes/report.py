@@ -332,15 +332,12 @@ def table_column(run: dict) -> str:
 @functools.lru_cache(maxsize=None)
 def _own_ablations(algo: str) -> frozenset[str]:
     """The ablation switches an algorithm's shipped config turns on itself (``configs/algo/mopo.yaml``: no_cvae,
-    no_pessimism): part of what the algorithm is, not an ablation of it."""
-    import yaml
+    no_pessimism): part of what the algorithm is, not an ablation of it. Read from the composed config, defaults included."""
+    from .config import compose, config_dir
 
-    from .config import config_dir
-
-    path = config_dir() / "algo" / f"{algo}.yaml"
-    if not algo or not path.is_file():
+    if not algo or not (config_dir() / "algo" / f"{algo}.yaml").is_file():
         return frozenset()
-    return frozenset(k for k, v in ((yaml.safe_load(path.read_text()) or {}).get("ablation") or {}).items() if v)
+    return frozenset(k for k, v in (compose("offline_train", [f"algo={algo}"]).get("ablation") or {}).items() if v)
 
 
 def column_title(column: str) -> str:

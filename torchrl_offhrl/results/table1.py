@@ -430,6 +430,8 @@ def guide_summary(root: Path = ROOT) -> str:
     """
     import csv
 
+    from ..recipes.report import fmt_iqm
+
     cells, behaviour = {}, {}
     for scale in ("demo", "full"):
         path = root / "docs" / "results" / scale / "table.csv"
@@ -438,9 +440,8 @@ def guide_summary(root: Path = ROOT) -> str:
         with path.open() as f:
             for r in csv.DictReader(f):
                 key = (scale, r["env"], r["dataset"])
-                ci = r["score_ci"].strip("()").split(",") if r["score_ci"] else []
-                ci = f" [{float(ci[0]):.1f}, {float(ci[1]):.1f}]" if len(ci) == 2 and r["seeds"] != "1" else ""  # one seed: no interval
-                cells[(r["algo"], *key)] = f"{float(r['score_iqm']):.1f}{ci} ({r['seeds']})"
+                ci = tuple(float(x) for x in r["score_ci"].strip("()").split(",")) if r["score_ci"] else None
+                cells[(r["algo"], *key)] = fmt_iqm(float(r["score_iqm"]), ci, int(r["seeds"]))  # as the table page writes a cell
                 if r["behaviour_score"]:
                     behaviour.setdefault(key, f"{float(r['behaviour_score']):.1f}")
     head = [f"{env.split('-')[0].lower()}-{ds}, {scale}" for scale, env, ds in _SUMMARY_COLS]
