@@ -2,7 +2,7 @@
 
     python examples/model_pipeline.py                       # embedded default (Hopper-v5, random data)
     python examples/model_pipeline.py dataset=my.hdf5       # your own D4RL-style file
-    python examples/model_pipeline.py dataset=medium 'model_env.pessimism={fraction: 1.08}'
+    python examples/model_pipeline.py dataset=medium 'model_env.pessimism={fraction: 1.08, penalty: 20}'
     python examples/model_pipeline.py env=halfcheetah num_transitions=20000
 
 Steps: collect (or load) a dataset, fit the dynamics ensemble and the CVAE
@@ -21,7 +21,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs.utils import check_env_specs
 
-from torchrl_offhrl.recipes.config import model_config, model_env_config, resolve_dataset
+from torchrl_offhrl.recipes.config import model_config, model_env_config, offline_rules_for, resolve_dataset
 from torchrl_offhrl.recipes.pipeline import (
     GaussianLatentPolicy,
     fit_or_load_models,
@@ -78,7 +78,9 @@ def main(cfg: DictConfig) -> None:
         else:
             print(f"{name}: loaded from {info['model_dir']}")
 
-    mcfg["env"], _ = model_env_config(OmegaConf.to_container(cfg, resolve=True), data.metadata.get("level"), data)
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    rules = offline_rules_for(plain, data, ensemble, cvae)  # the `auto` settings from the data and the models
+    mcfg["env"], _ = model_env_config(plain, data.metadata.get("level"), data, rules=rules)
     env = make_model_env(mcfg, ensemble, cvae, data, batch_size=cfg.rollout.batch_size)
     threshold = env.base_env.threshold  # calibrated once, reused
     check_env_specs(make_model_env(mcfg, ensemble, cvae, data, batch_size=None, threshold=threshold))
@@ -86,6 +88,9 @@ def main(cfg: DictConfig) -> None:
     print("check_env_specs: passed (unbatched and batched)")
     base = env.base_env
     print("\n== calibration ==")
+    if rules is not None:
+        print(rules.summary())
+        rules.plot(out_dir / "offline_rules.png")
     print(base.calibration_report(plot_path=out_dir / "calibration.png"))
 
     policy = GaussianLatentPolicy(cvae.latent_dim)
@@ -123,6 +128,7 @@ def main(cfg: DictConfig) -> None:
         "config": OmegaConf.to_container(cfg, resolve=True),
         "dataset": {"transitions": len(data), "episodes": data.num_episodes, "return_mean": behaviour.mean().item()},
         "calibration": base.calibration.as_dict(),
+        "offline_rules": None if rules is None else rules.as_dict(),
         "rollout": {"transitions": n_tr, "seconds": dt, "episode_ends": ends},
         "returns": {name: {"mean": m, "std": s, "episodes": n} for name, m, s, n in rows},
         "timing_s": {"data": t_data - t_start, "fit": t_fit - t_data, "total": time.time() - t_start},

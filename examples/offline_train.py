@@ -24,7 +24,8 @@ from tqdm.auto import tqdm
 
 from torchrl_offhrl.agents import make_agent
 from torchrl_offhrl.recipes.config import (
-    algo_label, config_fingerprint, default_run_dir, learns_from_dataset, model_config, model_env_config, resolve_dataset,
+    algo_label, config_fingerprint, default_run_dir, learns_from_dataset, model_config, model_env_config, offline_rules_for,
+    resolve_dataset,
 )
 from torchrl_offhrl.recipes.evaluation import Evaluator
 from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env, make_real_env
@@ -59,9 +60,13 @@ def main(cfg: DictConfig) -> None:
         torch.set_num_threads(int(cfg["torch_threads"]))
     torch.manual_seed(cfg["seed"])
 
-    # the composed env: TransformedEnv(PessimisticModelEnv, LatentActionTransform) with the paper's pessimism
+    # the composed env: TransformedEnv(PessimisticModelEnv, LatentActionTransform), its `auto` settings (threshold, penalty,
+    # horizon, start states, latent box) from the offline rules: the data and the fitted models only (the calibration report)
     latent = not cfg["ablation"]["no_cvae"]
-    mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"), data)
+    rules = offline_rules_for(cfg, data, ensemble, cvae if latent else None)
+    if rules is not None:
+        print(rules.summary())
+    mcfg["env"], pessimism = model_env_config(cfg, data.metadata.get("level"), data, rules=rules)
     env = make_model_env(mcfg, ensemble, cvae if latent else None, data, batch_size=cfg["collector"]["num_envs"], latent=latent)
 
     # the agent (configs/algo/<name>.yaml) and the transforms its policy needs on every env it acts in
@@ -75,7 +80,7 @@ def main(cfg: DictConfig) -> None:
 
     # evaluation: deterministic, in the real env, through the same decoder
     eval_env = make_real_env(env_cfg["env_id"], cvae if latent else None, num_envs=cfg["eval"]["episodes"],
-                             latent_bound=mcfg["env"]["latent_bound"])
+                             latent_bound=mcfg["env"].get("latent_bound", 2.0))
     agent.attach(eval_env)
     ref = (data.metadata.get("ref_min_return"), data.metadata.get("ref_max_return"))
     evaluator = Evaluator(eval_env, env_cfg["env_id"], cfg["eval"]["episodes"], cfg["eval"]["max_steps"],

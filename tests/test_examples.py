@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).parents[1]
 
 
@@ -24,9 +26,11 @@ def test_model_pipeline_tiny(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dataset"]["transitions"] == 1500
     assert summary["rollout"]["transitions"] == 16 * 20
-    assert summary["calibration"]["value"] == 0.99
-    assert abs(summary["calibration"]["fraction_above"] - 0.01) < 0.005
-    assert (out / "calibration.png").stat().st_size > 1000
+    # the threshold is the offline rule's (the largest held-out discrepancy), given to the env explicitly
+    rules = summary["offline_rules"]
+    assert summary["calibration"]["method"] == "explicit" and summary["calibration"]["threshold"] == pytest.approx(rules["threshold"])
+    assert rules["evidence"]["threshold"]["held_out_max"] == pytest.approx(rules["threshold"])
+    assert (out / "calibration.png").stat().st_size > 1000 and (out / "offline_rules.png").stat().st_size > 1000
     # second run: dataset and models come from the cache
     res2 = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert res2.returncode == 0 and "loaded from" in res2.stdout and "collecting" not in res2.stdout

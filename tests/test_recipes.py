@@ -57,8 +57,10 @@ def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
         assert (run / f).is_file(), f
     assert (run / "logs" / "scalars" / "eval" / "return_mean.csv").is_file()
     cfg = json.loads((run / "config.json").read_text())
-    # random data is not a named level: the env group's default pessimism applies
-    assert cfg["resolved_pessimism"] == {"quantile": 0.99, "penalty": 20.0}
+    # no table: the offline rules set the threshold and the penalty, and the run's calibration report says so
+    cal = json.loads((run / "calibration.json").read_text())
+    assert cfg["resolved_pessimism"] == {"threshold": cal["threshold"], "penalty": cal["penalty"]} and cfg["threshold"] == cal["threshold"]
+    assert cfg["resolved_model_env"] == {k: cal[k] for k in ("horizon", "reset_states", "latent_bound")}
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["frames"] == 256
     if algo == "moc":
@@ -166,18 +168,24 @@ def test_ablation_no_cvae_acts_in_real_actions(hopper_file, cache, tmp_path):
 
 
 def test_pessimism_table_is_the_papers():
+    """The paper's per-dataset table lives in the paper preset only (configs/preset/paper.yaml), keyed by env."""
     from omegaconf import OmegaConf
 
-    hop = OmegaConf.load(ROOT / "configs" / "env" / "hopper.yaml")
-    hc = OmegaConf.load(ROOT / "configs" / "env" / "halfcheetah.yaml")
-    assert pessimism_for(hop, "medium") == {"fraction": 1.08, "penalty": 20.0}
-    assert pessimism_for(hop, "medium-expert") == {"fraction": 0.08, "penalty": 30.0}
-    assert pessimism_for(hc, "medium") == {"fraction": 0.1, "penalty": 20.0}
-    assert pessimism_for(hc, "medium-expert") == {"fraction": 0.0101, "penalty": 20.0}
-    assert pessimism_for(hop, None) == {"quantile": 0.99, "penalty": 20.0}
+    from torchrl_offhrl.recipes.config import pessimism_table
+
+    paper = OmegaConf.to_container(OmegaConf.load(ROOT / "configs" / "preset" / "paper.yaml"))
+    hop = pessimism_table({**paper, "env": {"name": "hopper"}})
+    hc = pessimism_table({**paper, "env": {"name": "halfcheetah"}})
+    assert pessimism_for({}, "medium", table=hop) == {"fraction": 1.08, "penalty": 20.0}
+    assert pessimism_for({}, "medium-expert", table=hop) == {"fraction": 0.08, "penalty": 30.0}
+    assert pessimism_for({}, "medium", table=hc) == {"fraction": 0.1, "penalty": 20.0}
+    assert pessimism_for({}, "medium-expert", table=hc) == {"fraction": 0.0101, "penalty": 20.0}
+    assert pessimism_for({}, None, table=hop) == {"quantile": 0.99, "penalty": 20.0}
     # overrides: a penalty keeps the table's fraction; a quantile replaces it
-    assert pessimism_for(hop, "medium", {"penalty": 50.0}) == {"fraction": 1.08, "penalty": 50.0}
-    assert pessimism_for(hop, "medium", {"quantile": 0.95, "fraction": None}) == {"quantile": 0.95, "penalty": 20.0}
+    assert pessimism_for({}, "medium", {"penalty": 50.0}, table=hop) == {"fraction": 1.08, "penalty": 50.0}
+    assert pessimism_for({}, "medium", {"quantile": 0.95, "fraction": None}, table=hop) == {"quantile": 0.95, "penalty": 20.0}
+    for env in ("hopper", "halfcheetah"):  # no per-dataset numbers where the default reads
+        assert "pessimism" not in OmegaConf.load(ROOT / "configs" / "env" / f"{env}.yaml")
 
 
 def test_paper_hyperparameters_in_configs():
@@ -496,16 +504,28 @@ def test_offline_policy_selection_returns_the_policy_its_criterion_ranks_first(c
     assert state["frames"] == best["frames"]
 
 
-def test_a_model_criterion_on_model_episodes_shorter_than_the_real_ones_warns(hopper_file, cache, tmp_path):
-    """model_lcb on 20-step model episodes where a real one runs 40: the run says why the criterion may mislead; the same
-    run returning its last policy (the default, and the demo's choice) does not."""
-    short = ["model_env.horizon=20", "train.total_frames=128"]
-    with pytest.warns(UserWarning, match="reads 20-step model episodes .* where a real episode runs 40 steps"):
-        train(_cfg("ppo", hopper_file, tmp_path / "lcb", [*short, "selection.criterion=model_lcb"]), progress=False)
-    with warnings.catch_warnings(record=True) as seen:
+def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper_file, cache, tmp_path):
+    """With model_gain_lcb and the guard on, selected.pt holds the policy the summary names: the start's weights
+    when the guard fired, the candidate's otherwise; model episodes of the evaluations run the real episode's length whatever
+    the training horizon (a model criterion then reads whole episodes)."""
+    guarded = ["selection.criterion=model_gain_lcb", "selection.guard=true"]
+    summary = train(_cfg("ppo", hopper_file, tmp_path / "g", ["model_env.horizon=20", "eval.at_start=true", "train.total_frames=256", *guarded]),
+                    progress=False)
+    run = Path(summary["run_dir"])
+    guard, evals = summary["guard"], json.loads((run / "evals.json").read_text())
+    assert summary["selected"]["criterion"] == "model_gain_lcb" and evals[0]["frames"] == 0
+    assert all(len(e["model_episode_returns"]) == len(e["model_episode_members"]) > 0 for e in evals)
+    from torchrl_offhrl.recipes.selection import paired_gain_lcb
+
+    best = max((e for e in evals if e["frames"] > 0), key=lambda e: paired_gain_lcb(e, evals[0]))
+    assert guard["candidate_step"] == best["frames"] and guard["gain_lcb"] == pytest.approx(paired_gain_lcb(best, evals[0]))
+    assert guard["fired"] == (not guard["gain_lcb"] > 0)
+    saved = torch.load(run / "selected.pt", weights_only=True)
+    assert saved["step"] == (0 if guard["fired"] else best["frames"]) == summary["selected"]["frames"]
+    with warnings.catch_warnings(record=True) as seen:  # without the start's evaluation there is nothing to guard against: it says so
         warnings.simplefilter("always")
-        train(_cfg("ppo", hopper_file, tmp_path / "last", [*short, "selection.criterion=last"]), progress=False)
-    assert not [w for w in seen if "model episodes" in str(w.message)]
+        s2 = train(_cfg("ppo", hopper_file, tmp_path / "noguard", ["train.total_frames=128", *guarded]), progress=False)
+    assert any("eval.at_start=false" in str(w.message) for w in seen) and s2["guard"]["fired"] is None
 
 
 def test_policy_selection_without_a_model_env_returns_the_last_policy(hopper_file, cache, tmp_path):

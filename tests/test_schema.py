@@ -11,7 +11,9 @@ BAD = {
     "train.total_frames=-5": "train.total_frames: expected an integer >= 1, got -5",
     "algo.lr=-1": "algo.lr: expected a number > 0, got -1",
     "algo.num_options=0": "algo.num_options: expected an integer >= 1, got 0",
-    "model_env.horizon=0": "model_env.horizon: expected an integer >= 1, got 0",
+    "model_env.horizon=0": "model_env.horizon: expected an integer >= 1 or 'auto', got 0",
+    "model_env.latent_bound=-1": "model_env.latent_bound: expected a number > 0 or 'auto', got -1",
+    "model_env.reset_states=sometimes": "model_env.reset_states: expected one of 'initial', 'any', 'auto', got 'sometimes'",
     "eval.episodes=0": "eval.episodes: expected an integer >= 1, got 0",
     "eval.every_frames=0": "eval.every_frames: expected an integer >= 1, got 0",
     "seed=abc": "seed: expected an integer >= 0, got 'abc'",
@@ -85,7 +87,7 @@ def test_the_typed_sections_hold_the_shipped_defaults():
     assert RunConfig.parse({}) == RunConfig.parse(shipped)
     rc = RunConfig.parse(to_plain(compose("demo", [])))
     assert (rc.train.total("frames"), rc.eval.every("frames"), rc.eval.episodes, rc.collector.num_envs) == (81920, 10240, 30, 64)
-    assert rc.transfer is None and asdict(rc.selection) == {"criterion": "last", "include_start": False}
+    assert rc.transfer is None and asdict(rc.selection) == {"criterion": "last", "include_start": False, "guard": False}
     t = RunConfig.parse(to_plain(compose("offline_train", ["transfer.task=backward", "transfer.online_frames=4096"]))).transfer
     assert (t.task, t.online_frames, t.num_envs, t.decoder) == ("backward", 4096, 16, "discard")
     with pytest.raises(ValueError, match="unit must be one of"):
@@ -99,7 +101,7 @@ def test_a_key_a_typed_section_lacks_is_refused_with_the_keys_it_takes():
     msg = str(err.value)
     assert "train.total_frame: unknown key; train takes total_frames, total_updates, online, snapshot_frames" in msg
     assert "eval.every_frame: unknown key; eval takes at_start, model_env, every_frames, every_updates, episodes" in msg
-    assert "selection: expected a mapping of criterion, include_start, got 'last'" in msg
+    assert "selection: expected a mapping of criterion, include_start, guard, got 'last'" in msg
 
 
 def test_cli_refuses_an_unknown_key_added_with_plus(tmp_path, monkeypatch, capsys):

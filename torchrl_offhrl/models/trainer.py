@@ -59,6 +59,14 @@ class SupervisedTrainer:
         max_steps: optional bound on the total number of steps.
         patience: epochs without improvement before stopping.
         min_delta: improvement smaller than this does not count.
+        rel_tol: an improvement also has to be larger than this fraction of
+            the member's best loss so far to count (0: any improvement).
+            Together with ``patience`` this is the fit's convergence rule:
+            a fit stops once no member's held-out loss has improved by more
+            than ``rel_tol`` (relative) for ``patience`` epochs, instead of
+            after a fixed step budget. Without it, noise-sized improvements
+            of one member (a few 1e-4 relative, measured on the demo's
+            ensemble) keep a fit going to ``max_epochs``.
         val_max_samples: validation subset size (fixed, drawn once).
         seed: seeds the minibatch sampling.
         progress: show a tqdm bar with the losses.
@@ -72,6 +80,7 @@ class SupervisedTrainer:
     max_steps: int | None = None
     patience: int = 5
     min_delta: float = 0.0
+    rel_tol: float = 0.0
     val_max_samples: int = 50_000
     weight_decay: float = 0.0
     seed: int = 0
@@ -135,10 +144,10 @@ class SupervisedTrainer:
             if val is not None:
                 val_loss = self.evaluate(model, val)
                 record["val_loss"] = val_loss.cpu().tolist()
-                improved = val_loss < best - self.min_delta
+                improved = val_loss < best - self.min_delta - self.rel_tol * best.abs().nan_to_num(posinf=0.0)
             else:
                 val_loss = train_loss
-                improved = train_loss < best - self.min_delta
+                improved = train_loss < best - self.min_delta - self.rel_tol * best.abs().nan_to_num(posinf=0.0)
             if improved.any():
                 best = torch.where(improved, val_loss, best)
                 with torch.no_grad():

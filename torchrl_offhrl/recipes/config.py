@@ -20,7 +20,7 @@ from .schema import section_defaults
 
 __all__ = [
     "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "model_config", "model_env_config",
-    "pessimism_for", "resolve_dataset", "transfer_config", "transfer_label",
+    "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "transfer_config", "transfer_label",
 ]
 
 #: Settings that may change between a run and its resumption; anything else must match the checkpoint.
@@ -84,8 +84,16 @@ def resolve_dataset(cfg: Mapping) -> OfflineDataset:
 
 
 def latent_bound(cfg: Mapping) -> float:
-    """The latent box's half-width of a run (``model_env.latent_bound``; :data:`~torchrl_offhrl.envs.DEFAULT_LATENT_BOUND` if unset)."""
-    return float((cfg.get("model_env") or {}).get("latent_bound", DEFAULT_LATENT_BOUND))
+    """The latent box's half-width of a run: what its offline rules resolved (``resolved_model_env``, in a run's
+    ``config.json``), else ``model_env.latent_bound`` (:data:`~torchrl_offhrl.envs.DEFAULT_LATENT_BOUND` if unset or
+    ``auto`` with no CVAE to compute it from)."""
+    resolved = (cfg.get("resolved_model_env") or {}).get("latent_bound")
+    if resolved is not None:
+        return float(resolved)
+    value = (cfg.get("model_env") or {}).get("latent_bound", DEFAULT_LATENT_BOUND)
+    # auto is the CVAE's posterior box (envs.rules.latent_bound_rule), resolved when a run starts; a run that fits no CVAE (from
+    # scratch, in real actions) only maps its latent box onto the action box, and takes the default one
+    return DEFAULT_LATENT_BOUND if value == "auto" else float(value)
 
 
 def model_config(cfg: Mapping) -> dict:
@@ -101,9 +109,9 @@ def model_config(cfg: Mapping) -> dict:
     }
 
 
-def pessimism_for(env_cfg: Mapping, level: str | None, overrides: Mapping | None = None) -> dict:
-    """The P-MDP settings for a dataset level: the paper's table in ``env_cfg['pessimism']``, then overrides."""
-    table = to_plain(env_cfg.get("pessimism", {}))
+def pessimism_for(env_cfg: Mapping, level: str | None, overrides: Mapping | None = None, table: Mapping | None = None) -> dict:
+    """The P-MDP's pessimism from a per-dataset ``table`` (the ``paper`` preset's; default: ``env_cfg['pessimism']``), then overrides."""
+    table = to_plain(table if table is not None else env_cfg.get("pessimism", {}))
     out = dict(table.get("default", {"quantile": 0.99, "penalty": 20.0}))
     if level and level in table:
         out = dict(table[level])
@@ -116,21 +124,84 @@ def pessimism_for(env_cfg: Mapping, level: str | None, overrides: Mapping | None
     return out
 
 
-def model_env_config(cfg: Mapping, level: str | None, data: OfflineDataset | None = None) -> tuple[dict, dict]:
-    """``(env settings for make_model_env, resolved pessimism)``: ``model_env`` plus the table's (or the ablation's) pessimism.
+#: the model env's settings the offline rules compute (torchrl_offhrl.envs.rules) where the config says ``auto``
+RULE_KEYS = ("horizon", "reset_states", "latent_bound")
 
+
+def pessimism_table(cfg: Mapping) -> dict | None:
+    """The per-dataset pessimism table a config names, or None (the offline rules decide).
+
+    The ``paper`` preset (``preset=paper``) ships the paper's tables under
+    ``paper_pessimism.<env name>``; an env group may carry its own
+    ``env.pessimism`` (the block-stacking tasks: the paper's 99th percentile,
+    the same on every dataset).
+    """
+    env = cfg.get("env") or {}
+    paper = (cfg.get("paper_pessimism") or {}).get(env.get("name"))
+    if paper:
+        return to_plain(paper)
+    return to_plain(env["pessimism"]) if env.get("pessimism") else None
+
+
+def needs_rules(cfg: Mapping) -> bool:
+    """Whether a config leaves any model-env setting to the offline rules (a key set to ``auto``, or no pessimism given)."""
+    menv = cfg.get("model_env") or {}
+    if any(menv.get(k, "auto") == "auto" for k in RULE_KEYS):
+        return True
+    over = {k: v for k, v in (menv.get("pessimism") or {}).items() if v is not None}
+    given = ("threshold" in over or "quantile" in over or "fraction" in over) and "penalty" in over
+    return pessimism_table(cfg) is None and not given and not cfg.get("ablation", {}).get("no_pessimism", False)
+
+
+def model_env_config(cfg: Mapping, level: str | None, data: OfflineDataset | None = None, rules=None) -> tuple[dict, dict]:
+    """``(env settings for make_model_env, resolved pessimism)``: ``model_env`` with its ``auto`` keys and pessimism resolved.
+
+    ``rules``: the :class:`~torchrl_offhrl.envs.rules.OfflineRules` of the
+    run's data and models (:func:`offline_rules_for`); every ``auto`` key takes
+    its value, and so do the threshold and penalty unless a table
+    (:func:`pessimism_table`) or ``model_env.pessimism`` gives them.
+    Without ``rules`` the ``auto`` keys are left out (settings that build no
+    model env: the online ones).
     ``reward_scale: auto`` is resolved here to :func:`auto_reward_scale` of
     ``data`` with the agent's ``gamma`` (``algo.gamma``, else 0.99).
     """
-    pess = pessimism_for(cfg["env"], level, cfg.get("model_env", {}).get("pessimism"))
+    table = pessimism_table(cfg)
+    overrides = {k: v for k, v in ((cfg.get("model_env") or {}).get("pessimism") or {}).items() if v is not None}
+    if table is not None:
+        pess = pessimism_for(cfg["env"], level, overrides, table=table)
+    elif rules is not None:
+        pess = {"threshold": rules.threshold, "penalty": rules.penalty}
+        if "quantile" in overrides or "fraction" in overrides:
+            pess.pop("threshold")  # a calibration asked for: the env calibrates on the dataset
+        pess.update(overrides)
+    else:
+        pess = pessimism_for(cfg["env"], level, overrides)
     if cfg.get("ablation", {}).get("no_pessimism", False):
         pess = {"threshold": float("inf"), "penalty": 0.0}
     menv = {k: v for k, v in cfg.get("model_env", {}).items() if k != "pessimism"}
+    for key in RULE_KEYS:
+        if menv.get(key, "auto") == "auto":
+            if rules is not None and (key != "latent_bound" or rules.latent_bound is not None):
+                menv[key] = getattr(rules, key)
+            else:
+                menv.pop(key, None)
     scale = menv.get("reward_scale", 1.0)
     if scale == "auto" and data is None:
         raise ValueError("model_env.reward_scale=auto is computed from the dataset: pass data to model_env_config")
     menv["reward_scale"] = resolve_reward_scale(scale, data, float(cfg.get("algo", {}).get("gamma", 0.99)), key="model_env.reward_scale")
     return {**menv, **pess}, pess
+
+
+def offline_rules_for(cfg: Mapping, data: OfflineDataset, ensemble, cvae=None):
+    """The offline rules (:func:`torchrl_offhrl.envs.rules.offline_rules`) of a run: its data, models, split and discount; None when the
+    config leaves nothing to them (:func:`needs_rules`)."""
+    if not needs_rules(cfg) or ensemble is None:
+        return None
+    from ..envs.rules import offline_rules
+
+    menv = cfg.get("model_env") or {}
+    return offline_rules(ensemble, data, cvae, val_ratio=float(cfg.get("val_ratio", 0.1)), split_seed=int(cfg.get("dataset_seed", 0)),
+                         discrepancy=menv.get("discrepancy", "variance"), gamma=float((cfg.get("algo") or {}).get("gamma", 0.99)))
 
 
 def resolve_reward_scale(spec, data: OfflineDataset | None, gamma: float = 0.99, key: str = "algo.reward_scale") -> float:
@@ -246,7 +317,8 @@ LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01
                                                           "loss_type": "clip", "kl_target": 0.01, "bc_init_steps": 0, "bc_init_lr": 1e-3,
                                                           "bc_init_batch_size": 256,
                                                           "terminal_on_success": True},
-                                                 "ensemble": {"reward_hidden_sizes": None}, "model_env": {"reward_penalty": 0.0}}
+                                                 "ensemble": {"reward_hidden_sizes": None}, "model_env": {"reward_penalty": 0.0},
+                                                 "selection": {"guard": False}}
 
 
 def config_fingerprint(cfg: Mapping) -> str:
@@ -255,6 +327,16 @@ def config_fingerprint(cfg: Mapping) -> str:
     if isinstance(kept.get("env"), Mapping) and "mopo" in kept["env"]:
         # a lookup table (MOPO's settings per dataset): what a run uses of it is in its model_env, resolved
         kept["env"] = {k: v for k, v in kept["env"].items() if k != "mopo"}
+    if pessimism_table(cfg) is not None:
+        # the pessimism table a run reads (the paper preset's, or the env group's before it moved there): compared as the
+        # table of this run's env, wherever the config holds it
+        kept["env"] = {**{k: v for k, v in (kept.get("env") or {}).items() if k != "pessimism"}, "pessimism": pessimism_table(cfg)}
+        kept.pop("paper_pessimism", None)
+    kept.pop("preset", None)
+    for part in ("ensemble", "cvae"):  # the convergence rule off (0) is the fits as they were before it existed
+        fit = (kept.get(part) or {}).get("fit")
+        if isinstance(fit, Mapping) and fit.get("rel_tol", None) == 0.0:
+            kept[part] = {**kept[part], "fit": {k: v for k, v in fit.items() if k != "rel_tol"}}
     if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}

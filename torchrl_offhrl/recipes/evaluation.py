@@ -109,8 +109,10 @@ class Evaluator:
         env every member gets the same episodes' start states);
         ``model_discounted_mean`` / ``model_discounted_min_member``, the same
         for the return discounted with ``gamma`` (the agent's own objective);
-        and ``model_penalized``, the share of model episodes ended by the
-        pessimism. Offline policy selection
+        ``model_penalized``, the share of model episodes ended by the
+        pessimism; and ``model_episode_returns`` / ``model_episode_members``,
+        every episode's return and member (the guard pairs them with the
+        start policy's). Offline policy selection
         (:class:`~torchrl_offhrl.recipes.selection.PolicySelector`) reads them.
         """
         if self.model_env is None:
@@ -134,6 +136,9 @@ class Evaluator:
 
             out["model_return_min_member"] = worst_member(model_rets.double())
             out["model_discounted_min_member"] = worst_member(disc)
+            # per episode, to pair two policies' evaluations episode by episode (the guard: selection.paired_gain_lcb)
+            out["model_episode_returns"] = [round(float(x), 4) for x in model_rets.double()]
+            out["model_episode_members"] = [int(x) for x in member]
         if ("next", "penalized") in td.keys(True):
             out["model_penalized"] = float((td["next", "penalized"].reshape(n, -1) & alive).any(1).float().mean())
         return out

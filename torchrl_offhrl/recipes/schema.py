@@ -145,6 +145,7 @@ class SelectionConfig:
 
     criterion: str = _setting(_choice(*CRITERIA), "last")
     include_start: bool = _setting(_bool(), False)  # the untrained policy is a candidate too
+    guard: bool = _setting(_bool(), False)  # return the start policy when no member shows a gain over it (selection.PolicySelector)
 
 
 @dataclass(frozen=True)
@@ -248,7 +249,8 @@ class RunConfig:
         return cls(seed=int(cfg.get("seed", 0)), **sections)
 
 
-_FIT = {"lr": _num(0, lo_open=True), "batch_size": _int(1), "max_epochs": _int(1), "max_steps": _int(1, optional=True), "patience": _int(0)}
+_FIT = {"lr": _num(0, lo_open=True), "batch_size": _int(1), "max_epochs": _int(1), "max_steps": _int(1, optional=True), "patience": _int(0),
+        "rel_tol": _num(0, 1, hi_open=True)}
 
 #: key path -> (what is allowed, check); absent keys are left to their defaults
 RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
@@ -263,10 +265,10 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "cvae.hidden_sizes": _sizes(),
     "cvae.kl_weight": _num(0),
     **{f"{m}.fit.{k}": rule for m in ("ensemble", "cvae") for k, rule in _FIT.items()},
-    "model_env.horizon": _int(1),
+    "model_env.horizon": ("an integer >= 1 or 'auto'", lambda v: v == "auto" or _int(1)[1](v)),
     "model_env.member_mode": _choice("episode", "step", "mean"),
-    "model_env.reset_states": _choice("initial", "any"),
-    "model_env.latent_bound": _num(0, lo_open=True),
+    "model_env.reset_states": _choice("initial", "any", "auto"),
+    "model_env.latent_bound": ("a number > 0 or 'auto'", lambda v: v == "auto" or _num(0, lo_open=True)[1](v)),
     "model_env.reward_penalty": _num(0),
     "model_env.reward_scale": ("a positive number or 'auto'", lambda v: v == "auto" or (_is_num(v) and v > 0)),
     "torch_threads": _int(1, optional=True),

@@ -22,62 +22,107 @@ Criteria (``selection.criterion``):
 * ``model_lcb_undiscounted`` / ``model_mean_undiscounted``: the same on the
   undiscounted return.
 
-Why ``last`` by default. The model's verdict on a policy is only as long as
-its episodes. With the demo's 100-step episodes branched from any dataset
-state the model return is capped by the horizon, and every criterion
-preferred the policy closest to the data, a near-behaviour-cloning one (real
-score 29-33), over the running ones (64-93) the same runs reached, with 250
-model episodes per policy as with 50 (``docs/results/demo_robustness_notes.md``,
-``scripts/diagnostics/selection_probe.py``); :func:`horizon_warning` now
-says so for any run that combines a model criterion with model episodes
-shorter than the real ones. With the paper's 1,000-step episodes from the
-data's start states (the full scale), ``model_lcb`` picked a policy above
-the untrained start and the data in 6 of 6 hopper-medium tuning runs (the
-last policy: 4 of 6), then in 2 of 5 evaluation runs (the last policy: 3 of
-5; ``docs/results/full/experiments.md``): the worst member's return falls as
-soon as a policy leaves the data, so early, near-data policies often win.
+What was measured before ``model_gain_lcb`` (under ``last`` as the default).
+The model's verdict on a policy is only as long as its episodes. With the
+demo's 100-step episodes branched from any dataset state the model return
+is capped by the horizon, and every criterion preferred the policy closest
+to the data, a near-behaviour-cloning one (real score 29-33), over the
+running ones (64-93) the same runs reached, with 250 model episodes per
+policy as with 50 (``docs/results/demo_robustness_notes.md``,
+``scripts/diagnostics/selection_probe.py``). Evaluations therefore roll
+their model episodes for a whole real-episode length (``eval.max_steps``)
+from the data's start states, whatever the training horizon. With the
+paper's 1,000-step episodes (the full scale), ``model_lcb`` picked a policy
+above the untrained start and the data in 6 of 6 hopper-medium tuning runs
+(the last policy: 4 of 6), then in 2 of 5 evaluation runs (the last policy:
+3 of 5; ``docs/results/full/experiments.md``): the worst member's return
+falls as soon as a policy leaves the data, so early, near-data policies
+often win.
 ``torchrl_offhrl/results/robustness.py`` and the tuning pages of
 ``torchrl_offhrl/results/table1.py`` score every criterion on every run they make.
 
 Evaluations at step 0 (the untrained agent) are candidates only with
 ``include_start=True``: by default the returned policy is a trained one.
+
+``model_gain_lcb`` and the guard. Both compare a policy with the policy the
+run *started from* (the evaluation at step 0: for MOC the decoder's mean
+action, a behaviour-cloned policy) on the same model episodes: every
+evaluation rolls its policy out from the same data start states under the
+same member per episode (``member_draw="cyclic"``) for a whole real-episode
+length, so the two policies' returns pair up episode by episode.
+:func:`paired_gain_lcb` is the smallest, over the ensemble members, of the
+one-sided 95% lower bound of the mean paired gain under that member. The
+criterion ``model_gain_lcb`` returns the evaluation where it is largest; the
+**guard** (``selection.guard``, on by default) then returns the start policy
+instead whenever the chosen policy's bound is not above 0: no member of the
+ensemble shows with confidence that the trained policy does better than
+where it started, so the run hands back its start rather than a policy that
+may be worse. The summary says whether the guard fired.
 """
 from __future__ import annotations
 
 import copy
+import math
 
-__all__ = ["CRITERIA", "PolicySelector", "horizon_warning"]
+__all__ = ["CRITERIA", "GAIN_Z", "PolicySelector", "paired_gain_lcb"]
+
+#: one-sided 95% normal quantile of :func:`paired_gain_lcb`
+GAIN_Z = 1.645
 
 #: criterion -> the evaluation-record key it maximises (None: the last evaluation wins)
 CRITERIA: dict[str, str | None] = {
     "model_lcb": "model_discounted_min_member", "model_mean": "model_discounted_mean",
     "model_lcb_undiscounted": "model_return_min_member", "model_mean_undiscounted": "model_return_mean", "last": None,
+    "model_gain_lcb": "model_episode_returns",  # paired with the start policy's episodes: paired_gain_lcb
 }
 
 
-def horizon_warning(criterion: str, horizon: int | None, episode_steps: int) -> str | None:
-    """Why a model criterion may mislead with this model env (None if it should not): its episodes (``horizon``, the
-    model env's and so the evaluation's) stop before the real env's ``episode_steps``.
+def paired_gain_lcb(record: dict, start: dict, z: float = GAIN_Z) -> float | None:
+    """The worst member's lower confidence bound on a policy's gain over the start policy, on paired model episodes.
 
-    >>> horizon_warning("model_lcb", 100, 1000)[:44]
-    'selection.criterion=model_lcb reads 100-step'
-    >>> horizon_warning("last", 100, 1000) is None, horizon_warning("model_lcb", 1000, 1000) is None
-    (True, True)
+    ``record`` and ``start`` are evaluation records holding
+    ``model_episode_returns`` and ``model_episode_members`` (one value per
+    model episode; episode ``i`` starts from the same state under the same
+    member in both). Per member ``k``: the mean of the paired differences
+    ``d_i = R_i - R_start_i`` over its episodes minus ``z`` standard errors
+    (a member with one episode: its difference); the smallest over members.
+    None when either record lacks the episodes or they do not pair up.
+
+    >>> start = {"model_episode_returns": [10.0, 10.0, 20.0, 20.0], "model_episode_members": [0, 1, 0, 1]}
+    >>> better = {"model_episode_returns": [12.0, 11.0, 22.0, 21.0], "model_episode_members": [0, 1, 0, 1]}
+    >>> paired_gain_lcb(better, start, z=0.0)   # member 0 gains 2, member 1 gains 1: the worst member
+    1.0
+    >>> paired_gain_lcb(better, start) < 1.0     # minus 1.645 standard errors (here 0: every gain equal)
+    False
+    >>> paired_gain_lcb({"model_episode_returns": [12.0, 8.0, 22.0, 21.0], "model_episode_members": [0, 1, 0, 1]}, start, z=0.0)
+    -0.5
     """
-    if CRITERIA.get(criterion) is None or horizon is None or horizon >= episode_steps:
+    r, s = record.get("model_episode_returns"), start.get("model_episode_returns")
+    m, ms = record.get("model_episode_members"), start.get("model_episode_members")
+    if r is None or s is None or m is None or len(r) != len(s) or list(m) != list(ms or []):
         return None
-    return (f"selection.criterion={criterion} reads {horizon}-step model episodes (model_env.horizon) where a real episode runs "
-            f"{episode_steps} steps: the model return is capped by the horizon and cannot tell a gait that runs past the data "
-            "from one that falls (on the demo's tuning seeds every model criterion then picked near-behaviour-cloning policies); "
-            "selection.criterion=last returns the last policy, as configs/demo.yaml does")
+    by_member: dict = {}
+    for ri, si, k in zip(r, s, m):
+        by_member.setdefault(k, []).append(float(ri) - float(si))
+    bounds = []
+    for d in by_member.values():
+        mean = sum(d) / len(d)
+        if len(d) > 1:
+            var = sum((x - mean) ** 2 for x in d) / (len(d) - 1)
+            mean -= z * math.sqrt(var / len(d))
+        bounds.append(mean)
+    return min(bounds) if bounds else None
 
 
 class PolicySelector:
-    """Keeps the agent state of the best evaluation by an offline criterion.
+    """Keeps the agent state of the best evaluation by an offline criterion, and guards the return against the start.
 
     Args:
         criterion: a key of :data:`CRITERIA`.
         include_start: whether the evaluation at step 0 is a candidate.
+        guard: keep the start policy (step 0) and return it instead of the
+            selected one when :func:`paired_gain_lcb` of the selected
+            evaluation against the start is not above 0 (:meth:`verdict`).
 
     ``consider(record, agent, step)`` after each evaluation; ``selected``
     is ``{"index", "step", "score", "agent"}`` of the best so far (None
@@ -98,17 +143,27 @@ class PolicySelector:
         (200, {'w': 2})
     """
 
-    def __init__(self, criterion: str = "last", include_start: bool = False):
+    def __init__(self, criterion: str = "last", include_start: bool = False, guard: bool = False):
         if criterion not in CRITERIA:
             raise ValueError(f"selection.criterion must be one of {sorted(CRITERIA)}, got {criterion!r}")
         self.criterion, self.key, self.include_start = criterion, CRITERIA[criterion], bool(include_start)
+        self.guard = bool(guard)
         self.selected: dict | None = None
+        self.start: dict | None = None  # the step-0 evaluation: its record's model episodes and (guard) its agent state
         self._count = 0
+        self._last_record: dict | None = None
+
+    @property
+    def paired(self) -> bool:
+        """Whether the criterion or the guard compares policies with the start's model episodes."""
+        return self.guard or self.criterion == "model_gain_lcb"
 
     def score(self, record: dict) -> float | None:
         """The record's offline score (None: the record lacks it, e.g. an agent evaluated without a model env)."""
         if self.key is None:
             return float(self._count)  # later is better: the last evaluation wins
+        if self.criterion == "model_gain_lcb":
+            return None if self.start is None else paired_gain_lcb(record, self.start["record"])
         v = record.get(self.key)
         return None if v is None else float(v)
 
@@ -116,13 +171,19 @@ class PolicySelector:
         """Take the evaluation ``record`` of ``agent`` at ``step`` into account; True when it becomes the selected one."""
         index = self._count
         self._count += 1
+        if step == 0 and self.paired and self.start is None:
+            self.start = {"index": index, "record": {k: record.get(k) for k in ("model_episode_returns", "model_episode_members")},
+                          "agent": copy.deepcopy(agent.state_dict()) if self.guard else None}
         if step == 0 and not self.include_start:
             return False
+        if self.key is None:
+            self._last_record = {k: record.get(k) for k in ("model_episode_returns", "model_episode_members")}
         s = self.score(record)
         if s is None:
             if self.key is not None and self.selected is None and step > 0:
+                why = ("the evaluation at step 0 (eval.at_start=true) and " if self.criterion == "model_gain_lcb" and self.start is None else "")
                 raise ValueError(f"selection.criterion={self.criterion} reads {self.key!r}, which the evaluation records of this run "
-                                 "lack (it needs the model env's evaluation: eval.model_env=true on a model-env agent); "
+                                 f"lack (it needs {why}the model env's evaluation: eval.model_env=true on a model-env agent); "
                                  "use selection.criterion=last")
             return False
         if self.selected is not None and s <= self.selected["score"]:
@@ -130,10 +191,39 @@ class PolicySelector:
         # the last policy is the run's own checkpoint: no copy kept
         state = None if self.key is None else copy.deepcopy(agent.state_dict())
         self.selected = {"index": index, "step": int(step), "score": s, "agent": state}
+        if self.guard and self.criterion != "model_gain_lcb":
+            self.selected["gain_lcb"] = None if self.start is None else paired_gain_lcb(
+                {k: record.get(k) for k in ("model_episode_returns", "model_episode_members")}, self.start["record"])
         return True
 
+    def verdict(self) -> dict | None:
+        """The guard's decision on the selected policy (None without a guard): ``{"fired", "gain_lcb", "reason"}``.
+
+        ``fired`` is True when the selected policy's paired gain bound over
+        the start is not above 0, or cannot be computed (then ``reason`` says
+        why); the run then returns :attr:`start`'s policy.
+        """
+        if not self.guard:
+            return None
+        if self.start is None or self.start.get("agent") is None:
+            return {"fired": False, "gain_lcb": None, "reason": "no evaluation at step 0 (eval.at_start=false): nothing to compare with; "
+                                                                 "the selected policy is returned unguarded"}
+        if self.selected is None:
+            return {"fired": True, "gain_lcb": None, "reason": "no trained policy was evaluated"}
+        lcb = self.selected["score"] if self.criterion == "model_gain_lcb" else self.selected.get("gain_lcb")
+        if self.key is None and self._last_record is not None:
+            lcb = paired_gain_lcb(self._last_record, self.start["record"])
+        if lcb is None:
+            return {"fired": True, "gain_lcb": None, "reason": "the evaluations lack paired model episodes (eval.model_env=false?)"}
+        fired = not lcb > 0
+        reason = (f"no ensemble member shows a gain over the start policy with 95% confidence (worst member's bound {lcb:.4g}): "
+                  "the start policy is returned" if fired else
+                  f"every ensemble member shows a gain over the start policy (worst member's 95% lower bound {lcb:.4g})")
+        return {"fired": fired, "gain_lcb": float(lcb), "reason": reason}
+
     def state_dict(self) -> dict:
-        return {"criterion": self.criterion, "include_start": self.include_start, "count": self._count, "selected": self.selected}
+        return {"criterion": self.criterion, "include_start": self.include_start, "count": self._count, "selected": self.selected,
+                "guard": self.guard, "start": self.start, "last_record": self._last_record}
 
     def load_state_dict(self, state: dict | None) -> None:
         if not state:
@@ -142,3 +232,4 @@ class PolicySelector:
             raise ValueError(f"the checkpoint selected its policy by {state.get('criterion')!r}, this run by {self.criterion!r}: "
                              "resume with the same selection.criterion")
         self._count, self.selected = int(state["count"]), state["selected"]
+        self.start, self._last_record = state.get("start"), state.get("last_record")

@@ -27,7 +27,8 @@ from torchrl.envs import RewardScaling, RewardSum
 from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
 from ..blockstack import goals as G
 from ..registry import task_of
-from .config import acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_config, resolve_dataset, resolve_reward_scale, transfer_config
+from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_config, offline_rules_for, resolve_dataset,
+                     resolve_reward_scale, transfer_config)
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
 from .pipeline import fit_or_load_models, make_model_env, make_real_env
@@ -69,6 +70,7 @@ class Setting:
     device: torch.device
     closers: list = field(default_factory=list)  # the real envs to close at the end
     parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
+    rules: object = None        # the OfflineRules that set the P-MDP (envs.rules; None: none ran), the run's calibration report
     eval_env_for: Callable | None = None  # copies -> one real env holding `copies` evaluations' envs, the agent's transforms appended
 
     def close(self) -> None:
@@ -161,6 +163,7 @@ class Parts:
     t_data: float
     t_models: float
     snapshots: set[int]
+    rules: object = None        # the OfflineRules of the model env, once a setting computed them
 
     @property
     def env_id(self) -> str:
@@ -255,7 +258,10 @@ class ModelEnvSetting:
         """``(agent, phase, eval_env, pessimism, threshold, selectable)``: the model env's agent and its offline phase."""
         cfg, latent = p.cfg, acts_in_latent_space(p.cfg)
         cvae = p.cvae if latent else None
-        p.pcfg["env"], pess = model_env_config(cfg, p.level, p.data)
+        # the offline rules: every `auto` setting of the P-MDP from the data and the fitted models (envs.rules; the calibration report)
+        p.rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
+        p.pcfg["env"], pess = model_env_config(cfg, p.level, p.data, rules=p.rules)
+        cfg["resolved_model_env"] = {k: p.pcfg["env"][k] for k in RULE_KEYS if k in p.pcfg["env"]}  # the run's config.json keeps them
         env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.collector.num_envs, latent=latent)
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
@@ -265,8 +271,11 @@ class ModelEnvSetting:
         model_eval_env = None
         if p.rc.eval.model_env:  # the same evaluation in the model: the model-real gap
             # the real env's start states, whatever training uses; every member rolls out the same number of episodes (the LCB over members)
+            # episodes as long as the real env's (eval.max_steps), whatever the training horizon: the model's verdict on a policy is
+            # only as long as its episodes, and the guard compares whole episodes (recipes.selection)
             model_eval_env = agent.attach(make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.eval.model_episodes or p.episodes,
-                                                         latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic"))
+                                                         latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic",
+                                                         horizon=p.rc.eval.max_steps))
         evaluator = p.evaluator(eval_env, model_eval_env, task="forward" if transfer else None)
         phase = p.offline_phase(evaluator, lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
                                 "frames", model_env_metrics, env, transfer=transfer)
@@ -425,4 +434,5 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
                   snapshots=snapshots)
     setting = kind.build(parts)
     setting.parts = parts
+    setting.rules = parts.rules
     return setting

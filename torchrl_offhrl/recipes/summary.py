@@ -9,7 +9,7 @@ from pathlib import Path
 from ..scores import normalized_score
 from .runs import record_step
 
-__all__ = ["fmt_number", "format_summary", "run_summary"]
+__all__ = ["data_label", "fmt_number", "format_summary", "run_summary"]
 
 
 def fmt_number(x, spec: str = ".1f") -> str:
@@ -29,11 +29,38 @@ def format_summary(summary) -> str:
                 f"({'from scratch' if t['from_scratch'] else 'decoder ' + ('kept' if t['decoder'] == 'keep' else 'discarded')}): {before}"
                 f"after {summary['frames'] - t['switch_frame']} online frames on the {t['task']} task: return {f['return_mean']:.1f} ± "
                 f"{f['return_std']:.1f}; outputs in {summary['run_dir']}")
-    return (
-        f"{summary['algo']} on {summary['env_id']} ({summary['dataset']}), {summary.get('step', summary['frames'])} {summary.get('unit', 'frames')}: real return "
-        f"{f['return_mean']:.1f} ± {f['return_std']:.1f}, D4RL-normalised {fmt_number(f['normalized_d4rl'])} "
+    text = (
+        f"{summary['algo']} on {summary['env_id']} ({data_label(summary)}), {summary.get('step', summary['frames'])} {summary.get('unit', 'frames')}: "
+        f"real return {f['return_mean']:.1f} ± {f['return_std']:.1f}, D4RL-normalised {fmt_number(f['normalized_d4rl'])} "
         f"(behaviour data: {fmt_number(summary['behaviour_normalized_d4rl'])}); outputs in {summary['run_dir']}"
     )
+    sel, guard = summary.get("selected"), summary.get("guard")
+    if guard is not None and guard.get("fired") is None:
+        text += f"\nguard: off ({guard['reason']}); the last policy is returned"
+    elif guard is not None:
+        text += (f"\nguard: {'FIRED, the start policy is returned' if guard['fired'] else 'passed, the trained policy is returned'} "
+                 f"({guard['reason']})")
+    if sel is not None and (sel.get("step", sel.get("frames")) != summary.get("step", summary["frames"]) or guard is not None):
+        text += (f"\nreturned policy: {sel.get('frames', sel.get('step'))} {summary.get('unit', 'frames')} (selection.criterion={sel['criterion']}), "
+                 f"real return {sel['return_mean']:.1f}, D4RL-normalised {fmt_number(sel.get('normalized_d4rl'))} "
+                 "(the real-env score is reported, never used to choose)")
+    return text
+
+
+def data_label(summary: dict) -> str:
+    """The data a run used, by name: the file (or Minari id) it was given, else the generated level (``hopper-medium``).
+
+    >>> data_label({"dataset": "/data/my_robot.hdf5", "level": "medium", "env_id": "Hopper-v5"})
+    '/data/my_robot.hdf5'
+    >>> data_label({"dataset": "medium", "level": "medium", "env_id": "Hopper-v5"})
+    'hopper-medium'
+    """
+    spec = str(summary.get("dataset"))
+    if "/" in spec or Path(spec).suffix in (".hdf5", ".h5"):
+        return spec
+    level = summary.get("level") or spec
+    env = str(summary.get("env_id", "")).split("-")[0].lower()
+    return level if not env or level.startswith(env + "-") else f"{env}-{level}"
 
 
 def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimism, threshold, frames: int, updates: int,

@@ -46,7 +46,7 @@ from .plots import plot_training_metrics
 from .summary import run_summary
 from .rundir import RunDirectory
 from .schema import RunConfig
-from .selection import PolicySelector, horizon_warning
+from .selection import PolicySelector
 from .setting import build_setting
 
 TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
@@ -109,9 +109,12 @@ class PreparedRun:
         agent, unit = s.agent, s.unit
         run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
         run.unit = unit
-        run.selector = PolicySelector(rc.selection.criterion if s.selectable else "last", rc.selection.include_start)
-        if s.selectable and (why := horizon_warning(rc.selection.criterion, (cfg.get("model_env") or {}).get("horizon"), rc.eval.max_steps)):
-            warnings.warn(why, stacklevel=2)
+        criterion, guard = (rc.selection.criterion, rc.selection.guard) if s.selectable else ("last", False)
+        if (criterion == "model_gain_lcb" or guard) and not rc.eval.at_start:
+            warnings.warn(f"selection.criterion={criterion} / selection.guard={guard} compare the trained policies with the evaluation "
+                          "at step 0, which eval.at_start=false skips: the last policy is returned, unguarded", stacklevel=2)
+            criterion, guard = ("last" if criterion == "model_gain_lcb" else criterion), False
+        run.selector = PolicySelector(criterion, rc.selection.include_start, guard=guard)
         previous_summary = None
         resumed = run.resume(agent, s.device)
         if not resumed:  # a start from the dataset before training (e.g. MOReL's behaviour cloning); a resumed run has it in its weights
@@ -121,6 +124,11 @@ class PreparedRun:
         if resumed and (run.path / "summary.json").is_file():
             previous_summary = json.loads((run.path / "summary.json").read_text())
             (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
+        if s.rules is not None:  # the calibration report: what the offline rules chose, and why (text, JSON, figure)
+            run.write_json("calibration.json", s.rules.as_dict())
+            s.rules.plot(run.path / "calibration.png")
+            if progress:
+                print(s.rules.summary() + f"\n  (figure: {run.path / 'calibration.png'})", flush=True)
         run.write_json("config.json", {**cfg, "resolved_pessimism": s.pessimism, "threshold": s.threshold, "resolved_reward_scale": s.reward_scale,
                                        "model_dir": s.model_info["model_dir"], "data_hash": run.data_hash, "unit": unit})
         logger = run.logger(rc.logger.backend, **rc.logger.kwargs)
@@ -136,6 +144,12 @@ class PreparedRun:
             run.records[-1] = rec
             run.checkpoint(agent)
         selected = run.selector.selected
+        verdict = run.selector.verdict()  # the guard: the start policy instead, when no member shows a gain over it
+        if verdict is not None and verdict["fired"]:
+            start = run.selector.start
+            selected = {"index": start["index"], "step": 0, "score": verdict["gain_lcb"], "agent": start["agent"]}
+        if selected is not None and selected["agent"] is None and verdict is not None:  # the last policy, kept whole beside the guard's choice
+            selected = {**selected, "agent": agent.state_dict()}
         if selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
             with atomic_write(run.path / "selected.pt") as tmp:
                 torch.save({"agent": selected["agent"], "step": selected["step"], "criterion": run.selector.criterion,
@@ -158,7 +172,18 @@ class PreparedRun:
             summary.update({k: self.previous_summary[k] for k in TIMING_KEYS if k in self.previous_summary})
         if selected is not None:
             summary["selected"] = {**run.records[selected["index"]], "criterion": run.selector.criterion, "offline_score": selected["score"]}
+            for k in ("model_episode_returns", "model_episode_members"):
+                summary["selected"].pop(k, None)
+        if verdict is not None:
+            summary["guard"] = {**verdict, "returned": "start" if verdict["fired"] else "trained",
+                                "candidate_step": None if run.selector.selected is None else run.selector.selected["step"]}
+        elif s.selectable:  # a model-env run with the guard off (the default): say so, and what the user gets instead
+            summary["guard"] = {"fired": None, "gain_lcb": None, "returned": "trained",
+                                "reason": "selection.guard=false, the default: docs/results/offline_rules.md measured it firing on "
+                                          "every run, whatever the real score"}
         summary.update(s.summary_extras(run.records))
+        if s.rules is not None:
+            summary["calibration"] = s.rules.as_dict()
         run.write_json("summary.json", summary)
         plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=s.xlabel)
         s.close()

@@ -73,6 +73,9 @@ CONFIG = {"demo": "demo", "full": "offline_train"}
 UPDATES = ["train.total_updates=100000", "eval.every_updates=10000", "eval.sampled=true"]
 BUDGET = {"demo": ["train.total_frames=204800", "eval.every_frames=40960", "ensemble.fit.max_steps=20000", "cvae.fit.max_steps=20000", *UPDATES],
           "full": ["train.total_frames=204800", "eval.every_frames=40960", *UPDATES]}
+#: the settings every archived Table I run was made with (before the offline rules became the default, 2026-12-06): the
+#: paper preset's tables, and at the demo scale the demo's branched 100-step episodes; reruns resume those runs
+PRESET = {"demo": ["preset=paper", "model_env.horizon=100", "model_env.reset_states=any", "cvae.fit.lr=1e-3"], "full": ["preset=paper"]}
 ON_POLICY_MINIBATCH = {"demo": None, "full": 256}  # the demo's minibatch size (configs/demo.yaml sets it for every scale that extends it)
 # what a reader of a scale's report must know about how its seeds were used
 NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the config as it stands (`configs/demo.yaml`: 100-step model "
@@ -238,7 +241,7 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
 
     name = f"{algo}_{tag}" if tag else algo
     overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
-                 f"run_dir={run_dir(where, env, name, seed, dataset)}", *BUDGET[scale]]
+                 f"run_dir={run_dir(where, env, name, seed, dataset)}", *PRESET[scale], *BUDGET[scale]]
     cfg = compose(CONFIG[scale], overrides)
     if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
         overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
