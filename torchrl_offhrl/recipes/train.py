@@ -5,8 +5,10 @@ writes the same steps out as a script):
 
 1. config -> dataset (a file, a local Minari id, or a named level generated
    and cached on first use) -> cached dynamics ensemble and CVAE;
-2. ``TransformedEnv(PessimisticModelEnv, LatentActionTransform)`` with the
-   paper's per-dataset pessimism (``configs/env/*.yaml``);
+2. ``TransformedEnv(PessimisticModelEnv, LatentActionTransform)`` whose
+   settings the offline rules compute from the data and the fitted models
+   (:mod:`torchrl_offhrl.envs.rules`; printed as the calibration report;
+   ``preset=paper``: the paper's per-dataset tables);
 3. the agent registered under ``cfg.algo.name`` (:mod:`torchrl_offhrl.agents`)
    and a TorchRL collector on the model env;
 4. ``agent.update(batch)`` on every batch; every ``eval.every_frames``
@@ -179,8 +181,8 @@ class PreparedRun:
                                 "candidate_step": None if run.selector.selected is None else run.selector.selected["step"]}
         elif s.selectable:  # a model-env run with the guard off (the default): say so, and what the user gets instead
             summary["guard"] = {"fired": None, "gain_lcb": None, "returned": "trained",
-                                "reason": "selection.guard=false, the default: docs/results/offline_rules.md measured it firing on "
-                                          "every run, whatever the real score"}
+                                "reason": "selection.guard=false, the default: on the design runs of docs/results/offline_rules.md it "
+                                          "fired on every run, wrongly on most"}
         summary.update(s.summary_extras(run.records))
         if s.rules is not None:
             summary["calibration"] = s.rules.as_dict()
