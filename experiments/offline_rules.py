@@ -73,7 +73,7 @@ def rows(group: str) -> list[dict]:
         cand = max(trained, key=lambda e: paired_gain_lcb(e, start))  # model_gain_lcb's pick (ties: the earlier)
         lcb_cand, lcb_last = paired_gain_lcb(cand, start), paired_gain_lcb(trained[-1], start)
         out.append({
-            "run": path.parent.name, "algo": s["algo"], "data": f"{s['env_id'].split('-')[0].lower()}-{s['level']}",
+            "run": path.parent.name, "algo": path.parent.name.split("-")[0], "data": f"{s['env_id'].split('-')[0].lower()}-{s['level']}",
             "behaviour": s["behaviour_normalized_d4rl"], "start": _score(start), "last": _score(trained[-1]),
             "candidate": _score(cand), "candidate_frames": cand["frames"], "gain_lcb": lcb_cand, "fired": not lcb_cand > 0,
             "last_gain_lcb": lcb_last, "last_fired": not lcb_last > 0,
@@ -117,27 +117,29 @@ def summary_table(rs: list[dict]) -> list[str]:
     from torchrl_offhrl.recipes.report import fmt_iqm
     from torchrl_offhrl.stats import iqm_ci
 
-    lines = ["| data | runs | behaviour | start | **last policy: the default** | beats data and start | model_gain_lcb pick |",
-             "|---|---|---|---|---|---|---|"]
-    for data in sorted({r["data"] for r in rs}):
-        g = [r for r in rs if r["data"] == data]
+    lines = ["| algo | data | runs | behaviour | start | **last policy: the default** | beats data and start | model_gain_lcb pick |",
+             "|---|---|---|---|---|---|---|---|"]
+    for algo, data in sorted({(r["algo"], r["data"]) for r in rs}):
+        g = [r for r in rs if r["data"] == data and r["algo"] == algo]
 
         def cell(key):
             m, lo, hi = iqm_ci([r[key] for r in g])
             return fmt_iqm(m, (lo, hi), len(g))
 
         beats = sum(r["last"] > r["behaviour"] and r["last"] > r["start"] for r in g)
-        lines.append(f"| {data} | {len(g)} | {sum(r['behaviour'] for r in g) / len(g):.1f} | {cell('start')} | **{cell('last')}** | "
+        lines.append(f"| {algo} | {data} | {len(g)} | {sum(r['behaviour'] for r in g) / len(g):.1f} | {cell('start')} | **{cell('last')}** | "
                      f"{beats} of {len(g)} | {cell('candidate')} |")
         per_start = ", ".join(f"{r['start']:.1f}" for r in g)
         per_last = ", ".join(f"{r['last']:.1f}" for r in g)
-        lines.append(f"| | | | per seed: {per_start} | per seed: {per_last} | | |")
+        lines.append(f"| | | | | per seed: {per_start} | per seed: {per_last} | | |")
     return lines
 
 
 def table() -> str:
     groups = {"design": "Design datasets (the rules were designed on these; dataset seed 1, agent seeds 1-3: tuning seeds)",
-              "heldout": "Held-out datasets (not looked at until the rules were frozen; run once, reported as they came)"}
+              "heldout": "Held-out datasets (not looked at until the rules were frozen; run once, reported as they came)",
+              "options": ("The options question, first look: PPO and 1-option MOC on the same defaults and design data (dataset seed 1, "
+                          "agent seed 1; compare with MOC's seed-1 runs above). One seed: an indication, not a result")}
     text = [
         "# The offline rules and the guard (issue 70)",
         "",
@@ -190,7 +192,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
-    r.add_argument("--group", choices=("design", "heldout"), required=True)
+    r.add_argument("--group", choices=("design", "heldout", "options"), required=True)
     r.add_argument("--algos", nargs="+", default=["moc"])
     r.add_argument("--envs", nargs="+", default=["hopper"])
     r.add_argument("--levels", nargs="+", default=["medium"])
