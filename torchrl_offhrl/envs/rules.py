@@ -47,7 +47,7 @@ MIN_HORIZON, MAX_HORIZON = 5, 1000
 
 
 @torch.no_grad()
-def threshold_rule(ensemble, held_out, kind: str = "variance") -> tuple[float, dict]:
+def threshold_rule(ensemble, held_out, kind: str = "variance", disc: torch.Tensor | None = None) -> tuple[float, dict]:
     """The pessimism threshold: the largest discrepancy of the members on held-out transitions.
 
     Reasoning. Every held-out pair is a real transition the members never
@@ -60,13 +60,16 @@ def threshold_rule(ensemble, held_out, kind: str = "variance") -> tuple[float, d
     hopper-medium-expert the paper's ``0.08 x max`` is the data's 99th
     percentile and ended every untrained model episode after ~110 steps.
 
+    ``disc``: the held-out pairs' discrepancies when the caller has them
+    (:func:`~torchrl_offhrl.envs.calibration.dataset_discrepancy`), else computed here.
+
     Returns ``(threshold, info)``; ``info`` has the held-out and training
     discrepancies' quantiles, and how the ensemble mean's held-out error
     compares with the discrepancy (``error_over_discrepancy``: the median of
     their ratio, in the discrepancy's units; about 1 when the members'
     disagreement measures their error).
     """
-    disc = dataset_discrepancy(ensemble, held_out, kind).double()
+    disc = (dataset_discrepancy(ensemble, held_out, kind) if disc is None else disc).double()
     if disc.numel() == 0:
         raise ValueError("threshold_rule: the held-out split is empty; the rules need held-out episodes (val_ratio > 0)")
     threshold = float(disc.max())
@@ -124,13 +127,10 @@ def _segments(data, length: int, max_starts: int, seed: int) -> tuple[torch.Tens
     """Start indices of held-out windows and how many logged steps follow each one inside its episode (``<= length``)."""
     ep = data.data.get("episode")
     n = ep.shape[0]
-    starts = data.episode_starts()
-    first = torch.cummax(torch.where(starts, torch.arange(n), torch.zeros(n, dtype=torch.long)), 0).values
     ends = torch.ones(n, dtype=torch.bool)
     ends[:-1] = ep[1:] != ep[:-1]
     last = torch.flip(torch.cummin(torch.flip(torch.where(ends, torch.arange(n), torch.full((n,), n, dtype=torch.long)), (0,)), 0).values, (0,))
     remaining = (last - torch.arange(n) + 1).clamp(max=length)  # transitions from i to the end of its episode
-    del first
     g = torch.Generator().manual_seed(seed)
     idx = torch.randperm(n, generator=g)[:max_starts]
     return idx, remaining[idx]
@@ -209,7 +209,7 @@ def horizon_rule(ensemble, held_out, episode_length: float, tolerance: float = H
             "error_at": {str(h): (None if not math.isfinite(float(curve[h - 1])) else round(float(curve[h - 1]), 4))
                          for h in (1, 5, 10, 25, 50, 100, 200) if h <= curve.numel()},
             "curve": [None if not math.isfinite(float(v)) else float(v) for v in curve]}
-    return (int(max(horizon, round(episode_length))) if full else horizon), ("initial" if full else "any"), info
+    return horizon, ("initial" if full else "any"), info
 
 
 @torch.no_grad()
@@ -371,7 +371,8 @@ def offline_rules(ensemble, data, cvae=None, val_ratio: float = 0.1, split_seed:
         True
     """
     train, held_out = data.split(val_ratio, seed=split_seed)
-    threshold, t_info = threshold_rule(ensemble, held_out, discrepancy)
+    held_disc = dataset_discrepancy(ensemble, held_out, discrepancy)
+    threshold, t_info = threshold_rule(ensemble, held_out, discrepancy, disc=held_disc)
     penalty, p_info = penalty_rule(data, gamma)
     horizon, reset_states, h_info = horizon_rule(ensemble, held_out, median_episode_length(data), tolerance=tolerance, seed=split_seed)
     info = {"threshold": t_info, "penalty": p_info, "horizon": h_info}
@@ -379,5 +380,5 @@ def offline_rules(ensemble, data, cvae=None, val_ratio: float = 0.1, split_seed:
     if cvae is not None:
         bound, info["latent_bound"] = latent_bound_rule(cvae, held_out, seed=split_seed)
     return OfflineRules(threshold=threshold, penalty=penalty, horizon=horizon, reset_states=reset_states, latent_bound=bound,
-                        discrepancy=discrepancy, info=info, held_out_discrepancy=dataset_discrepancy(ensemble, held_out, discrepancy),
+                        discrepancy=discrepancy, info=info, held_out_discrepancy=held_disc,
                         train_discrepancy=dataset_discrepancy(ensemble, train, discrepancy))

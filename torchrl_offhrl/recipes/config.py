@@ -19,7 +19,7 @@ from ..utils import to_plain
 from .schema import section_defaults
 
 __all__ = [
-    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "model_config", "model_env_config",
+    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "fit_as_before", "model_config", "model_env_config",
     "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "transfer_config", "transfer_label",
 ]
 
@@ -321,22 +321,35 @@ LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01
                                                  "selection": {"guard": False}}
 
 
+def fit_as_before(model_cfg: Mapping) -> dict:
+    """A model's config (``ensemble`` or ``cvae``) with ``fit.rel_tol: 0`` (the convergence rule off) left out: the fit as it was
+    before the key existed, so that its cache entries and checkpoints stay the same.
+
+    >>> fit_as_before({"hidden_sizes": [8], "fit": {"lr": 0.001, "rel_tol": 0.0}})
+    {'hidden_sizes': [8], 'fit': {'lr': 0.001}}
+    """
+    fit = model_cfg.get("fit")
+    if isinstance(fit, Mapping) and fit.get("rel_tol", None) == 0.0:
+        return {**model_cfg, "fit": {k: v for k, v in fit.items() if k != "rel_tol"}}
+    return dict(model_cfg)
+
+
 def config_fingerprint(cfg: Mapping) -> str:
     """The config minus :data:`RESUMABLE_KEYS`, as canonical JSON: a checkpoint resumes only under the same fingerprint."""
     kept = {k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS}
     if isinstance(kept.get("env"), Mapping) and "mopo" in kept["env"]:
         # a lookup table (MOPO's settings per dataset): what a run uses of it is in its model_env, resolved
         kept["env"] = {k: v for k, v in kept["env"].items() if k != "mopo"}
-    if pessimism_table(cfg) is not None:
+    table = pessimism_table(cfg)
+    if table is not None:
         # the pessimism table a run reads (the paper preset's, or the env group's before it moved there): compared as the
         # table of this run's env, wherever the config holds it
-        kept["env"] = {**{k: v for k, v in (kept.get("env") or {}).items() if k != "pessimism"}, "pessimism": pessimism_table(cfg)}
+        kept["env"] = {**{k: v for k, v in (kept.get("env") or {}).items() if k != "pessimism"}, "pessimism": table}
         kept.pop("paper_pessimism", None)
     kept.pop("preset", None)
-    for part in ("ensemble", "cvae"):  # the convergence rule off (0) is the fits as they were before it existed
-        fit = (kept.get(part) or {}).get("fit")
-        if isinstance(fit, Mapping) and fit.get("rel_tol", None) == 0.0:
-            kept[part] = {**kept[part], "fit": {k: v for k, v in fit.items() if k != "rel_tol"}}
+    for part in ("ensemble", "cvae"):
+        if isinstance(kept.get(part), Mapping):
+            kept[part] = fit_as_before(kept[part])
     if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}

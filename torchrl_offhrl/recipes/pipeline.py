@@ -22,6 +22,7 @@ from ..registry import task_of
 from ..envs import DEFAULT_LATENT_BOUND, AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, threads, to_plain
+from .config import fit_as_before
 
 __all__ = [
     "GaussianLatentPolicy",
@@ -128,12 +129,9 @@ def fit_or_load_models(
 
 def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with_cvae: bool) -> tuple:
     device = torch.device(cfg.get("device", "cpu"))
-    ecfg, ccfg = to_plain(cfg["ensemble"]), to_plain(cfg["cvae"])
+    ecfg, ccfg = fit_as_before(to_plain(cfg["ensemble"])), fit_as_before(to_plain(cfg["cvae"]))  # rel_tol 0: the cache entries as before
     if ecfg.get("reward_hidden_sizes", "absent") is None:  # the default (the transition widths): the cache key of configs without the key
         ecfg.pop("reward_hidden_sizes")
-    for part in (ecfg, ccfg):  # the convergence rule off: the fit as it was before the key existed (the same cache entries)
-        if part.get("fit", {}).get("rel_tol", None) == 0.0:
-            part["fit"] = {k: v for k, v in part["fit"].items() if k != "rel_tol"}
     ident = {
         "data": data.content_hash(),  # the content, not the path: a file replaced by other data gets new models
         "ensemble": ecfg,

@@ -114,6 +114,11 @@ def paired_gain_lcb(record: dict, start: dict, z: float = GAIN_Z) -> float | Non
     return min(bounds) if bounds else None
 
 
+def _episodes(record: dict) -> dict:
+    """The part of an evaluation record :func:`paired_gain_lcb` pairs: every model episode's return and member."""
+    return {k: record.get(k) for k in ("model_episode_returns", "model_episode_members")}
+
+
 class PolicySelector:
     """Keeps the agent state of the best evaluation by an offline criterion, and guards the return against the start.
 
@@ -151,7 +156,6 @@ class PolicySelector:
         self.selected: dict | None = None
         self.start: dict | None = None  # the step-0 evaluation: its record's model episodes and (guard) its agent state
         self._count = 0
-        self._last_record: dict | None = None
 
     @property
     def paired(self) -> bool:
@@ -172,12 +176,9 @@ class PolicySelector:
         index = self._count
         self._count += 1
         if step == 0 and self.paired and self.start is None:
-            self.start = {"index": index, "record": {k: record.get(k) for k in ("model_episode_returns", "model_episode_members")},
-                          "agent": copy.deepcopy(agent.state_dict()) if self.guard else None}
+            self.start = {"index": index, "record": _episodes(record), "agent": copy.deepcopy(agent.state_dict()) if self.guard else None}
         if step == 0 and not self.include_start:
             return False
-        if self.key is None:
-            self._last_record = {k: record.get(k) for k in ("model_episode_returns", "model_episode_members")}
         s = self.score(record)
         if s is None:
             if self.key is not None and self.selected is None and step > 0:
@@ -191,9 +192,8 @@ class PolicySelector:
         # the last policy is the run's own checkpoint: no copy kept
         state = None if self.key is None else copy.deepcopy(agent.state_dict())
         self.selected = {"index": index, "step": int(step), "score": s, "agent": state}
-        if self.guard and self.criterion != "model_gain_lcb":
-            self.selected["gain_lcb"] = None if self.start is None else paired_gain_lcb(
-                {k: record.get(k) for k in ("model_episode_returns", "model_episode_members")}, self.start["record"])
+        if self.guard:  # what the guard pairs with the start's episodes
+            self.selected["episodes"] = _episodes(record)
         return True
 
     def verdict(self) -> dict | None:
@@ -210,9 +210,7 @@ class PolicySelector:
                                                                  "the selected policy is returned unguarded"}
         if self.selected is None:
             return {"fired": True, "gain_lcb": None, "reason": "no trained policy was evaluated"}
-        lcb = self.selected["score"] if self.criterion == "model_gain_lcb" else self.selected.get("gain_lcb")
-        if self.key is None and self._last_record is not None:
-            lcb = paired_gain_lcb(self._last_record, self.start["record"])
+        lcb = paired_gain_lcb(self.selected["episodes"], self.start["record"])
         if lcb is None:
             return {"fired": True, "gain_lcb": None, "reason": "the evaluations lack paired model episodes (eval.model_env=false?)"}
         fired = not lcb > 0
@@ -223,7 +221,7 @@ class PolicySelector:
 
     def state_dict(self) -> dict:
         return {"criterion": self.criterion, "include_start": self.include_start, "count": self._count, "selected": self.selected,
-                "guard": self.guard, "start": self.start, "last_record": self._last_record}
+                "guard": self.guard, "start": self.start}
 
     def load_state_dict(self, state: dict | None) -> None:
         if not state:
@@ -232,4 +230,4 @@ class PolicySelector:
             raise ValueError(f"the checkpoint selected its policy by {state.get('criterion')!r}, this run by {self.criterion!r}: "
                              "resume with the same selection.criterion")
         self._count, self.selected = int(state["count"]), state["selected"]
-        self.start, self._last_record = state.get("start"), state.get("last_record")
+        self.start = state.get("start")

@@ -70,8 +70,12 @@ class Setting:
     device: torch.device
     closers: list = field(default_factory=list)  # the real envs to close at the end
     parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
-    rules: object = None        # the OfflineRules that set the P-MDP (envs.rules; None: none ran), the run's calibration report
     eval_env_for: Callable | None = None  # copies -> one real env holding `copies` evaluations' envs, the agent's transforms appended
+
+    @property
+    def rules(self):
+        """The OfflineRules that set the P-MDP (envs.rules; None: none ran): the run's calibration report."""
+        return None if self.parts is None else self.parts.rules
 
     def close(self) -> None:
         for e in self.closers:
@@ -434,5 +438,4 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
                   snapshots=snapshots)
     setting = kind.build(parts)
     setting.parts = parts
-    setting.rules = parts.rules
     return setting
