@@ -194,7 +194,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
-    r.add_argument("--group", choices=("design", "heldout", "options"), required=True)
+    r.add_argument("--group", choices=("design", "heldout", "options", "origin", "origin_heldout"), required=True)
     r.add_argument("--algos", nargs="+", default=["moc"])
     r.add_argument("--envs", nargs="+", default=["hopper"])
     r.add_argument("--levels", nargs="+", default=["medium"])

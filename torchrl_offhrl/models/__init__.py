@@ -1,6 +1,6 @@
 """Learned models: vectorised ensembles, the dynamics ensemble, the CVAE and their trainer."""
 from ._common import atomic_torch_save
-from .cvae import ConditionalVAE, CVAEDecoder
+from .cvae import ConditionalVAE, CVAEDecoder, LatentOrigin
 from .dynamics import DISCREPANCIES, DynamicsEnsemble
 from .ensemble import EnsembleLinear, EnsembleMLP
 from .trainer import SupervisedTrainer
@@ -12,6 +12,7 @@ __all__ = [
     "DynamicsEnsemble",
     "EnsembleLinear",
     "EnsembleMLP",
+    "LatentOrigin",
     "SupervisedTrainer",
     "atomic_torch_save",
 ]

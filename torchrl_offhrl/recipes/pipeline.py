@@ -20,13 +20,15 @@ from ..agents import action_box
 from ..data import OfflineDataset
 from ..registry import task_of
 from ..envs import DEFAULT_LATENT_BOUND, AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
-from ..models import ConditionalVAE, DynamicsEnsemble
+from ..models import ConditionalVAE, DynamicsEnsemble, LatentOrigin
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, threads, to_plain
 from .config import fit_as_before
 
 __all__ = [
     "GaussianLatentPolicy",
+    "apply_latent_origin",
     "fit_or_load_models",
+    "fit_or_load_origin",
     "make_model_env",
     "make_real_env",
 ]
@@ -183,6 +185,49 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
         info["cvae_history"] = cvae.training_history
     _record_source(folder / "ident.json", ident, source)
     return ensemble.to(device), (cvae.to(device) if cvae is not None else None), info
+
+
+def fit_or_load_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE, model_dir, progress: bool = True):
+    """The :class:`~torchrl_offhrl.models.LatentOrigin` of ``cvae`` on ``data`` (``latent_origin.pt`` beside the CVAE in the model cache).
+
+    Fitted when absent, by regression on the CVAE posterior's means, with the
+    CVAE's widths, fit settings (to convergence) and episode split; its folder
+    is the CVAE's own (``model_dir``: the CVAE and the data decide it).
+    """
+    path = Path(model_dir) / "latent_origin.pt"
+    origin = _load_cached(LatentOrigin, path)
+    if origin is not None:
+        return origin.to(cvae.decoder.obs_mean.device)
+    ccfg = fit_as_before(to_plain(cfg["cvae"]))
+    with threads(cfg.get("fit_threads")):
+        origin = cvae.fit_origin(data, hidden_sizes=ccfg["hidden_sizes"], val_ratio=cfg["dataset"].get("val_ratio", 0.1), split_seed=cfg["seed"],
+                                 progress=progress, seed=cfg["seed"], **ccfg["fit"])
+    origin.save(path)
+    return origin
+
+
+def apply_latent_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE, model_dir, progress: bool = True):
+    """Set ``cvae``'s decoder to decode latents relative to ``cfg["env"]["latent_origin"]`` (``model_config`` with its ``env``).
+
+    ``behaviour`` (the default): the :class:`~torchrl_offhrl.models.LatentOrigin`
+    (:func:`fit_or_load_origin`), shifted latents clamped to the env's
+    ``latent_bound``: an agent's latent 0 decodes to the data's action at
+    each state, so an untrained agent starts as a behaviour cloner.
+    ``zero`` (the paper): latents are decoded as they are. Returns the origin
+    (None for ``zero``).
+    """
+    env = cfg.get("env") or {}
+    mode = env.get("latent_origin", "zero")
+    if mode == "zero":
+        cvae.decoder.set_origin(None)
+        return None
+    if mode != "behaviour":
+        raise ValueError(f"model_env.latent_origin must be 'behaviour' or 'zero', got {mode!r}")
+    if model_dir is None:
+        raise ValueError("model_env.latent_origin=behaviour is fitted beside the CVAE in the model cache: the run's model folder is unknown")
+    origin = fit_or_load_origin(cfg, data, cvae, model_dir, progress=progress)
+    cvae.decoder.set_origin(origin, float(env.get("latent_bound", DEFAULT_LATENT_BOUND)))
+    return origin
 
 
 def make_model_env(

@@ -269,6 +269,7 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "model_env.member_mode": _choice("episode", "step", "mean"),
     "model_env.reset_states": _choice("initial", "any", "auto"),
     "model_env.latent_bound": ("a number > 0 or 'auto'", lambda v: v == "auto" or _num(0, lo_open=True)[1](v)),
+    "model_env.latent_origin": _choice("behaviour", "zero"),
     "model_env.reward_penalty": _num(0),
     "model_env.reward_scale": ("a positive number or 'auto'", lambda v: v == "auto" or (_is_num(v) and v > 0)),
     "torch_threads": _int(1, optional=True),

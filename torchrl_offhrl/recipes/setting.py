@@ -31,7 +31,7 @@ from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_
                      resolve_reward_scale, transfer_config)
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
-from .pipeline import fit_or_load_models, make_model_env, make_real_env
+from .pipeline import apply_latent_origin, fit_or_load_models, make_model_env, make_real_env
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
 from .schema import RunConfig, TransferConfig
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
@@ -168,6 +168,7 @@ class Parts:
     t_models: float
     snapshots: set[int]
     rules: object = None        # the OfflineRules of the model env, once a setting computed them
+    progress: bool = True       # progress bars on long work (fits)
 
     @property
     def env_id(self) -> str:
@@ -266,6 +267,8 @@ class ModelEnvSetting:
         p.rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
         p.pcfg["env"], pess = model_env_config(cfg, p.level, p.data, rules=p.rules)
         cfg["resolved_model_env"] = {k: p.pcfg["env"][k] for k in RULE_KEYS if k in p.pcfg["env"]}  # the run's config.json keeps them
+        if cvae is not None:  # model_env.latent_origin: where an agent's latent 0 decodes to (behaviour: the data's action at each state)
+            apply_latent_origin(p.pcfg, p.data, cvae, p.model_info.get("model_dir"), progress=p.progress)
         env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.collector.num_envs, latent=latent)
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
@@ -435,7 +438,7 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
     torch.manual_seed(rc.seed)  # the agent's initial weights do not depend on whether the models were fitted or loaded
     parts = Parts(cfg=cfg, rc=rc, run_path=Path(run_path), device=torch.device(cfg.get("device", "cpu")), stacking=stacking, data=data, n_goals=n_goals,
                   level=data.metadata.get("level"), pcfg=pcfg, ensemble=ensemble, cvae=cvae, model_info=model_info, t_data=t_data, t_models=t_models,
-                  snapshots=snapshots)
+                  snapshots=snapshots, progress=progress)
     setting = kind.build(parts)
     setting.parts = parts
     return setting

@@ -181,8 +181,7 @@ class PreparedRun:
                                 "candidate_step": None if run.selector.selected is None else run.selector.selected["step"]}
         elif s.selectable:  # a model-env run with the guard off (the default): say so, and what the user gets instead
             summary["guard"] = {"fired": None, "gain_lcb": None, "returned": "trained",
-                                "reason": "selection.guard=false, the default: on the design runs of docs/results/offline_rules.md it "
-                                          "fired on every run, wrongly on most"}
+                                "reason": "selection.guard=false: the last policy is returned unguarded"}
         summary.update(s.summary_extras(run.records))
         if s.rules is not None:
             summary["calibration"] = s.rules.as_dict()

@@ -1,0 +1,107 @@
+"""The latent origin (model_env.latent_origin=behaviour): an agent's latent 0 decodes to the data's action at each state."""
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_offhrl.models import ConditionalVAE, CVAEDecoder, LatentOrigin
+
+
+def _state_dependent_data(n=4000, seed=0):
+    """Actions a deterministic function of the state (one behaviour policy)."""
+    from torchrl_offhrl.data import OfflineDataset
+
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.rand(n, 2, generator=g) * 2 - 1
+    act = torch.tanh(torch.stack([obs[:, 0] + obs[:, 1], obs[:, 0] - obs[:, 1]], -1)) * 0.8
+    td = TensorDict(
+        {"observation": obs, "action": act, "next": {"observation": obs, "reward": torch.zeros(n, 1),
+         "terminated": torch.zeros(n, 1, dtype=torch.bool), "truncated": (torch.arange(n) % 20 == 19)[:, None]}},
+        batch_size=[n],
+    )
+    return OfflineDataset(td, action_bounds=(-torch.ones(2), torch.ones(2)))
+
+
+class _Const(LatentOrigin):
+    """An origin that puts every state at the same latent (hand-computable)."""
+
+    def __init__(self, value, condition_dim=2, latent_dim=2):
+        super().__init__(condition_dim, latent_dim, hidden_sizes=(4,))
+        self.value = torch.as_tensor(value, dtype=torch.float32)
+
+    def forward(self, condition):
+        return self.value.expand(*condition.shape[:-1], self.latent_dim)
+
+
+def test_the_decoder_shifts_latents_by_the_origin_and_clamps_the_sum_to_the_box():
+    torch.manual_seed(0)
+    dec = CVAEDecoder(observation_dim=2, action_dim=2, latent_dim=2, hidden_sizes=(8,))
+    obs, z = torch.randn(5, 2), torch.tensor([[0.5, -0.25]]).expand(5, 2)
+    plain = dec(obs, torch.tensor([[1.0, -0.75]]).expand(5, 2))
+    dec.set_origin(_Const([0.5, -0.5]), bound=2.0)
+    assert torch.allclose(dec(obs, z), plain)                      # decoder(s, origin + z)
+    assert torch.allclose(dec(obs, torch.zeros(5, 2)), dec.set_origin(None)(obs, torch.tensor([[0.5, -0.5]]).expand(5, 2)))
+    dec.set_origin(_Const([1.5, -1.5]), bound=2.0)                 # 1.5 + 1.0 = 2.5 -> 2.0; -1.5 - 1.0 -> -2.0
+    assert torch.allclose(dec(obs, torch.tensor([[1.0, -1.0]]).expand(5, 2)), dec.set_origin(None)(obs, torch.tensor([[2.0, -2.0]]).expand(5, 2)))
+
+
+def test_the_origin_is_not_part_of_the_saved_cvae(tmp_path, toy_data, fitted_cvae):
+    keys = set(fitted_cvae.state_dict())
+    origin = fitted_cvae.fit_origin(toy_data, hidden_sizes=(16,), max_epochs=2, progress=False)
+    fitted_cvae.decoder.set_origin(origin, 2.0)
+    try:
+        assert set(fitted_cvae.state_dict()) == keys and origin not in list(fitted_cvae.modules())
+        back = ConditionalVAE.load(fitted_cvae.save(tmp_path / "cvae.pt"))
+        assert back.decoder.origin is None
+        with pytest.raises(ValueError, match="conditions on"):
+            fitted_cvae.decoder.set_origin(LatentOrigin(7, fitted_cvae.latent_dim, (4,)))
+    finally:
+        fitted_cvae.decoder.set_origin(None)
+
+
+def test_the_origin_regresses_the_posterior_means_it_is_given():
+    """A known target: the posterior means a linear function of the conditioning input."""
+    from torchrl_offhrl.data import OfflineDataset
+
+    ds = _state_dependent_data(n=2000)
+    torch.manual_seed(0)
+    cond = ds.data["observation"]
+    target = cond @ torch.tensor([[1.0, -2.0], [0.5, 0.0]]) + torch.tensor([0.25, -0.5])
+    td = ds.data.clone(False)
+    td.set("latent_condition", cond)
+    td.set("latent_target", target)
+    origin = LatentOrigin(2, 2, (32,)).fit(OfflineDataset(td, action_bounds=(ds.action_low, ds.action_high)), lr=1e-2, max_epochs=40,
+                                            progress=False, seed=0)
+    with torch.no_grad():
+        assert (origin(cond) - target).abs().mean() < 0.05
+
+
+def test_apply_latent_origin_fits_once_caches_beside_the_cvae_and_zero_restores_the_decoder(tmp_path, toy_data, fitted_cvae):
+    from torchrl_offhrl.recipes.pipeline import apply_latent_origin
+
+    cfg = {"seed": 0, "dataset": {"val_ratio": 0.1}, "cvae": {"hidden_sizes": [16], "fit": {"lr": 1e-3, "max_epochs": 2}},
+           "env": {"latent_origin": "behaviour", "latent_bound": 2.0}}
+    obs = toy_data[:8]["observation"]
+    try:
+        first = apply_latent_origin(cfg, toy_data, fitted_cvae, tmp_path, progress=False)
+        assert (tmp_path / "latent_origin.pt").is_file() and fitted_cvae.decoder.origin is first
+        a = fitted_cvae.decoder(obs, torch.zeros(8, fitted_cvae.latent_dim))
+        second = apply_latent_origin(cfg, None, fitted_cvae, tmp_path, progress=False)  # loaded: no data needed
+        assert second is not first and torch.equal(fitted_cvae.decoder(obs, torch.zeros(8, fitted_cvae.latent_dim)), a)
+        assert apply_latent_origin({**cfg, "env": {"latent_origin": "zero"}}, toy_data, fitted_cvae, tmp_path) is None
+        assert fitted_cvae.decoder.origin is None
+        with pytest.raises(ValueError, match="behaviour' or 'zero'"):
+            apply_latent_origin({**cfg, "env": {"latent_origin": "mean"}}, toy_data, fitted_cvae, tmp_path)
+    finally:
+        fitted_cvae.decoder.set_origin(None)
+
+
+def test_the_default_uses_the_behaviour_origin_and_the_paper_preset_the_prior_mean():
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.schema import validate_config
+    from torchrl_offhrl.utils import to_plain
+
+    assert to_plain(compose("offline_train", ["env=hopper"]))["model_env"]["latent_origin"] == "behaviour"
+    assert to_plain(compose("offline_train", ["env=hopper", "preset=paper"]))["model_env"]["latent_origin"] == "zero"
+    assert to_plain(compose("offline_train", ["env=blockstack2"]))["model_env"]["latent_origin"] == "zero"
+    with pytest.raises(ValueError, match="latent_origin"):
+        validate_config(to_plain(compose("offline_train", ["env=hopper", "model_env.latent_origin=mean"])))
