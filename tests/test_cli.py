@@ -116,7 +116,12 @@ def test_demo_tiny(cache, tmp_path, capsys):
     assert "behaviour data (hopper-medium)" in out and "MOC agent returned (" in out and "400 transitions of hopper-medium" in out
     assert "MOC agent before training" in out
     # the demo says how its returned policy was chosen, and prints its calibration report
-    assert "(selection.criterion=last: the last policy)" in out and "Guard: off" in out
+    assert "(selection.criterion=last: the last policy)" in out and ("Guard: FIRED" in out or "Guard: passed" in out)
+    assert "starts as a behaviour cloner of the data" in out  # the latent origin, the default
+    summary = json.loads((tmp_path / "moc-hopper-medium-seed0" / "summary.json").read_text())
+    # the guard's verdict and what it returned agree: the start (step 0) when it fired, the last policy when it passed
+    assert summary["guard"]["returned"] == ("start" if summary["guard"]["fired"] else "trained")
+    assert (summary["selected"]["frames"] == 0) == summary["guard"]["fired"]
     assert "calibration report (offline rules" in out and "pessimism threshold" in out and "latent box" in out
     (run,) = tmp_path.glob("moc-hopper-medium-seed0")
     assert (run / "calibration.png").is_file() and json.loads((run / "calibration.json").read_text())["rules"] == "auto"

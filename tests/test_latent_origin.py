@@ -40,7 +40,10 @@ def test_the_decoder_shifts_latents_by_the_origin_and_clamps_the_sum_to_the_box(
     dec.set_origin(_Const([0.5, -0.5]), bound=2.0)
     assert torch.allclose(dec(obs, z), plain)                      # decoder(s, origin + z)
     assert torch.allclose(dec(obs, torch.zeros(5, 2)), dec.set_origin(None)(obs, torch.tensor([[0.5, -0.5]]).expand(5, 2)))
-    dec.set_origin(_Const([1.5, -1.5]), bound=2.0)                 # 1.5 + 1.0 = 2.5 -> 2.0; -1.5 - 1.0 -> -2.0
+    learned = LatentOrigin(2, 2, (4,))
+    dec.set_origin(learned, bound=2.0).double()                    # moved with the decoder, though not a submodule
+    assert learned.net[0].weight.dtype == torch.float64 and dec.origin is learned
+    dec.float().set_origin(_Const([1.5, -1.5]), bound=2.0)         # 1.5 + 1.0 = 2.5 -> 2.0; -1.5 - 1.0 -> -2.0
     assert torch.allclose(dec(obs, torch.tensor([[1.0, -1.0]]).expand(5, 2)), dec.set_origin(None)(obs, torch.tensor([[2.0, -2.0]]).expand(5, 2)))
 
 
@@ -105,3 +108,42 @@ def test_the_default_uses_the_behaviour_origin_and_the_paper_preset_the_prior_me
     assert to_plain(compose("offline_train", ["env=blockstack2"]))["model_env"]["latent_origin"] == "zero"
     with pytest.raises(ValueError, match="latent_origin"):
         validate_config(to_plain(compose("offline_train", ["env=hopper", "model_env.latent_origin=mean"])))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_the_origin_follows_the_decoder_to_cuda(toy_data, fitted_cvae):
+    origin = fitted_cvae.fit_origin(toy_data, hidden_sizes=(16,), max_epochs=2, progress=False)
+    dec = fitted_cvae.decoder
+    try:
+        dec.set_origin(origin, 2.0)
+        cpu = dec(toy_data[:4]["observation"], torch.zeros(4, fitted_cvae.latent_dim))
+        dec.cuda()
+        gpu = dec(toy_data[:4]["observation"].cuda(), torch.zeros(4, fitted_cvae.latent_dim, device="cuda"))
+        assert origin.net[0].weight.is_cuda and torch.allclose(gpu.cpu(), cpu, atol=1e-5)
+    finally:
+        dec.cpu().set_origin(None)
+
+
+def test_the_shipped_ppo_starts_at_the_latent_origin_as_moc_does():
+    """algo.head_gain=0.01 (ppo.yaml): the untrained actor's deterministic latent is ~0, which the behaviour origin decodes to
+    the data's action; TorchRL's initialisation (1.0) starts it O(1) away, a random policy in the decoder's box."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.data import make_toy_dataset
+    from torchrl_offhrl.models import DynamicsEnsemble
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    d = make_toy_dataset(num_episodes=4, episode_length=10)
+    env = make_model_env({"env": {"threshold": 1.0}}, DynamicsEnsemble.for_dataset(d, num_models=2, hidden_sizes=(8,)),
+                         ConditionalVAE.for_dataset(d, hidden_sizes=(8,)), d, batch_size=64)
+    td = env.reset()
+    spread = {}
+    for gain in (0.01, 1.0):
+        torch.manual_seed(0)
+        agent = make_agent("ppo", env, hidden_sizes=[64, 64], head_gain=gain)
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            spread[gain] = float(agent.eval_policy(td.clone())["latent_action"].abs().max())
+    assert spread[0.01] < 0.05 < spread[1.0], spread
+    with pytest.raises(ValueError, match="head_gain"):
+        make_agent("ppo", env, hidden_sizes=[8], head_gain=0.0)

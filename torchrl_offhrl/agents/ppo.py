@@ -104,6 +104,13 @@ class PPOAgent(OnPolicyAgent):
     this library's stand-in for MOReL's natural policy gradient, whose step
     is also bounded in KL).
 
+    ``head_gain`` (1.0: the initialisation TorchRL's PPO actor has) scales
+    the actor's last layer at initialisation (its bias zeroed): at 0.01 (the
+    shipped config, as MOC's ``intra_head_gain``) the untrained actor's means
+    sit at the latent box's centre, which the latent origin
+    (``model_env.latent_origin=behaviour``) decodes to the data's action: the
+    agent starts as a behaviour cloner.
+
     ``bc_init_steps`` (0: off): before training from scratch
     (:meth:`pretrain`), that many Adam steps of behaviour cloning (TorchRL's
     :class:`~torchrl.objectives.BCLoss`: the actor's negative log-likelihood
@@ -142,15 +149,21 @@ class PPOAgent(OnPolicyAgent):
         bc_init_steps: int = 0,
         bc_init_lr: float = 1e-3,
         bc_init_batch_size: int = 256,
+        head_gain: float = 1.0,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         obs_dim = env.observation_spec["observation"].shape[-1]
         act_dim, low, high = action_box(env, action_key)
         hidden = list(hidden_sizes)
-        net = nn.Sequential(
-            NormalizedMLP(obs_dim, 0, act_dim, hidden, activation, obs_loc, obs_scale),
-            AddStateIndependentNormalScale(act_dim, scale_lb=1e-4),
-        )
+        if not float(head_gain) > 0:
+            raise ValueError(f"algo.head_gain must be > 0 (the scale of the actor's last layer at initialisation), got {head_gain}")
+        body = NormalizedMLP(obs_dim, 0, act_dim, hidden, activation, obs_loc, obs_scale)
+        if float(head_gain) != 1.0:  # the untrained actor's means near the box's centre: the latent origin (MOC's intra_head_gain)
+            last = [m for m in body.modules() if isinstance(m, nn.Linear)][-1]
+            with torch.no_grad():
+                last.weight.mul_(float(head_gain))
+                last.bias.zero_()
+        net = nn.Sequential(body, AddStateIndependentNormalScale(act_dim, scale_lb=1e-4))
         self.policy = tanh_gaussian_actor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]), low, high, action_key)
         critic = ValueOperator(NormalizedMLP(obs_dim, 0, 1, hidden, activation, obs_loc, obs_scale), in_keys=["observation"])
         if loss_type not in ("clip", "kl"):

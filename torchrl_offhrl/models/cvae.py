@@ -57,6 +57,13 @@ class CVAEDecoder(nn.Module):
         """The :class:`LatentOrigin` latents are decoded relative to (None: the prior's mean, 0)."""
         return self._origin[0] if self._origin else None
 
+    def _apply(self, fn, *args, **kwargs):
+        # .to() / .cuda() / .double() reach the origin too, though it is no submodule
+        out = super()._apply(fn, *args, **kwargs)
+        if self._origin:
+            self._origin[0]._apply(fn, *args, **kwargs)
+        return out
+
     def set_origin(self, origin: "LatentOrigin | None", bound: float | None = None) -> "CVAEDecoder":
         """Decode every latent ``z`` as ``clamp(origin(s) + z, -bound, bound)``: ``z = 0`` is then the data's own latent at ``s``.
 

@@ -53,6 +53,16 @@ def selection_lines(s: dict, cfg: dict) -> list[str]:
     return out
 
 
+def start_lines(cfg: dict) -> list[str]:
+    """What the untrained agent is, in words: with the CVAE its latent 0 decodes through the latent origin."""
+    if (cfg.get("ablation") or {}).get("no_cvae"):
+        return []
+    if (cfg.get("model_env") or {}).get("latent_origin", "zero") == "behaviour":
+        return ["(before training the agent's latent 0 decodes to the data's action at each state, model_env.latent_origin=behaviour:",
+                " it starts as a behaviour cloner of the data, and the guard falls back to it)"]
+    return ["(before training the agent's latent 0 decodes to the CVAE decoder's prior-mean action, model_env.latent_origin=zero)"]
+
+
 def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
     """Run the demo with optional hydra ``overrides``; returns the training summary plus the printed table."""
     cfg = to_plain(compose("demo", list(overrides or []), "demo"))
@@ -65,7 +75,7 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
          s["behaviour_normalized_d4rl"], s["behaviour_normalized_dataset"]),
     ]
     first = s.get("initial")
-    if first is not None:  # the untrained agent: with the CVAE, about the decoder's mean action
+    if first is not None:  # the untrained agent: with the CVAE, latent 0 decoded through the latent origin
         rows.append((f"{algo} agent before training", first["return_mean"], first["return_std"], n_eval,
                      first["normalized_d4rl"], first["normalized_dataset"]))
     if s.get("selected") is not None and selected["frames"] != final["frames"]:
@@ -84,8 +94,8 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
         lines.append(f"{name:36s} {m:9.1f} {sd:8.1f} {n:9d} {fmt_number(d4rl):>11s} {fmt_number(own):>11s}")
     other = s["total_s"] - s["data_s"] - s["models_s"] - s["update_time_s"]
     lines += [
-        "(data score: normalised with the dataset's own random/expert reference returns; n/a without an expert policy;",
-        " before training, the agent's mean latent action is about the CVAE decoder's mean action: behaviour cloning)",
+        "(data score: normalised with the dataset's own random/expert reference returns; n/a without an expert policy)",
+        *start_lines(cfg),
         *selection_lines(s, cfg),
         "",
         f"time: {s['total_s'] / 60:.1f} min in total: data {s['data_s']:.0f} s, ensemble + CVAE {s['models_s']:.0f} s, "

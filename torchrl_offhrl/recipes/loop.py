@@ -91,7 +91,7 @@ class OfflinePhase(Phase):
         if self.seed_env is not None:
             self.seed_env.set_seed(self.seed + run.frames)
         if remaining > 0 and not run.records and self.at_start:
-            # the untrained agent: the start of the learning curve (with the CVAE: about the decoder's mean action)
+            # the untrained agent: the start of the learning curve (with the CVAE: latent 0, decoded through the latent origin)
             loop.keep(loop.evaluate(self.evaluator, phase=self.name, selects=self.selects))
         elif remaining == 0 and not run.records:
             loop.keep(loop.evaluate(self.evaluator, save_to=self.final_dir, phase=self.name, selects=self.selects))

@@ -145,7 +145,7 @@ class SelectionConfig:
 
     criterion: str = _setting(_choice(*CRITERIA), "last")
     include_start: bool = _setting(_bool(), False)  # the untrained policy is a candidate too
-    guard: bool = _setting(_bool(), False)  # return the start policy when no member shows a gain over it (selection.PolicySelector)
+    guard: bool = _setting(_bool(), True)  # return the start policy when no member shows a gain over it (selection.PolicySelector)
 
 
 @dataclass(frozen=True)

@@ -45,8 +45,9 @@ Evaluations at step 0 (the untrained agent) are candidates only with
 ``include_start=True``: by default the returned policy is a trained one.
 
 ``model_gain_lcb`` and the guard. Both compare a policy with the policy the
-run *started from* (the evaluation at step 0: for MOC the decoder's mean
-action, a behaviour-cloned policy) on the same model episodes: every
+run *started from* (the evaluation at step 0: with the default
+``model_env.latent_origin=behaviour`` the decoder at the data's own latent at
+each state, a behaviour cloner of the data) on the same model episodes: every
 evaluation rolls its policy out from the same data start states under the
 same member per episode (``member_draw="cyclic"``) for a whole real-episode
 length, so the two policies' returns pair up episode by episode.
