@@ -294,8 +294,12 @@ def table() -> str:
         text += ["", "## The options question, and BC, on the default (design datasets, tuning seeds)", "",
                  "What each algorithm's default returns (model-env agents: last + guard; BC: its last policy, 81,920 updates on "
                  "the same 100k transitions), IQM [95% CI] (runs) and per seed, and the paired differences with MOC's run of "
-                 "the same seed. MOC: 2 options; moc_1opt: the same agent with one option; PPO: the same optimiser settings "
-                 "without options.", "", *comparison_table(by_algo)]
+                 "the same seed. MOC: 2 options; moc_1opt: the same agent and optimiser settings with one option (the exact "
+                 "ablation of the options); PPO: `algo=ppo` as shipped (the paper's PPO values: its own step size, clip, value "
+                 "and entropy coefficients, no annealing), not MOC's optimiser settings.", "",
+                 "Read on 2026-12-06 from seeds 1-3: on hopper the three return the same behaviour-cloned start (the guard "
+                 "fired); on halfcheetah-medium PPO is 0.6-2.6 points above MOC; on halfcheetah-medium-expert MOC's lead rests "
+                 "on one seed (76.1). Nothing here shows the options helping on these tasks.", "", *comparison_table(by_algo)]
     every = [r for g in (*groups, "options_origin") for r in (rows_by.get(g) or rows(g))]
     if every:
         text += ["", "## The guard over every run of this issue", "",

@@ -115,8 +115,12 @@ class LatentOrigin(FitMixin, nn.Module):
     is the data's action; the prior's mean ``z = 0`` is not: with a weak KL
     term the decoder spreads the data's actions over the latent box and
     ``decoder(s, 0)`` is an average of them. Measured on the demo's
-    hopper-medium-expert data (agent-free, 10 real episodes): ``decoder(s, 0)``
-    scores 34.0, ``decoder(s, z_b(s))`` 86.7 (the data: 53.3).
+    hopper-medium-expert data (dataset seed 1; agent-free, 10 real episodes):
+    ``decoder(s, 0)`` scores 34.0, ``decoder(s, z_b(s))`` 86.7 (the data:
+    53.3). Its limit: on data of several behaviours the regression averages
+    their latents, and where that average decodes depends on the fit (on the
+    same level at dataset seed 2 the start scored 29.8-36.7, the data 51.2;
+    ``docs/results/offline_rules.md``).
 
     Examples:
         >>> import torch
