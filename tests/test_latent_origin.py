@@ -91,6 +91,8 @@ def test_apply_latent_origin_fits_once_caches_beside_the_cvae_and_zero_restores_
         second = apply_latent_origin(cfg, None, fitted_cvae, tmp_path, progress=False)  # loaded: no data needed
         assert second is not first and torch.equal(fitted_cvae.decoder(obs, torch.zeros(8, fitted_cvae.latent_dim)), a)
         assert apply_latent_origin({**cfg, "env": {"latent_origin": "zero"}}, toy_data, fitted_cvae, tmp_path) is None
+        with pytest.raises(FileNotFoundError, match="latent_origin.pt is missing"):
+            apply_latent_origin(cfg, None, fitted_cvae, tmp_path / "elsewhere", progress=False)
         assert fitted_cvae.decoder.origin is None
         with pytest.raises(ValueError, match="behaviour' or 'zero'"):
             apply_latent_origin({**cfg, "env": {"latent_origin": "mean"}}, toy_data, fitted_cvae, tmp_path)

@@ -306,10 +306,11 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
     bound = latent_bound(cfg)
     origin = (cfg.get("model_env") or {}).get("latent_origin", "zero")  # runs from before the key decoded latents as they are
     if cvae is not None and origin != "zero":
+        data = None
         if not (Path(model_dir) / "latent_origin.pt").is_file():  # fitted again from the run's data (deterministic: its seed)
             print(f"the run's latent origin is not in the model cache ({model_dir}): fitting it again from the run's data")
-        apply_latent_origin({**model_config(cfg), "env": {"latent_origin": origin, "latent_bound": bound}},
-                            resolve_dataset(cfg) if not (Path(model_dir) / "latent_origin.pt").is_file() else None, cvae, model_dir, progress=False)
+            data = resolve_dataset(cfg)
+        apply_latent_origin({**model_config(cfg), "env": {"latent_origin": origin, "latent_bound": bound}}, data, cvae, model_dir, progress=False)
     env = make_real_env(env_id, cvae, num_envs=num_envs, latent_bound=bound, task=task, discard_decoder=discard)
     algo = dict(cfg["algo"])
     if isinstance(algo.get("reward_scale"), str):  # a name resolved from the data at training time (e.g. IQL's return_range)

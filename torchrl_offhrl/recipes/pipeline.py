@@ -198,6 +198,9 @@ def fit_or_load_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE,
     origin = _load_cached(LatentOrigin, path)
     if origin is not None:
         return origin.to(cvae.decoder.obs_mean.device)
+    if data is None:
+        raise FileNotFoundError(f"{path} is missing (or was corrupt) and no dataset was given to fit it again: rerun the training "
+                                "command, which fits it beside the CVAE")
     ccfg = fit_as_before(to_plain(cfg["cvae"]))
     with threads(cfg.get("fit_threads")):
         origin = cvae.fit_origin(data, hidden_sizes=ccfg["hidden_sizes"], val_ratio=cfg["dataset"].get("val_ratio", 0.1), split_seed=cfg["seed"],
