@@ -64,6 +64,15 @@ def _data(run: str, s: dict) -> str:
     return f"{s['env_id'].split('-')[0].lower()}-{s['level']}" + ("" if d == "1" else f" (dataset seed {d})")
 
 
+def iqm_cell(xs) -> str:
+    """IQM [95% bootstrap CI] (runs) of a list of scores, as every table of the page prints it."""
+    from torchrl_offhrl.recipes.report import fmt_iqm
+    from torchrl_offhrl.stats import iqm_ci
+
+    m, lo, hi = iqm_ci(list(xs))
+    return fmt_iqm(m, (lo, hi), len(xs))
+
+
 def _score(rec):
     return None if rec is None else rec.get("normalized_d4rl")
 
@@ -111,9 +120,6 @@ def final_rows(group: str) -> list[dict]:
 def comparison_table(groups: dict[str, list[dict]], key: str = "guarded") -> list[str]:
     """Per dataset, each algorithm's IQM [95% CI] of what its default returns, and the paired differences with MOC's runs of
     the same seeds (the options question: MOC against 1-option MOC and PPO on the same defaults; BC: the baseline)."""
-    from torchrl_offhrl.recipes.report import fmt_iqm
-    from torchrl_offhrl.stats import iqm_ci
-
     seed = lambda r: r["run"].rsplit("-s", 1)[1]  # noqa: E731
     names = list(groups)
     head = ["data", "behaviour", *names, *(f"{n} - moc (paired, per seed)" for n in names if n != "moc")]
@@ -125,7 +131,7 @@ def comparison_table(groups: dict[str, list[dict]], key: str = "guarded") -> lis
         cells = []
         for n in names:
             xs = list(by[n].values())
-            cells.append(fmt_iqm(*(lambda m, lo, hi: (m, (lo, hi)))(*iqm_ci(xs)), len(xs)) + f" ({', '.join(f'{x:.1f}' for x in xs)})" if xs else "—")
+            cells.append(iqm_cell(xs) + f" ({', '.join(f'{x:.1f}' for x in xs)})" if xs else "—")
         diffs = []
         for n in names:
             if n == "moc":
@@ -176,17 +182,13 @@ def run_table(rs: list[dict]) -> list[str]:
 def summary_table(rs: list[dict]) -> list[str]:
     """Per dataset: IQM [95% CI] over the runs of the start, the last policy, what the guard returns (last + guard: the
     default since the behaviour origin), model_gain_lcb's pick and the best evaluation (hindsight)."""
-    from torchrl_offhrl.recipes.report import fmt_iqm
-    from torchrl_offhrl.stats import iqm_ci
-
     lines = ["| algo | data | runs | behaviour | start | last policy | **last + guard** | guarded beats data / start / is not below start | "
              "model_gain_lcb pick | best evaluation (hindsight) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for algo, data in sorted({(r["algo"], r["data"]) for r in rs}):
         g = [r for r in rs if r["data"] == data and r["algo"] == algo]
 
         def cell(key):
-            m, lo, hi = iqm_ci([r[key] for r in g])
-            return fmt_iqm(m, (lo, hi), len(g))
+            return iqm_cell([r[key] for r in g])
 
         beats_data = sum(r["guarded"] > r["behaviour"] for r in g)
         beats_start = sum(r["guarded"] > r["start"] for r in g)
@@ -201,9 +203,6 @@ def summary_table(rs: list[dict]) -> list[str]:
 def origin_table(before: list[dict], after: list[dict]) -> list[str]:
     """The two defaults side by side on the same data and seeds: the prior's-mean origin returning its last policy (the
     default before) and the behaviour origin returning last + guard (the default now), with the paired difference."""
-    from torchrl_offhrl.recipes.report import fmt_iqm
-    from torchrl_offhrl.stats import iqm_ci
-
     key = lambda r: (r["data"], r["run"].rsplit("-s", 1)[1])  # noqa: E731
     old = {key(r): r for r in before if r["algo"] == "moc"}
     lines = ["| data | runs | behaviour | before: origin 0, last policy | now: behaviour origin, last + guard | paired difference (now - before) |",
@@ -212,11 +211,10 @@ def origin_table(before: list[dict], after: list[dict]) -> list[str]:
         pairs = [(old[key(r)], r) for r in after if r["data"] == data and key(r) in old]
         if not pairs:
             continue
-        cell = lambda xs: fmt_iqm(*(lambda m, lo, hi: (m, (lo, hi)))(*iqm_ci(xs)), len(xs))  # noqa: E731
         b, a = [p[0]["last"] for p in pairs], [p[1]["guarded"] for p in pairs]
         d = [y - x for x, y in zip(b, a)]
-        lines.append(f"| {data} | {len(pairs)} | {pairs[0][1]['behaviour']:.1f} | {cell(b)} ({', '.join(f'{x:.1f}' for x in b)}) | "
-                     f"{cell(a)} ({', '.join(f'{x:.1f}' for x in a)}) | {', '.join(f'{x:+.1f}' for x in d)} |")
+        lines.append(f"| {data} | {len(pairs)} | {pairs[0][1]['behaviour']:.1f} | {iqm_cell(b)} ({', '.join(f'{x:.1f}' for x in b)}) | "
+                     f"{iqm_cell(a)} ({', '.join(f'{x:.1f}' for x in a)}) | {', '.join(f'{x:+.1f}' for x in d)} |")
     return lines
 
 
@@ -300,7 +298,7 @@ def table() -> str:
                  "Read on 2026-12-06 from seeds 1-3: on hopper the three return the same behaviour-cloned start (the guard "
                  "fired); on halfcheetah-medium PPO is 0.6-2.6 points above MOC; on halfcheetah-medium-expert MOC's lead rests "
                  "on one seed (76.1). Nothing here shows the options helping on these tasks.", "", *comparison_table(by_algo)]
-    every = [r for g in (*groups, "options_origin") for r in (rows_by.get(g) or rows(g))]
+    every = [r for rs in (*rows_by.values(), opts) for r in rs]
     if every:
         text += ["", "## The guard over every run of this issue", "",
                  f"All {len(every)} runs with model evaluations on this page (every group, MOC, 1-option MOC and PPO, both origins), the "

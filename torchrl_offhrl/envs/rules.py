@@ -35,6 +35,7 @@ from pathlib import Path
 
 import torch
 
+from ..models.cvae import encode_in_chunks
 from .calibration import dataset_discrepancy
 
 __all__ = ["OfflineRules", "horizon_rule", "latent_bound_rule", "offline_rules", "open_loop_errors", "penalty_rule", "threshold_rule"]
@@ -223,15 +224,9 @@ def latent_bound_rule(cvae, held_out, quantile: float = 0.99, seed: int = 0, chu
     the data without the pairs the encoder fitted.
     """
     device = next(cvae.parameters()).device
-    obs, act = held_out.data.get("observation"), held_out.data.get("action")
-    goal_key = getattr(cvae, "goal_key", None)
-    goals = held_out.data.get(goal_key) if goal_key else None
     g = torch.Generator(device="cpu").manual_seed(seed)
     zs, mus = [], []
-    for s in range(0, obs.shape[0], chunk):
-        o, a = obs[s : s + chunk].to(device), act[s : s + chunk].to(device)
-        gl = None if goals is None else goals[s : s + chunk].to(device)
-        mean, std = cvae.encode(o, a, gl)
+    for _, _, mean, std in encode_in_chunks(cvae, held_out.data, device, chunk):
         eps = torch.randn(mean.shape, generator=g).to(device)
         zs.append((mean + std * eps).abs().flatten().double().cpu())
         mus.append(mean.abs().flatten().double().cpu())

@@ -10,9 +10,23 @@ from torch import nn
 from ..nets import mlp
 from ._common import FitMixin, buffer
 
-__all__ = ["ConditionalVAE", "CVAEDecoder", "LatentOrigin"]
+__all__ = ["ConditionalVAE", "CVAEDecoder", "LatentOrigin", "encode_in_chunks"]
 
 _LOG_STD_MIN, _LOG_STD_MAX = -4.0, 15.0
+
+
+@torch.no_grad()
+def encode_in_chunks(cvae, td, device, chunk: int = 65536):
+    """``(observation, goal, mean, std)`` of ``cvae.encode`` over the pairs of ``td`` (a dataset's TensorDict), ``chunk`` pairs at a
+    time on ``device`` (``goal`` None without ``cvae.goal_key``). Any object with ``encode`` (and ``goal_key``) will do."""
+    goal_key = getattr(cvae, "goal_key", None)
+    obs, act = td.get("observation"), td.get("action")
+    goals = td.get(goal_key) if goal_key else None
+    for s in range(0, obs.shape[0], chunk):
+        o, a = obs[s : s + chunk].float().to(device), act[s : s + chunk].float().to(device)
+        g = None if goals is None else goals[s : s + chunk].float().to(device)
+        mean, std = cvae.encode(o, a, g)
+        yield o, g, mean, std
 
 
 class CVAEDecoder(nn.Module):
@@ -264,15 +278,10 @@ class ConditionalVAE(FitMixin, nn.Module):
         """``(condition, mean)``: the decoder's conditioning input and the posterior mean of every pair of ``data``."""
         was = self.training
         self.eval()
-        td = data.data if hasattr(data, "data") else data
-        dev = self.decoder.obs_mean.device
         conds, means = [], []
-        for start in range(0, td.shape[0], chunk):
-            part = td[start:start + chunk]
-            obs, act = part.get("observation").float().to(dev), part.get("action").float().to(dev)
-            goal = part.get(self.goal_key).float().to(dev) if self.goal_key else None
+        for obs, goal, mean, _ in encode_in_chunks(self, data.data, self.decoder.obs_mean.device, chunk):
             conds.append(self.decoder.condition(obs, goal))
-            means.append(self.encode(obs, act, goal)[0])
+            means.append(mean)
         self.train(was)
         return torch.cat(conds), torch.cat(means)
 

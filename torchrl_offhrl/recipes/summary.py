@@ -36,7 +36,7 @@ def format_summary(summary) -> str:
     )
     sel, guard = summary.get("selected"), summary.get("guard")
     if guard is not None and guard.get("fired") is None:
-        text += f"\nguard: off ({guard['reason']}); the last policy is returned"
+        text += f"\nguard: off ({guard['reason']})"
     elif guard is not None:
         text += (f"\nguard: {'FIRED, the start policy is returned' if guard['fired'] else 'passed, the trained policy is returned'} "
                  f"({guard['reason']})")

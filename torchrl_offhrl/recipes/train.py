@@ -179,9 +179,9 @@ class PreparedRun:
         if verdict is not None:
             summary["guard"] = {**verdict, "returned": "start" if verdict["fired"] else "trained",
                                 "candidate_step": None if run.selector.selected is None else run.selector.selected["step"]}
-        elif s.selectable:  # a model-env run with the guard off (the default): say so, and what the user gets instead
+        elif s.selectable:  # a model-env run with the guard off (selection.guard=false): say so, and what the user gets instead
             summary["guard"] = {"fired": None, "gain_lcb": None, "returned": "trained",
-                                "reason": "selection.guard=false: the last policy is returned unguarded"}
+                                "reason": "selection.guard=false: the selected policy is returned unguarded"}
         summary.update(s.summary_extras(run.records))
         if s.rules is not None:
             summary["calibration"] = s.rules.as_dict()
