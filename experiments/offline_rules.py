@@ -31,7 +31,8 @@ COMMAND = "python experiments/offline_rules.py table"
 
 
 #: what a group's runs add to today's defaults to run as they ran (the groups made before the behaviour origin and the guard)
-GROUP_OVERRIDES = {g: ["model_env.latent_origin=zero", "selection.guard=false"] for g in ("design", "heldout", "options")}
+GROUP_OVERRIDES = {**{g: ["model_env.latent_origin=zero", "selection.guard=false"] for g in ("design", "heldout", "options")},
+                   **{g: ["model_env.latent_origin=behaviour"] for g in ("origin", "origin_heldout", "options_origin", "bc")}}
 
 
 def run_name(algo: str, env: str, level: str, d: int, s: int) -> str:
@@ -324,7 +325,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
-    r.add_argument("--group", choices=("design", "heldout", "options", "origin", "origin_heldout", "options_origin", "bc"), required=True)
+    r.add_argument("--group", choices=("design", "heldout", "options", "origin", "origin_heldout", "options_origin", "bc", "best", "best_heldout"), required=True)
     r.add_argument("--algos", nargs="+", default=["moc"])
     r.add_argument("--envs", nargs="+", default=["hopper"])
     r.add_argument("--levels", nargs="+", default=["medium"])

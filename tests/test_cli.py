@@ -117,7 +117,8 @@ def test_demo_tiny(cache, tmp_path, capsys):
     assert "MOC agent before training" in out
     # the demo says how its returned policy was chosen, and prints its calibration report
     assert "(selection.criterion=last: the last policy)" in out and ("Guard: FIRED" in out or "Guard: passed" in out)
-    assert "starts as a behaviour cloner of the data" in out  # the latent origin, the default
+    assert "starts as a behaviour cloner of the highest-return episodes holding 10% of the transitions" in out  # the default origin
+    assert "latent origin: the behaviour of the" in out  # in the calibration report, with the episodes it cloned
     summary = json.loads((tmp_path / "moc-hopper-medium-seed0" / "summary.json").read_text())
     # the guard's verdict and what it returned agree: the start (step 0) when it fired, the last policy when it passed
     assert summary["guard"]["returned"] == ("start" if summary["guard"]["fired"] else "trained")
@@ -228,7 +229,8 @@ def test_the_robustness_variants_rerun_what_their_archived_runs_ran():
         fit = lambda d: {**d, "fit": {k: v for k, v in d["fit"].items() if k != "rel_tol"}} if "fit" in d else d  # noqa: E731
         assert fit(strip(again[key])) == strip(archived[key]), key
     assert again["selection"]["guard"] is False and again["ensemble"]["fit"]["rel_tol"] == 0.0
-    # latent_origin came later; its "zero" decodes as the archived runs did (no key)
+    # latent_origin came later (origin_share with it, unused under zero); its "zero" decodes as the archived runs did (no key)
+    again["model_env"].pop("origin_share")
     assert again["model_env"].pop("latent_origin") == "zero" and again["model_env"] == archived["model_env"]
     assert pessimism_for(again["env"], "medium", table=pessimism_table(again)) == archived["resolved_pessimism"]
     old = to_plain(compose("demo", mod.overrides("shipped")))

@@ -1,4 +1,4 @@
-"""The latent origin (model_env.latent_origin=behaviour): an agent's latent 0 decodes to the data's action at each state."""
+"""The latent origin (model_env.latent_origin=best | behaviour): an agent's latent 0 decodes to the (best) data's action at each state."""
 import pytest
 import torch
 from tensordict import TensorDict
@@ -85,31 +85,102 @@ def test_apply_latent_origin_fits_once_caches_beside_the_cvae_and_zero_restores_
            "env": {"latent_origin": "behaviour", "latent_bound": 2.0}}
     obs = toy_data[:8]["observation"]
     try:
-        first = apply_latent_origin(cfg, toy_data, fitted_cvae, tmp_path, progress=False)
-        assert (tmp_path / "latent_origin.pt").is_file() and fitted_cvae.decoder.origin is first
+        first, info = apply_latent_origin(cfg, toy_data, fitted_cvae, tmp_path, progress=False)
+        assert (tmp_path / "latent_origin.pt").is_file() and fitted_cvae.decoder.origin is first and info is None
         a = fitted_cvae.decoder(obs, torch.zeros(8, fitted_cvae.latent_dim))
-        second = apply_latent_origin(cfg, None, fitted_cvae, tmp_path, progress=False)  # loaded: no data needed
+        second, _ = apply_latent_origin(cfg, None, fitted_cvae, tmp_path, progress=False)  # loaded: no data needed
         assert second is not first and torch.equal(fitted_cvae.decoder(obs, torch.zeros(8, fitted_cvae.latent_dim)), a)
-        assert apply_latent_origin({**cfg, "env": {"latent_origin": "zero"}}, toy_data, fitted_cvae, tmp_path) is None
+        assert apply_latent_origin({**cfg, "env": {"latent_origin": "zero"}}, toy_data, fitted_cvae, tmp_path) == (None, None)
         with pytest.raises(FileNotFoundError, match="latent_origin.pt is missing"):
             apply_latent_origin(cfg, None, fitted_cvae, tmp_path / "elsewhere", progress=False)
         assert fitted_cvae.decoder.origin is None
-        with pytest.raises(ValueError, match="behaviour' or 'zero'"):
+        with pytest.raises(ValueError, match="best, behaviour, zero"):
             apply_latent_origin({**cfg, "env": {"latent_origin": "mean"}}, toy_data, fitted_cvae, tmp_path)
+        # best: its own cache entry, fitted on the top-return episodes only, which the report's info names
+        best, info = apply_latent_origin({**cfg, "env": {"latent_origin": "best", "origin_share": 0.25, "latent_bound": 2.0}}, toy_data,
+                                         fitted_cvae, tmp_path, progress=False)
+        assert (tmp_path / "latent_origin_top0.25.pt").is_file() and best is not first and fitted_cvae.decoder.origin is best
+        assert info["share"] == 0.25 and info["transitions_kept"] >= 0.25 * len(toy_data) and info["episodes_kept"] < info["episodes"]
     finally:
         fitted_cvae.decoder.set_origin(None)
 
 
-def test_the_default_uses_the_behaviour_origin_and_the_paper_preset_the_prior_mean():
+def _two_behaviours(n_ep=10, length=20):
+    """Episodes of two behaviours on the same states: even episodes act +0.8 with reward 1 per step, odd ones -0.8 with reward 0."""
+    from torchrl_offhrl.data import OfflineDataset
+
+    g = torch.Generator().manual_seed(0)
+    n = n_ep * length
+    obs = torch.rand(n, 2, generator=g) * 2 - 1
+    good = ((torch.arange(n) // length) % 2 == 0)[:, None]
+    act = torch.where(good, 0.8, -0.8).expand(n, 2).clone()
+    td = TensorDict({"observation": obs, "action": act, "next": {"observation": obs, "reward": good.float(),
+                     "terminated": torch.zeros(n, 1, dtype=torch.bool), "truncated": (torch.arange(n) % length == length - 1)[:, None]}},
+                    batch_size=[n])
+    return OfflineDataset(td, action_bounds=(-torch.ones(2), torch.ones(2)))
+
+
+def test_top_return_episodes_takes_whole_episodes_best_first_until_the_share_is_covered():
+    from torchrl_offhrl.data import OfflineDataset
+
+    # four episodes of lengths 3, 5, 2, 4 (14 transitions) with returns 3, 10, 8, 1 (one reward per episode, at its end)
+    lengths, rets = [3, 5, 2, 4], [3.0, 10.0, 8.0, 1.0]
+    n = sum(lengths)
+    reward = torch.zeros(n, 1)
+    ends = torch.cumsum(torch.tensor(lengths), 0) - 1
+    reward[ends, 0] = torch.tensor(rets)
+    trunc = torch.zeros(n, 1, dtype=torch.bool)
+    trunc[ends, 0] = True
+    td = TensorDict({"observation": torch.zeros(n, 1), "action": torch.zeros(n, 1), "next": {"observation": torch.zeros(n, 1),
+                     "reward": reward, "terminated": torch.zeros(n, 1, dtype=torch.bool), "truncated": trunc}}, batch_size=[n])
+    ds = OfflineDataset(td)
+    mask, info = ds.top_return_episodes(0.3)          # 4.2 transitions: the best episode (5) covers it
+    assert mask.tolist() == [False] * 3 + [True] * 5 + [False] * 6 and info["episodes_kept"] == 1 and info["return_kept_mean"] == 10.0
+    mask, info = ds.top_return_episodes(0.5)          # 7 transitions: 5 + 2 (returns 10 and 8)
+    assert mask.tolist() == [False] * 3 + [True] * 7 + [False] * 4 and info["transitions_kept"] == 7 and info["return_kept_mean"] == 9.0
+    mask, info = ds.top_return_episodes(1.0)
+    assert bool(mask.all()) and info["episodes_kept"] == 4 and info["return_mean"] == 5.5
+    with pytest.raises(ValueError, match="share"):
+        ds.top_return_episodes(0.0)
+
+
+def test_the_best_origin_clones_the_higher_return_behaviour_where_the_behaviour_origin_averages_the_two(tmp_path):
+    """Two behaviours on the same states (+0.8 rewarded, -0.8 not): decoded at the origin regressed on all the data the agent's
+    latent 0 acts between the two, at the origin regressed on the best half it acts as the rewarded behaviour."""
+    from torchrl_offhrl.models import ConditionalVAE
+    from torchrl_offhrl.recipes.pipeline import fit_or_load_origin
+
+    ds = _two_behaviours(n_ep=20, length=50)
+    torch.manual_seed(0)
+    cvae = ConditionalVAE(2, 2, hidden_sizes=(32, 32), kl_weight=0.05).fit(ds, max_epochs=100, lr=3e-3, patience=100, progress=False, seed=0)
+    cfg = {"seed": 0, "dataset": {"val_ratio": 0.1}, "cvae": {"hidden_sizes": [32], "fit": {"lr": 3e-3, "max_epochs": 60}}}
+    all_origin, _ = fit_or_load_origin(cfg, ds, cvae, tmp_path, progress=False, share=1.0)
+    best_origin, info = fit_or_load_origin(cfg, ds, cvae, tmp_path, progress=False, share=0.5)
+    assert info["episodes_kept"] == 10 and info["return_kept_mean"] == 50.0 and info["return_mean"] == 25.0
+    obs, z = ds.data["observation"][:200], torch.zeros(200, 2)
+    try:
+        with torch.no_grad():
+            best = cvae.decoder.set_origin(best_origin, 2.0)(obs, z)
+            average = cvae.decoder.set_origin(all_origin, 2.0)(obs, z)
+        assert (best - 0.8).abs().mean() < 0.1          # the rewarded behaviour's action
+        assert (average - 0.8).abs().mean() > 0.5 and (average + 0.8).abs().mean() > 0.5  # neither behaviour's
+    finally:
+        cvae.decoder.set_origin(None)
+
+
+def test_the_default_uses_the_best_origin_and_the_paper_preset_the_prior_mean():
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.recipes.schema import validate_config
     from torchrl_offhrl.utils import to_plain
 
-    assert to_plain(compose("offline_train", ["env=hopper"]))["model_env"]["latent_origin"] == "behaviour"
+    default = to_plain(compose("offline_train", ["env=hopper"]))["model_env"]
+    assert default["latent_origin"] == "best" and default["origin_share"] == 0.1
     assert to_plain(compose("offline_train", ["env=hopper", "preset=paper"]))["model_env"]["latent_origin"] == "zero"
     assert to_plain(compose("offline_train", ["env=blockstack2"]))["model_env"]["latent_origin"] == "zero"
     with pytest.raises(ValueError, match="latent_origin"):
         validate_config(to_plain(compose("offline_train", ["env=hopper", "model_env.latent_origin=mean"])))
+    with pytest.raises(ValueError, match="origin_share"):
+        validate_config(to_plain(compose("offline_train", ["env=hopper", "model_env.origin_share=0"])))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -255,6 +255,40 @@ class OfflineDataset:
             out = out[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
         return out
 
+    def top_return_episodes(self, share: float) -> tuple[torch.Tensor, dict]:
+        """``(mask, info)``: the transitions of the highest-return episodes, as few as cover ``share`` of the data.
+
+        Episodes are ranked by their undiscounted return (an episode the
+        collection budget cut short counts with its partial return) and taken
+        from the top until they hold at least ``share * len(self)``
+        transitions: percentile behaviour cloning's "top X% of timesteps,
+        ordered by episode returns" (Chen et al., 2021). ``share=1`` keeps
+        everything; data that is one long episode is kept whole whatever the
+        share. ``info``: the episodes and transitions kept and the mean
+        episode return kept and overall.
+
+        Examples:
+            >>> from torchrl_offhrl.data import make_toy_dataset
+            >>> ds = make_toy_dataset(num_episodes=4, episode_length=5)
+            >>> mask, info = ds.top_return_episodes(0.25)
+            >>> int(mask.sum()), info["episodes_kept"]
+            (5, 1)
+        """
+        if not 0.0 < share <= 1.0:
+            raise ValueError(f"share must be in (0, 1], got {share}")
+        returns = self.episode_returns()
+        ep = torch.cumsum(self.episode_starts().long(), 0) - 1  # episode index of every transition
+        length = torch.bincount(ep, minlength=returns.numel())
+        order = torch.argsort(returns, descending=True, stable=True)
+        covered = torch.cumsum(length[order], 0)
+        k = min(int((covered < share * len(self)).sum()) + 1, returns.numel())  # the first k episodes reach the share
+        keep = torch.zeros(returns.numel(), dtype=torch.bool, device=returns.device)
+        keep[order[:k]] = True
+        mask = keep[ep]
+        info = {"share": float(share), "episodes_kept": k, "episodes": int(returns.numel()), "transitions_kept": int(mask.sum()),
+                "return_kept_mean": float(returns[keep].mean()), "return_mean": float(returns.mean())}
+        return mask, info
+
     def returns_to_go(self, gamma: float) -> torch.Tensor:
         """Discounted return from every transition to the end of its episode, ``[N]`` (float64).
 

@@ -290,6 +290,11 @@ class OfflineRules:
             lb = self.info["latent_bound"]
             lines.append(f"  latent box +-{self.latent_bound:.3g}: {100 * lb['quantile']:.0f}% of the decoder's posterior draws on held-out pairs "
                          f"(|posterior mean| q99 {lb['posterior_mean_abs_q99']:.3g})")
+        origin = self.info.get("latent_origin")
+        if origin is not None:  # recipes.pipeline.apply_latent_origin, model_env.latent_origin=best
+            lines.append(f"  latent origin: the behaviour of the {origin['episodes_kept']} highest-return of {origin['episodes']} episodes "
+                         f"({origin['transitions_kept']} transitions, {100 * origin['share']:g}% asked; mean return {origin['return_kept_mean']:.4g} "
+                         f"against {origin['return_mean']:.4g} over all): the untrained agent and the guard's fallback")
         return "\n".join(lines)
 
     def plot(self, path: str | os.PathLike) -> Path:

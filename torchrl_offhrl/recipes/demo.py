@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..utils import to_plain
 from .config import compose
+from .pipeline import DEFAULT_ORIGIN_SHARE
 from .summary import data_label, fmt_number
 from .train import train
 
@@ -57,7 +58,13 @@ def start_lines(cfg: dict) -> list[str]:
     """What the untrained agent is, in words: with the CVAE its latent 0 decodes through the latent origin."""
     if (cfg.get("ablation") or {}).get("no_cvae"):
         return []
-    if (cfg.get("model_env") or {}).get("latent_origin", "zero") == "behaviour":
+    menv = cfg.get("model_env") or {}
+    mode = menv.get("latent_origin", "zero")
+    if mode == "best":
+        share = float(menv.get("origin_share", DEFAULT_ORIGIN_SHARE))
+        return [f"(before training the agent's latent 0 decodes to the action of the data's best episodes at each state, model_env.latent_origin=best:",
+                f" it starts as a behaviour cloner of the highest-return episodes holding {100 * share:g}% of the transitions, and the guard falls back to it)"]
+    if mode == "behaviour":
         return ["(before training the agent's latent 0 decodes to the data's action at each state, model_env.latent_origin=behaviour:",
                 " it starts as a behaviour cloner of the data, and the guard falls back to it)"]
     return ["(before training the agent's latent 0 decodes to the CVAE decoder's prior-mean action, model_env.latent_origin=zero)"]

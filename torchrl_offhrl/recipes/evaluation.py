@@ -18,7 +18,7 @@ from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
 from .config import acts_in_latent_space, latent_bound, model_config, resolve_dataset, transfer_config
-from .pipeline import apply_latent_origin, make_real_env
+from .pipeline import apply_latent_origin, make_real_env, origin_path, origin_share
 
 __all__ = ["Evaluator", "GoalEvaluator", "SeedsEvaluation", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
 
@@ -304,13 +304,17 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
             raise FileNotFoundError(f"the run's CVAE {cvae_path} is not in the model cache any more; rerun `offhrl fit` with the run's config")
         cvae = ConditionalVAE.load(cvae_path)
     bound = latent_bound(cfg)
-    origin = (cfg.get("model_env") or {}).get("latent_origin", "zero")  # runs from before the key decoded latents as they are
-    if cvae is not None and origin != "zero":
+    menv = cfg.get("model_env") or {}
+    origin = {"latent_origin": menv.get("latent_origin", "zero")}  # runs from before the key decoded latents as they are
+    if "origin_share" in menv:
+        origin["origin_share"] = menv["origin_share"]
+    share = origin_share(origin)
+    if cvae is not None and share is not None:
         data = None
-        if not (Path(model_dir) / "latent_origin.pt").is_file():  # fitted again from the run's data (deterministic: its seed)
+        if not origin_path(model_dir, share).is_file():  # fitted again from the run's data (deterministic: its seed)
             print(f"the run's latent origin is not in the model cache ({model_dir}): fitting it again from the run's data")
             data = resolve_dataset(cfg)
-        apply_latent_origin({**model_config(cfg), "env": {"latent_origin": origin, "latent_bound": bound}}, data, cvae, model_dir, progress=False)
+        apply_latent_origin({**model_config(cfg), "env": {**origin, "latent_bound": bound}}, data, cvae, model_dir, progress=False)
     env = make_real_env(env_id, cvae, num_envs=num_envs, latent_bound=bound, task=task, discard_decoder=discard)
     algo = dict(cfg["algo"])
     if isinstance(algo.get("reward_scale"), str):  # a name resolved from the data at training time (e.g. IQL's return_range)

@@ -29,6 +29,8 @@ __all__ = [
     "apply_latent_origin",
     "fit_or_load_models",
     "fit_or_load_origin",
+    "origin_path",
+    "origin_share",
     "make_model_env",
     "make_real_env",
 ]
@@ -187,50 +189,80 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
     return ensemble.to(device), (cvae.to(device) if cvae is not None else None), info
 
 
-def fit_or_load_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE, model_dir, progress: bool = True):
-    """The :class:`~torchrl_offhrl.models.LatentOrigin` of ``cvae`` on ``data`` (``latent_origin.pt`` beside the CVAE in the model cache).
+#: ``model_env.latent_origin``'s choices: the share of the data (its highest-return episodes) the origin regresses on, None: no origin
+ORIGIN_SHARES = {"best": None, "behaviour": 1.0, "zero": None}
+#: the share of the data's transitions ``latent_origin=best`` clones when ``model_env.origin_share`` is not given
+DEFAULT_ORIGIN_SHARE = 0.1
 
-    Fitted when absent, by regression on the CVAE posterior's means, with the
-    CVAE's widths, fit settings (to convergence) and episode split; its folder
-    is the CVAE's own (``model_dir``: the CVAE and the data decide it).
+
+def origin_share(env: Mapping) -> float | None:
+    """The share of the data the latent origin is fitted on for a model env config (None: ``latent_origin=zero``)."""
+    mode = env.get("latent_origin", "zero")
+    if mode not in ORIGIN_SHARES:
+        raise ValueError(f"model_env.latent_origin must be one of {', '.join(ORIGIN_SHARES)}, got {mode!r}")
+    if mode == "best":
+        return float(env.get("origin_share", DEFAULT_ORIGIN_SHARE))
+    return ORIGIN_SHARES[mode]
+
+
+def origin_path(model_dir, share: float) -> Path:
+    """Where the latent origin fitted on ``share`` of the data is cached: ``latent_origin.pt`` (all of it) or ``latent_origin_top<share>.pt``."""
+    return Path(model_dir) / ("latent_origin.pt" if share >= 1.0 else f"latent_origin_top{share:g}.pt")
+
+
+def fit_or_load_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE, model_dir, progress: bool = True, share: float = 1.0):
+    """The :class:`~torchrl_offhrl.models.LatentOrigin` of ``cvae`` on ``data`` (cached beside the CVAE, :func:`origin_path`).
+
+    Fitted when absent, by regression on the CVAE posterior's means of the
+    pairs of ``data``'s highest-return episodes that cover ``share`` of it
+    (:meth:`~torchrl_offhrl.data.OfflineDataset.top_return_episodes`; 1: all
+    of it), with the CVAE's widths, fit settings (to convergence) and episode
+    split; its folder is the CVAE's own (``model_dir``: the CVAE and the data
+    decide it). Returns ``(origin, info)``, ``info`` the episodes it cloned
+    (None when loaded from the cache without the data).
     """
-    path = Path(model_dir) / "latent_origin.pt"
+    path = origin_path(model_dir, share)
+    info = None
+    if data is not None and share < 1.0:
+        mask, info = data.top_return_episodes(share)
     origin = _load_cached(LatentOrigin, path)
     if origin is not None:
-        return origin.to(cvae.decoder.obs_mean.device)
+        return origin.to(cvae.decoder.obs_mean.device), info
     if data is None:
         raise FileNotFoundError(f"{path} is missing (or was corrupt) and no dataset was given to fit it again: rerun the training "
                                 "command, which fits it beside the CVAE")
+    if share < 1.0:
+        data = OfflineDataset(data.data[mask], metadata=data.metadata, action_bounds=(data.action_low, data.action_high))
     ccfg = fit_as_before(to_plain(cfg["cvae"]))
     with threads(cfg.get("fit_threads")):
         origin = cvae.fit_origin(data, hidden_sizes=ccfg["hidden_sizes"], val_ratio=cfg["dataset"].get("val_ratio", 0.1), split_seed=cfg["seed"],
                                  progress=progress, seed=cfg["seed"], **ccfg["fit"])
     origin.save(path)
-    return origin
+    return origin, info
 
 
 def apply_latent_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE, model_dir, progress: bool = True):
     """Set ``cvae``'s decoder to decode latents relative to ``cfg["env"]["latent_origin"]`` (``model_config`` with its ``env``).
 
-    ``behaviour`` (the default): the :class:`~torchrl_offhrl.models.LatentOrigin`
-    (:func:`fit_or_load_origin`), shifted latents clamped to the env's
-    ``latent_bound``: an agent's latent 0 decodes to the data's action at
-    each state, so an untrained agent starts as a behaviour cloner.
-    ``zero`` (the paper): latents are decoded as they are. Returns the origin
-    (None for ``zero``).
+    ``best`` (the default): the :class:`~torchrl_offhrl.models.LatentOrigin`
+    fitted on the data's highest-return episodes covering ``origin_share``
+    (default 0.1) of its transitions; ``behaviour``: fitted on all of the
+    data (:func:`fit_or_load_origin`). Shifted latents are clamped to the
+    env's ``latent_bound``: an agent's latent 0 decodes to the chosen data's
+    action at each state, so an untrained agent starts as a behaviour cloner
+    of those episodes. ``zero`` (the paper): latents are decoded as they are.
+    Returns ``(origin, info)`` (``(None, None)`` for ``zero``).
     """
     env = cfg.get("env") or {}
-    mode = env.get("latent_origin", "zero")
-    if mode == "zero":
+    share = origin_share(env)
+    if share is None:
         cvae.decoder.set_origin(None)
-        return None
-    if mode != "behaviour":
-        raise ValueError(f"model_env.latent_origin must be 'behaviour' or 'zero', got {mode!r}")
+        return None, None
     if model_dir is None:
-        raise ValueError("model_env.latent_origin=behaviour is fitted beside the CVAE in the model cache: the run's model folder is unknown")
-    origin = fit_or_load_origin(cfg, data, cvae, model_dir, progress=progress)
+        raise ValueError(f"model_env.latent_origin={env.get('latent_origin')} is fitted beside the CVAE in the model cache: the run's model folder is unknown")
+    origin, info = fit_or_load_origin(cfg, data, cvae, model_dir, progress=progress, share=share)
     cvae.decoder.set_origin(origin, float(env.get("latent_bound", DEFAULT_LATENT_BOUND)))
-    return origin
+    return origin, info
 
 
 def make_model_env(

@@ -267,8 +267,10 @@ class ModelEnvSetting:
         p.rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
         p.pcfg["env"], pess = model_env_config(cfg, p.level, p.data, rules=p.rules)
         cfg["resolved_model_env"] = {k: p.pcfg["env"][k] for k in RULE_KEYS if k in p.pcfg["env"]}  # the run's config.json keeps them
-        if cvae is not None:  # model_env.latent_origin: where an agent's latent 0 decodes to (behaviour: the data's action at each state)
-            apply_latent_origin(p.pcfg, p.data, cvae, p.model_info.get("model_dir"), progress=p.progress)
+        if cvae is not None:  # model_env.latent_origin: where an agent's latent 0 decodes to (best: the best episodes' action at each state)
+            _, origin_info = apply_latent_origin(p.pcfg, p.data, cvae, p.model_info.get("model_dir"), progress=p.progress)
+            if origin_info is not None and p.rules is not None:  # in the calibration report
+                p.rules.info["latent_origin"] = origin_info
         env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.collector.num_envs, latent=latent)
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
