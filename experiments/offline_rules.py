@@ -102,6 +102,7 @@ def rows(group: str) -> list[dict]:
             "origin": (json.loads((path.parent / "config.json").read_text()).get("model_env") or {}).get("latent_origin", "zero"),
             "ran_with": f"{s['selected']['criterion']}{' + guard' if (s.get('guard') or {}).get('fired') is not None else ''}",
             "best": max((_score(e) for e in trained), default=None), "curve": [_score(e) for e in evals],
+            "lcbs": [paired_gain_lcb(e, start) for e in trained],
             "rules": {k: cal.get(k) for k in ("threshold", "penalty", "horizon", "reset_states", "latent_bound")},
         })
     return out
@@ -201,18 +202,41 @@ def summary_table(rs: list[dict]) -> list[str]:
     return lines
 
 
-def origin_table(before: list[dict], after: list[dict]) -> list[str]:
-    """The two defaults side by side on the same data and seeds: the prior's-mean origin returning its last policy (the
-    default before) and the behaviour origin returning last + guard (the default now), with the paired difference."""
+def stop_table(groups: dict[str, list[dict]], last_k: int = 4) -> list[str]:
+    """How much what a run returns depends on where training stopped: had it stopped at each of its last ``last_k``
+    evaluations, the spread (max - min) of the real-env score of what it would have returned, the last policy and last +
+    guard (the guard decided at that evaluation), per run; medians and maxima over a group's runs."""
+    lines = ["| runs | n | last policy: median spread | max spread | last + guard: median spread | max spread | runs whose return does not depend on the stop (guard) |",
+             "|---|---|---|---|---|---|---|"]
+    for label, rs in groups.items():
+        if not rs:
+            continue
+        s_last, s_guard = [], []
+        for r in rs:
+            tail = list(zip(r["curve"][1:], r["lcbs"]))[-last_k:]
+            last = [x for x, _ in tail]
+            guarded = [x if lcb > 0 else r["start"] for x, lcb in tail]
+            s_last.append(max(last) - min(last))
+            s_guard.append(max(guarded) - min(guarded))
+        med = lambda xs: sorted(xs)[len(xs) // 2]  # noqa: E731
+        lines.append(f"| {label} | {len(rs)} | {med(s_last):.1f} | {max(s_last):.1f} | {med(s_guard):.1f} | {max(s_guard):.1f} | "
+                     f"{sum(x == 0 for x in s_guard)} of {len(rs)} |")
+    return lines
+
+
+def origin_table(before: list[dict], after: list[dict], labels=("before: origin 0, last policy", "now: behaviour origin, last + guard"),
+                 before_key: str = "last") -> list[str]:
+    """Two defaults side by side on the same data and seeds (``before``'s ``before_key`` score, ``after``'s last + guard), with
+    the paired difference: by default the prior's-mean origin returning its last policy against the behaviour origin."""
     key = lambda r: (r["data"], r["run"].rsplit("-s", 1)[1])  # noqa: E731
     old = {key(r): r for r in before if r["algo"] == "moc"}
-    lines = ["| data | runs | behaviour | before: origin 0, last policy | now: behaviour origin, last + guard | paired difference (now - before) |",
-             "|---|---|---|---|---|---|"]
+    after = [r for r in after if r["algo"] == "moc"]
+    lines = [f"| data | runs | behaviour | {labels[0]} | {labels[1]} | paired difference (now - before) |", "|---|---|---|---|---|---|"]
     for data in sorted({r["data"] for r in after}):
         pairs = [(old[key(r)], r) for r in after if r["data"] == data and key(r) in old]
         if not pairs:
             continue
-        b, a = [p[0]["last"] for p in pairs], [p[1]["guarded"] for p in pairs]
+        b, a = [p[0][before_key] for p in pairs], [p[1]["guarded"] for p in pairs]
         d = [y - x for x, y in zip(b, a)]
         lines.append(f"| {data} | {len(pairs)} | {pairs[0][1]['behaviour']:.1f} | {iqm_cell(b)} ({', '.join(f'{x:.1f}' for x in b)}) | "
                      f"{iqm_cell(a)} ({', '.join(f'{x:.1f}' for x in a)}) | {', '.join(f'{x:+.1f}' for x in d)} |")
@@ -221,6 +245,11 @@ def origin_table(before: list[dict], after: list[dict]) -> list[str]:
 
 def table() -> str:
     groups = {
+        "best": ("The default now: the best episodes' origin (`model_env.latent_origin=best`), last policy + guard, on the design "
+                 "datasets (dataset seed 1, agent seeds 1-3: tuning seeds)"),
+        "best_heldout": ("The best episodes' origin on data it was not designed on, evaluation agent seeds 4-8, run once after it "
+                         "was frozen in commit 6c633d4: hopper- and halfcheetah-medium-expert at a fresh dataset seed (3, never "
+                         "generated before), and the datasets of the previous round (seen, with another origin)"),
         "origin": ("The default: behaviour origin, last policy + guard, on the design datasets (dataset seed 1, agent seeds 1-3: "
                    "tuning seeds)"),
         "origin_heldout": ("The default on the held-out datasets (hopper-random and halfcheetah-expert at dataset seed 4) and on "
@@ -284,6 +313,14 @@ def table() -> str:
     ]
     rows_by = {g: rows(g) for g in groups}
     opts = rows("options_origin")
+    best_algos = {r["algo"] for r in rows_by["best"]}
+    if len(best_algos) > 1:
+        by_algo = {a: [r for r in rows_by["best"] if r["algo"] == a] for a in ("moc", "moc_1opt", "ppo") if a in best_algos}
+        text += ["", "## The options question on the default now (best episodes' origin; design datasets, tuning seeds)", "",
+                 "What each algorithm's default returns (last + guard), IQM [95% CI] (runs) and per seed, and the paired "
+                 "differences with MOC's run of the same seed. MOC: 2 options; moc_1opt: the same agent and optimiser settings "
+                 "with one option (the exact ablation of the options); PPO: `algo=ppo` as shipped.", "",
+                 *comparison_table(by_algo)]
     if rows_by["origin"]:
         by_algo = {"moc": rows_by["origin"], **{a: [r for r in opts if r["algo"] == a] for a in ("moc_1opt", "ppo")}}
         by_algo = {a: rs for a, rs in by_algo.items() if rs}
@@ -306,6 +343,25 @@ def table() -> str:
                  "guard recomputed on each run's last policy and on model_gain_lcb's pick. Right when fired: the guarded policy "
                  "scored no better than the start in the real env (checked after the fact, never used to choose); right when "
                  "passed: it scored better.", "", *guard_table(every)]
+    moc = lambda rs: [r for r in rs if r["algo"] == "moc"]  # noqa: E731
+    stop_groups = {"best episodes' origin (design + held-out)": moc(rows_by["best"] + rows_by["best_heldout"]),
+                   "behaviour origin (design + held-out)": rows_by["origin"] + rows_by["origin_heldout"],
+                   "origin 0 (design + held-out)": rows_by["design"] + rows_by["heldout"]}
+    if any(stop_groups.values()):
+        text += ["", "## Where training stops: how much the returned policy depends on it", "",
+                 "Had each run stopped at one of its last four evaluations (frames 51,200 to 81,920), what it would have returned "
+                 "(the last policy; last + guard, the guard deciding at that evaluation) scores differently in the real env: the "
+                 "spread (max - min, D4RL points) per run, its median and maximum over the runs. A fired guard returns the same "
+                 "start wherever training stopped; a guard that passes at some stops and fires at others can widen the spread.", "",
+                 *stop_table(stop_groups)]
+    if rows_by["best"] and rows_by["origin"]:
+        text += ["", "## The best episodes' origin against the all-data origin, on the same design data and seeds", "",
+                 *origin_table(rows_by["origin"], rows_by["best"], ("behaviour origin, last + guard", "best episodes' origin, last + guard"),
+                               "guarded")]
+    if rows_by["best_heldout"] and rows_by["origin_heldout"]:
+        text += ["", "## The best episodes' origin against the all-data origin, on the previous round's held-out data and seeds", "",
+                 *origin_table(rows_by["origin_heldout"], rows_by["best_heldout"],
+                               ("behaviour origin, last + guard", "best episodes' origin, last + guard"), "guarded")]
     if rows_by["origin"] and rows_by["design"]:
         text += ["", "## Before and now, on the same design data and seeds", "", *origin_table(rows_by["design"], rows_by["origin"])]
     if rows_by["origin_heldout"] and rows_by["heldout"]:

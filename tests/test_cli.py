@@ -254,3 +254,27 @@ def test_overrides_parse_wherever_they_come(argv, expect):
 
     args = vars(build_parser().parse_args(overrides_last(argv)))
     assert {k: args[k] for k in expect} == expect
+
+
+def test_a_run_dir_in_use_is_refused_in_one_line_before_any_work(tmp_path, capsys):
+    """Another live run holds the folder's lock: `offhrl train` says so in one line (no traceback), rc 2, and leaves it alone."""
+    from torchrl_offhrl.recipes.rundir import RunDirectory
+
+    run = tmp_path / "busy"
+    with RunDirectory(run, "fp").locked():  # a second open file description: flock refuses it, even in this process
+        rc = main(["train", "algo=moc", "env=hopper", "dataset=medium", f"run_dir={run}", *TINY_MODELS, *TINY_TRAIN])
+    err = capsys.readouterr().err
+    assert rc == 2 and "is in use by a run that is still going" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and {p.name for p in run.iterdir()} == {".lock"}
+
+
+def test_config_values_that_go_into_a_run_folder_name_never_leave_out_root(tmp_path):
+    """A label or env name with path separators or dots (`../`) is made one safe folder name under out_root."""
+    from torchrl_offhrl.recipes.config import default_run_dir, safe_name
+
+    cfg = {"dataset": "medium", "seed": 1, "out_root": str(tmp_path / "out"), "algo": {"name": "moc", "label": "../../escaped"},
+           "env": {"name": "../hopper"}, "ablation": {}, "train": {}}
+    path = default_run_dir(cfg)
+    assert path.parent == tmp_path / "out" and path.resolve().parent == (tmp_path / "out").resolve()
+    assert "/" not in path.name and path.name == "_.._.._escaped-.._hopper-medium-seed1"
+    assert safe_name("..") == "_.." and safe_name("") == "_" and safe_name("a b;rm -rf") == "a_b_rm_-rf"

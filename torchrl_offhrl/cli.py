@@ -352,11 +352,12 @@ def main(argv: list[str] | None = None) -> int:
 
     if "RL_LOGGING_LEVEL" not in os.environ:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
+    from .recipes.rundir import RunInUseError
     from .recipes.tune import SearchInterrupted
 
     try:
         return args.func(args)
-    except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError, ImportError, ConnectionError) as err:
+    except (DatasetError, PolicyNotFoundError, FileNotFoundError, ValueError, ImportError, ConnectionError, RunInUseError) as err:
         print(f"offhrl {args.command}: error: {err}", file=sys.stderr)
         return 2
     except SearchInterrupted as err:  # Ctrl-C during a search or sweep: the tables stay as they were

@@ -108,8 +108,8 @@ class PPOAgent(OnPolicyAgent):
     the actor's last layer at initialisation (its bias zeroed): at 0.01 (the
     shipped config, as MOC's ``intra_head_gain``) the untrained actor's means
     sit at the latent box's centre, which the latent origin
-    (``model_env.latent_origin=behaviour``) decodes to the data's action: the
-    agent starts as a behaviour cloner.
+    (``model_env.latent_origin=best``, the default) decodes to the action of
+    the data's best episodes: the agent starts as a behaviour cloner.
 
     ``bc_init_steps`` (0: off): before training from scratch
     (:meth:`pretrain`), that many Adam steps of behaviour cloning (TorchRL's

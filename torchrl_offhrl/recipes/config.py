@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -251,11 +252,26 @@ def auto_reward_scale(data: OfflineDataset, gamma: float = 0.99) -> float:
     return 1.0 / std
 
 
+def safe_name(part: str) -> str:
+    """``part`` as one folder-name component: every character outside ``[A-Za-z0-9._+=-]`` (a path separator, a space, a
+    shell character) becomes ``_``, and a name that is empty or starts with a dot (``..``, a hidden folder) gets a ``_``
+    prefix, so a config value can never put a run outside its out_root.
+
+    Examples:
+        >>> safe_name("../../etc"), safe_name("moc_official"), safe_name("my run/1")
+        ('_.._.._etc', 'moc_official', 'my_run_1')
+    """
+    out = re.sub(r"[^A-Za-z0-9._+=-]", "_", str(part))
+    return out if out and not out.startswith(".") else "_" + out
+
+
 def default_run_dir(cfg: Mapping) -> Path:
     """``<out_root>/<algo label>-<env>-<dataset>[-<ablations>][-<transfer label>][-online]-seed<seed>``.
 
     A dataset given as a file or a Minari id is named by its stem plus a short
     hash of the full path, so two files with the same name never share a run.
+    The folder name is built from config values made safe (:func:`safe_name`):
+    it is always one folder directly under ``out_root``.
     """
     spec = str(cfg["dataset"])
     ds = spec
@@ -266,7 +282,7 @@ def default_run_dir(cfg: Mapping) -> Path:
     transfer = transfer_label(cfg)
     abl += f"-{transfer}" if transfer else ""
     abl += "-online" if (cfg.get("train") or {}).get("online") else ""
-    return Path(cfg.get("out_root", "outputs/runs")) / f"{algo_label(cfg['algo'])}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}"
+    return Path(cfg.get("out_root", "outputs/runs")) / safe_name(f"{algo_label(cfg['algo'])}-{cfg['env']['name']}-{ds}{abl}-seed{cfg['seed']}")
 
 
 def learns_from_dataset(cfg: Mapping) -> bool:

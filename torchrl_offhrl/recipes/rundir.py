@@ -27,7 +27,11 @@ import torch
 from ..utils import CorruptFileError, atomic_write, load_torch_file
 from .config import RESUMABLE_KEYS, fingerprints_match
 
-__all__ = ["RunDirectory", "trim_csv_logs"]
+__all__ = ["RunDirectory", "RunInUseError", "trim_csv_logs"]
+
+
+class RunInUseError(RuntimeError):
+    """A run directory another live run holds (its ``.lock``): the CLI says so in one line."""
 
 
 class RunDirectory:
@@ -87,7 +91,7 @@ class RunDirectory:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
-                raise RuntimeError(
+                raise RunInUseError(
                     f"{self.path} is in use by a run that is still going (pid {holder}): two runs in one run_dir would "
                     "interleave their checkpoints and logs. Wait for it to finish, or give another run_dir=."
                 ) from None

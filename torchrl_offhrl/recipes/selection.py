@@ -46,8 +46,8 @@ Evaluations at step 0 (the untrained agent) are candidates only with
 
 ``model_gain_lcb`` and the guard. Both compare a policy with the policy the
 run *started from* (the evaluation at step 0: with the default
-``model_env.latent_origin=behaviour`` the decoder at the data's own latent at
-each state, a behaviour cloner of the data) on the same model episodes: every
+``model_env.latent_origin=best`` the decoder at the latent of the data's
+highest-return episodes at each state, a behaviour cloner of them) on the same model episodes: every
 evaluation rolls its policy out from the same data start states under the
 same member per episode (``member_draw="cyclic"``) for a whole real-episode
 length, so the two policies' returns pair up episode by episode.
