@@ -103,6 +103,19 @@ def test_missing_policy_is_explained(cache, capsys, monkeypatch):
 def test_evaluate_rejects_a_non_run_directory(tmp_path, capsys):
     assert main(["evaluate", str(tmp_path)]) == 2
     assert "not a (checkpointed) run directory" in capsys.readouterr().err
+    # a folder where the checkpoint should be is named as what it is, not as missing
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "checkpoint.pt").mkdir()
+    assert main(["evaluate", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "checkpoint.pt is not a regular file" in err and "is missing" not in err
+    # a damaged config.json is named, in one line
+    (tmp_path / "checkpoint.pt").rmdir()
+    (tmp_path / "checkpoint.pt").write_bytes(b"x")
+    (tmp_path / "config.json").write_text('{"env": ')
+    assert main(["evaluate", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'config.json'} is not valid JSON" in err and len(err.strip().splitlines()) == 1
 
 
 def test_demo_tiny(cache, tmp_path, capsys):

@@ -6,7 +6,6 @@ evaluation, so the learning curve compares like with like.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
@@ -19,6 +18,7 @@ from ..scores import normalized_score
 from ..utils import load_torch_file
 from .config import acts_in_latent_space, latent_bound, model_config, resolve_dataset, transfer_config
 from .pipeline import apply_latent_origin, make_real_env, origin_path, origin_share
+from .runs import read_json
 
 __all__ = ["Evaluator", "GoalEvaluator", "SeedsEvaluation", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
 
@@ -285,9 +285,12 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
     run = Path(run_dir)
     cfg_path, ckpt_path = run / "config.json", run / "checkpoint.pt"
     for p in (cfg_path, ckpt_path):
+        if p.exists() and not p.is_file():
+            raise FileNotFoundError(f"{p} is not a regular file (a folder or a device): {run} is not a (checkpointed) run directory "
+                                    "of `offhrl train`")
         if not p.is_file():
             raise FileNotFoundError(f"{p} is missing: {run} is not a (checkpointed) run directory of `offhrl train`")
-    cfg = json.loads(cfg_path.read_text())
+    cfg = read_json(cfg_path)
     env_id = cfg["env"]["env_id"]
     latent = acts_in_latent_space(cfg)
     state = load_torch_file(ckpt_path, "run checkpoint", f"its previous checkpoint is {run / 'checkpoint.prev.pt'} (rename it to evaluate that one)")
@@ -296,7 +299,7 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
     if latent and not discard:
         model_dir = cfg.get("model_dir")
         if model_dir is None and (run / "summary.json").is_file():
-            model_dir = json.loads((run / "summary.json").read_text()).get("models")
+            model_dir = read_json(run / "summary.json").get("models")
         if model_dir is None:
             raise FileNotFoundError(f"{cfg_path} does not say which models the run used (written by an older version); train it again")
         cvae_path = Path(model_dir) / "cvae.pt"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ..utils import atomic_write
 
-__all__ = ["archive_run", "archive_runs", "expand_run_dirs", "load_run", "logged_tail_mean", "read_scalar_logs", "record_step", "run_unit"]
+__all__ = ["archive_run", "archive_runs", "expand_run_dirs", "load_run", "logged_tail_mean", "read_json", "read_scalar_logs", "record_step", "run_unit"]
 
 
 def record_step(record: dict) -> int:
@@ -33,16 +33,17 @@ def load_run(run_dir) -> dict:
     evals_path = d / "evals.json"
     if not evals_path.is_file():
         raise FileNotFoundError(f"{d} has no evals.json: not a run directory written by offline_train")
-    cfg = _read_json(d / "config.json") if (d / "config.json").is_file() else {}
-    summary = _read_json(d / "summary.json") if (d / "summary.json").is_file() else None
-    evals = _read_json(evals_path)
+    cfg = read_json(d / "config.json") if (d / "config.json").is_file() else {}
+    summary = read_json(d / "summary.json") if (d / "summary.json").is_file() else None
+    evals = read_json(evals_path)
     if not isinstance(evals, list) or not evals:
         raise ValueError(f"{evals_path} holds no evaluation records ({evals!r}): the run has not evaluated yet; "
                          "let it run to its first evaluation, or leave it out")
     return {"dir": str(d), "config": cfg, "evals": evals, "summary": summary}
 
 
-def _read_json(path: Path):
+def read_json(path: Path):
+    """A run's JSON record (``config.json``, ``summary.json``, ``evals.json``); a damaged one is named in a ``ValueError``."""
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as err:
@@ -71,7 +72,7 @@ def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:
     if (dest / "config.json").is_file():
         from .config import config_fingerprint
 
-        kept = _read_json(dest / "config.json")
+        kept = read_json(dest / "config.json")
         if config_fingerprint(kept) != config_fingerprint(run["config"]):
             raise FileExistsError(f"{dest} archives another run than {src} (their configs differ in more than budget, evaluation and "
                                   "speed settings): archiving would overwrite it; move the old archive to a name of its own "

@@ -47,6 +47,7 @@ from .loop import TrainingLoop
 from .plots import plot_training_metrics
 from .summary import run_summary
 from .rundir import RunDirectory
+from .runs import read_json
 from .schema import RunConfig
 from .selection import PolicySelector
 from .setting import build_setting
@@ -124,7 +125,10 @@ class PreparedRun:
             if pretrained:
                 run.write_json("pretrain.json", pretrained)
         if resumed and (run.path / "summary.json").is_file():
-            previous_summary = json.loads((run.path / "summary.json").read_text())
+            try:
+                previous_summary = read_json(run.path / "summary.json")
+            except ValueError as err:  # damaged: the run is taken further all the same, and writes it again
+                warnings.warn(f"{err}; the previous summary is dropped", stacklevel=2)
             (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
         if s.rules is not None:  # the calibration report: what the offline rules chose, and why (text, JSON, figure)
             run.write_json("calibration.json", s.rules.as_dict())
