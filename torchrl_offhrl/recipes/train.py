@@ -33,7 +33,6 @@ Nothing here names an algorithm.
 """
 from __future__ import annotations
 
-import json
 import time
 import warnings
 from collections.abc import Mapping
