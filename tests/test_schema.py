@@ -110,3 +110,27 @@ def test_cli_refuses_an_unknown_key_added_with_plus(tmp_path, monkeypatch, capsy
     assert main(["train", "+train.total_frame=5", f"out_root={tmp_path / 'runs'}"]) == 2
     assert "train.total_frame: unknown key; train takes total_frames" in capsys.readouterr().err
     assert not (tmp_path / "cache").exists()
+
+
+@pytest.mark.parametrize("override,named", [
+    ("model_env.discrepancy=maximum", "model_env.discrepancy: expected one of"),
+    ("model_env.pessimism={threshold: 0.5, penalty: .nan}", "model_env.pessimism: expected"),
+    ("model_env.pessimism={threshold: 0.5, penalty: -3}", "model_env.pessimism: expected"),
+    ("model_env.pessimism={quantile: 1.5, penalty: 20}", "model_env.pessimism: expected"),
+    ("model_env.pessimism={fraction: 0, penalty: 20}", "model_env.pessimism: expected"),
+    ("model_env.pessimism={treshold: 0.5, penalty: 20}", "model_env.pessimism: expected"),
+    ("+algo.clip_eps=0.2", "algo.clip_eps: unknown hyper-parameter of algo=ppo; it takes"),
+])
+def test_model_env_and_algorithm_values_are_refused_before_any_work(override, named):
+    """Values that used to fail (or pass silently) only after the data and the models: now named by validate_config."""
+    with pytest.raises(ValueError, match=named.replace("(", r"\(")):
+        validate_config(to_plain(compose("offline_train", ["algo=ppo", "env=hopper", override])))
+
+
+def test_good_pessimism_values_and_the_demo_with_sac_pass():
+    for ok in ("model_env.pessimism={threshold: 0.5, penalty: 30}", "model_env.pessimism={quantile: 0.999, penalty: 0}",
+               "model_env.pessimism={fraction: 1.08, penalty: 20.0}", "model_env.discrepancy=max_pairwise"):
+        validate_config(to_plain(compose("offline_train", ["algo=moc", "env=hopper", ok])))
+    demo = to_plain(compose("demo", ["algo=sac", "env=hopper"]))  # the demo's on-policy minibatch is not handed to SAC
+    assert "minibatch_size" not in demo["algo"] and to_plain(compose("demo", ["algo=moc"]))["algo"]["minibatch_size"] == 256
+    validate_config(demo)

@@ -52,10 +52,24 @@ def compose(config_name: str, overrides: list[str], command: str | None = None):
         raise SystemExit(f"error: overrides must look like key=value (or ~key to delete one), got {bad}; see `offhrl {command or 'train'} --help`")
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-            return hcompose(config_name, overrides=overrides)
+            cfg = hcompose(config_name, overrides=overrides)
     except (HydraException, OmegaConfBaseException) as err:
         raise ValueError(f"{err} (configs in {config_dir()}; an override is key=value, a config group option "
                          f"is e.g. algo=sac|ppo|moc, env=hopper|halfcheetah)") from err
+    if config_name == "demo":  # the demo's short-budget minibatch is the on-policy agents' (MOC, PPO); others keep their own batches
+        _drop_untaken_minibatch(cfg)
+    return cfg
+
+
+def _drop_untaken_minibatch(cfg) -> None:
+    from omegaconf import open_dict
+
+    from ..agents import AGENTS, agent_defaults
+
+    algo = cfg.get("algo")
+    if algo is not None and "minibatch_size" in algo and algo.get("name") in AGENTS and "minibatch_size" not in agent_defaults(algo.name):
+        with open_dict(algo):
+            del algo["minibatch_size"]
 
 
 def resolve_dataset(cfg: Mapping) -> OfflineDataset:

@@ -31,6 +31,7 @@ from typing import Any
 import torch
 
 from ..envs import TASKS
+from ..models import DISCREPANCIES
 from .selection import CRITERIA
 
 __all__ = ["CollectorConfig", "EvalConfig", "LoggerConfig", "RunConfig", "SECTIONS", "parse_section", "SelectionConfig", "TrainConfig", "TransferConfig",
@@ -269,6 +270,9 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "model_env.member_mode": _choice("episode", "step", "mean"),
     "model_env.reset_states": _choice("initial", "any", "auto"),
     "model_env.latent_bound": ("a number > 0 or 'auto'", lambda v: v == "auto" or _num(0, lo_open=True)[1](v)),
+    "model_env.discrepancy": _choice(*DISCREPANCIES),
+    "model_env.pessimism": ("null or a mapping of threshold (> 0), fraction (> 0) or quantile (in (0, 1)), and penalty (>= 0), "
+                            "finite numbers", lambda v: _pessimism_ok(v)),
     "model_env.latent_origin": _choice("best", "behaviour", "zero"),
     "model_env.origin_share": _num(0, 1, lo_open=True),
     "model_env.reward_penalty": _num(0),
@@ -301,6 +305,41 @@ ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "reward_scale": ("a positive number, 'auto' or 'return_range'", lambda v: v in ("auto", "return_range") or (_is_num(v) and v > 0)),
     "anneal_lr": ("true or false", lambda v: isinstance(v, bool)),
 }
+
+
+def _pessimism_ok(v) -> bool:
+    """``model_env.pessimism``: null, or its keys each a finite number in range (a NaN or negative penalty would only fail,
+    or silently reward ending episodes, once training runs)."""
+    if v is None:
+        return True
+    if not isinstance(v, Mapping):
+        return False
+    ranges = {"threshold": (0, None), "fraction": (0, None), "quantile": (0, 1), "penalty": (None, None)}
+    for k, x in v.items():
+        if k not in ranges:
+            return False
+        if x is None:
+            continue
+        if not _is_num(x) or not math.isfinite(float(x)):
+            return False
+        lo, hi = ranges[k]
+        if k == "penalty" and x < 0:
+            return False
+        if lo is not None and not x > lo or hi is not None and not x < hi:
+            return False
+    return True
+
+
+def _algo_problems(algo: Mapping) -> list[str]:
+    """An algorithm's keys its agent does not take (``name`` and ``label`` aside), named before any data or model work."""
+    from ..agents import AGENTS, agent_defaults
+
+    name = algo.get("name")
+    if name not in AGENTS:
+        return [f"algo.name: expected one of {', '.join(sorted(AGENTS))}, got {name!r}"] if name is not None else []
+    accepted = agent_defaults(name)
+    return [f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {', '.join(sorted(accepted))}"
+            for k in algo if k not in ("name", "label") and k not in accepted]
 
 
 def _get(cfg: Mapping, path: str):
@@ -359,5 +398,7 @@ def validate_config(cfg: Mapping) -> None:
             rule = _num(0)
         if rule is not None and not rule[1](value):
             problems.append(f"algo.{key}: expected {rule[0]}, got {value!r}")
+    if isinstance(cfg.get("algo"), Mapping):
+        problems += _algo_problems(cfg["algo"])
     if problems:
         raise ValueError("invalid config values (nothing was run):\n  " + "\n  ".join(problems))
