@@ -456,3 +456,28 @@ def test_returns_to_go_matches_the_backward_recursion():
         ds.returns_to_go(1.5)
     with pytest.raises(ValueError, match="underflows"):  # 0.5 ** 1099 is below float64's range: a clear error, not NaN
         make_toy_dataset(num_episodes=1, episode_length=1100).returns_to_go(0.5)
+
+
+def test_implausible_values_are_refused_with_the_key_and_index_and_an_opt_out(tmp_path, monkeypatch):
+    """A few rewards at 1e30 (a glitch) are named on load; heavy-tailed and rare-event columns load; the opt-out loads anything."""
+    from torchrl_offhrl.data import DatasetError, load_dataset, make_toy_dataset, save_dataset
+    from torchrl_offhrl.data.dataset import TRUST_DATA_ENV
+
+    monkeypatch.delenv(TRUST_DATA_ENV, raising=False)
+    ds = make_toy_dataset(num_episodes=40, episode_length=50)
+    rew = ds.data.get(("next", "reward"))
+    torch.manual_seed(0)
+    rew.copy_(torch.distributions.Cauchy(0.0, 1.0).sample(rew.shape))  # heavy tails: loads
+    obs = ds.data.get("observation")
+    obs[:, 0] = 0.0
+    obs[::500, 0] = 9.0                                                 # a rare event in a column of zeros: loads
+    good = tmp_path / "good.hdf5"
+    save_dataset(ds, good)
+    assert len(load_dataset(good)) == 2000
+    rew[[7, 1234]] = 1e30
+    bad = tmp_path / "bad.hdf5"
+    save_dataset(ds, bad)
+    with pytest.raises(DatasetError, match=r"key 'rewards' .* holds 2 implausible value\(s\), the first 1e\+30 at index \[7, 0\].*TORCHRL_OFFHRL_TRUST_DATA=1"):
+        load_dataset(bad)
+    monkeypatch.setenv(TRUST_DATA_ENV, "1")
+    assert float(load_dataset(bad).data.get(("next", "reward")).max()) == pytest.approx(1e30, rel=1e-6)

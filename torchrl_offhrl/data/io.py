@@ -28,7 +28,7 @@ import torch
 from tensordict import TensorDict
 
 from ..utils import atomic_write
-from .dataset import DatasetError, OfflineDataset, check_finite
+from .dataset import DatasetError, OfflineDataset, check_finite, check_plausible
 
 __all__ = ["export_minari", "load_dataset", "save_dataset", "METADATA_ATTR"]
 
@@ -179,9 +179,11 @@ def _load_hdf5(path: Path, dtype: torch.dtype) -> OfflineDataset:
     check_finite(
         TensorDict({"observations": obs, "actions": act, "rewards": rew}, batch_size=[n]), source
     )
+    check_plausible(TensorDict({"observations": obs, "actions": act, "rewards": rew}, batch_size=[n]), source)
     if has_next:
         nobs = torch.as_tensor(arrays["next_observations"], dtype=dtype)
         check_finite(TensorDict({"next_observations": nobs}, batch_size=[n]), source)
+        check_plausible(TensorDict({"next_observations": nobs}, batch_size=[n]), source)
         keep = torch.ones(n, dtype=torch.bool)
         # a file that stops mid-episode: the collection ended there (truncation)
         if not (term[-1] or tout[-1]):
@@ -362,6 +364,7 @@ def _load_minari(dataset_id: str, dtype: torch.dtype) -> OfflineDataset:
         batch_size=[n],
     )
     check_finite(td, dataset_id)
+    check_plausible(td, dataset_id)
     meta: dict[str, Any] = {"source": f"minari:{dataset_id}"}
     env_spec = getattr(mds, "env_spec", None)
     if env_spec is not None:
