@@ -145,3 +145,46 @@ def test_aggregate_names_an_empty_or_damaged_evals_file(tmp_path):
     (run / "evals.json").write_text('[{"frames": 0, ')
     with pytest.raises(ValueError, match=r"run/evals\.json is not valid JSON .* damaged"):
         load_run(run)
+
+
+def _flip_byte(path, at=0.6):
+    data = bytearray(path.read_bytes())
+    data[int(len(data) * at)] ^= 0x40
+    path.write_bytes(bytes(data))
+
+
+def test_a_flipped_byte_or_junk_in_a_checkpoint_is_caught_by_its_checksum_and_the_run_falls_back(tmp_path):
+    """torch.load would read a checkpoint with one flipped byte without complaint (a weight of 1e37): the checksum written
+    beside it refuses it, and junk bytes (struct.error inside torch.load) take the same path: resume from the one before."""
+    run = RunDirectory(tmp_path / "run", "fp")
+    for frames, value in ((100, 1.0), (200, 2.0)):
+        run.frames = frames
+        run.checkpoint(_Agent(value))
+    assert run.checkpoint_path.with_name("checkpoint.pt.sha256").is_file() and run.previous_path.with_name("checkpoint.prev.pt.sha256").is_file()
+    for damage in (_flip_byte, lambda p: p.write_bytes(b"\x80\x02junk" * 7)):
+        good = run.checkpoint_path.read_bytes()
+        damage(run.checkpoint_path)
+        again, agent = RunDirectory(tmp_path / "run", "fp"), _Agent()
+        with pytest.warns(UserWarning, match=r"checkpoint\.pt: the run checkpoint is corrupt or truncated.*resuming from the checkpoint before it"):
+            assert again.resume(agent)
+        assert again.frames == 100 and agent.w.item() == 1.0
+        run.checkpoint_path.write_bytes(good)
+    assert RunDirectory(tmp_path / "run", "fp").resume(_Agent())  # restored: its checksum matches again
+
+
+def test_a_flipped_byte_in_a_cached_model_is_fitted_again(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
+    data = make_toy_dataset(num_episodes=4, episode_length=25)
+    fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
+    cfg = {"seed": 0, "dataset": {"val_ratio": 0.2}, "ensemble": {"num_models": 2, "hidden_sizes": [8], "loss": "l1", "fit": fit},
+           "cvae": {"hidden_sizes": [8], "kl_weight": 0.05, "fit": fit}}
+    _, _, info = fit_or_load_models(cfg, data, progress=False)
+    c_path = tmp_path / "models" / info["model_dir"].rsplit("/", 1)[1] / "cvae.pt"
+    _flip_byte(c_path, at=0.9)
+    with pytest.raises(CorruptFileError, match=r"cvae\.pt: the ConditionalVAE checkpoint is corrupt or truncated \(its bytes do not match"):
+        from torchrl_offhrl.models import ConditionalVAE
+
+        ConditionalVAE.load(c_path)
+    with pytest.warns(UserWarning, match=r"model cache entry is corrupt, fitting the model again: .*cvae\.pt"):
+        _, _, info = fit_or_load_models(cfg, data, progress=False)
+    assert info["cvae"] == "fitted" and info["ensemble"] == "loaded"

@@ -6,15 +6,60 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "load_torch_file", "one_thread", "remove_stale_tmp", "threads", "to_plain"]
+__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "file_digest", "load_torch_file", "one_thread", "remove_stale_tmp",
+           "save_torch_file", "threads", "to_plain"]
 
 
 class CorruptFileError(ValueError):
     """A file that exists but cannot be read back (truncated, overwritten, not what its name says); the message names it."""
 
 
+def file_digest(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes (hex)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _digest_path(path: Path) -> Path:
+    return path.with_name(path.name + ".sha256")
+
+
+def save_torch_file(obj, path: str | os.PathLike) -> Path:
+    """``torch.save`` atomically, with the file's SHA-256 beside it (``<name>.sha256``), which :func:`load_torch_file` checks.
+
+    The digest is written after the file: a process killed in between leaves
+    a digest that does not match, which the reader treats as a damaged file
+    (a run resumes from its previous checkpoint, a model is fitted again).
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> p = save_torch_file({"w": 1}, pathlib.Path(tempfile.mkdtemp()) / "m.pt")
+        >>> load_torch_file(p, "model", "fit it again"), p.with_name("m.pt.sha256").is_file()
+        ({'w': 1}, True)
+    """
+    import torch
+
+    path = Path(path).expanduser()
+    with atomic_write(path) as tmp:
+        torch.save(obj, tmp)
+        digest = file_digest(tmp)
+    with atomic_write(_digest_path(path)) as tmp:
+        Path(tmp).write_text(digest + "\n")
+    return path
+
+
 def load_torch_file(path: str | os.PathLike, what: str, fix: str, map_location="cpu"):
     """``torch.load(path, weights_only=True)``, with a one-line :class:`CorruptFileError` naming ``path`` and ``fix`` when it cannot be read.
+
+    A file written by :func:`save_torch_file` is checked against its SHA-256
+    first: a flipped byte that ``torch.load`` would read without complaint
+    (a weight of 1e37) is refused the same way. Any error of the reader, not
+    only the known ones, is reported as a damaged file.
 
     Example:
         >>> import tempfile, pathlib
@@ -29,11 +74,20 @@ def load_torch_file(path: str | os.PathLike, what: str, fix: str, map_location="
 
     import torch
 
+    digest_file = _digest_path(Path(path))
+    if digest_file.is_file() and Path(path).is_file():
+        try:
+            expected = digest_file.read_text().strip()
+        except OSError:
+            expected = ""
+        if file_digest(path) != expected:
+            raise CorruptFileError(f"{path}: the {what} is corrupt or truncated (its bytes do not match its checksum, {digest_file.name}: "
+                                   f"damaged after it was written); {fix}")
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
-    except (RuntimeError, OSError, EOFError, pickle.UnpicklingError, ValueError) as err:
-        if isinstance(err, FileNotFoundError):
-            raise
+    except FileNotFoundError:
+        raise
+    except (RuntimeError, OSError, EOFError, pickle.UnpicklingError, Exception) as err:  # noqa: B014 - any reader error: damaged
         reason = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
         raise CorruptFileError(f"{path}: the {what} is corrupt or truncated ({reason}); {fix}") from None
 

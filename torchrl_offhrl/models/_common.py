@@ -8,17 +8,15 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..utils import atomic_write, load_torch_file
+from ..utils import load_torch_file, save_torch_file
 from .trainer import SupervisedTrainer
 
 __all__ = ["FitMixin", "atomic_torch_save"]
 
 
 def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
-    """``torch.save`` to a temporary file in the same folder, then rename."""
-    with atomic_write(path) as tmp:
-        torch.save(obj, tmp)
-    return Path(path).expanduser()
+    """``torch.save`` to a temporary file in the same folder, then rename; with its checksum (:func:`~torchrl_offhrl.utils.save_torch_file`)."""
+    return save_torch_file(obj, path)
 
 
 class FitMixin:

@@ -20,9 +20,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import torch
-
-from ..utils import atomic_write
+from ..utils import save_torch_file
 from .summary import fmt_number
 
 __all__ = ["OfflinePhase", "OnlinePhase", "Phase", "TrainingLoop"]
@@ -275,5 +273,5 @@ class TrainingLoop:
         for snap in sorted(x for x in self.snapshots if x <= run.step and not (run.path / f"snapshot-{x}.pt").is_file()):
             # a state kept for good (e.g. UOF's 20-epoch policy), at the first evaluation at or past it, before the checkpoint
             # moves on (a run killed in between takes it again on resume)
-            with atomic_write(run.path / f"snapshot-{snap}.pt") as tmp:
-                torch.save({"agent": self.agent.state_dict(), "frames": run.frames, "updates": run.updates, "step": run.step, "record": rec}, tmp)
+            save_torch_file({"agent": self.agent.state_dict(), "frames": run.frames, "updates": run.updates, "step": run.step, "record": rec},
+                            run.path / f"snapshot-{snap}.pt")

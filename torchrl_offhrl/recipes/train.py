@@ -38,9 +38,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import torch
-
-from ..utils import atomic_write, to_plain
+from ..utils import save_torch_file, to_plain
 from .config import config_fingerprint, default_run_dir
 from .loop import TrainingLoop
 from .plots import plot_training_metrics
@@ -156,9 +154,8 @@ class PreparedRun:
         if selected is not None and selected["agent"] is None and verdict is not None:  # the last policy, kept whole beside the guard's choice
             selected = {**selected, "agent": agent.state_dict()}
         if selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
-            with atomic_write(run.path / "selected.pt") as tmp:
-                torch.save({"agent": selected["agent"], "step": selected["step"], "criterion": run.selector.criterion,
-                            "record": run.records[selected["index"]]}, tmp)
+            save_torch_file({"agent": selected["agent"], "step": selected["step"], "criterion": run.selector.criterion,
+                             "record": run.records[selected["index"]]}, run.path / "selected.pt")
         elapsed, train_time = time.time() - self.t_train, self.loop.timing["update_time_s"]
 
         # the report
