@@ -188,3 +188,50 @@ def test_a_flipped_byte_in_a_cached_model_is_fitted_again(tmp_path, monkeypatch)
     with pytest.warns(UserWarning, match=r"model cache entry is corrupt, fitting the model again: .*cvae\.pt"):
         _, _, info = fit_or_load_models(cfg, data, progress=False)
     assert info["cvae"] == "fitted" and info["ensemble"] == "loaded"
+
+
+def test_disk_faults_end_in_one_line_naming_the_folder_with_nothing_half_written(tmp_path, monkeypatch, capsys):
+    """A full disk (dataset: checked before h5py writes; torch.save's writer failing), a read-only folder (every atomic
+    write, and the CLI for the run folder itself): DiskWriteError naming the folder and the fix, no file left behind."""
+    import errno
+    import tempfile
+
+    from torchrl_offhrl.cli import main
+    from torchrl_offhrl.data import io
+    from torchrl_offhrl.utils import DiskWriteError, save_torch_file
+
+    ds = make_toy_dataset(num_episodes=4, episode_length=25)
+    monkeypatch.setattr(io.shutil, "disk_usage", lambda p: type("U", (), {"free": 1000})())
+    with pytest.raises(DiskWriteError, match=rf"cannot write d\.hdf5 in {tmp_path}: the dataset needs up to 1 MiB.*Free space there"):
+        io.save_dataset(ds, tmp_path / "d.hdf5")
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+
+    def full(*a, **k):
+        raise RuntimeError("[enforce fail at inline_container.cc:603] . PytorchStreamWriter failed writing file data/0: file write failed")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(DiskWriteError, match=rf"cannot write m\.pt in {tmp_path}: .*failed writing file"):
+        save_torch_file({"w": 1}, tmp_path / "m.pt")
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+
+    def read_only(*a, **k):
+        raise OSError(errno.EROFS, "Read-only file system", str(tmp_path))
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    with pytest.raises(DiskWriteError, match=rf"cannot write m\.pt in {tmp_path}: Read-only file system.*out_root="):
+        save_torch_file({"w": 1}, tmp_path / "m.pt")
+    monkeypatch.undo()
+    # the CLI: a run folder that cannot be made is one line, rc 2
+    real_mkdir = Path.mkdir
+
+    def no_mkdir(self, *a, **k):
+        if str(self).startswith(str(tmp_path / "ro")):
+            raise OSError(errno.EROFS, "Read-only file system", str(self))
+        return real_mkdir(self, *a, **k)
+
+    monkeypatch.setattr(Path, "mkdir", no_mkdir)
+    assert main(["train", "algo=moc", "env=hopper", f"out_root={tmp_path / 'ro'}", "train.total_frames=128"]) == 2
+    err = capsys.readouterr().err
+    assert "Read-only file system" in err and str(tmp_path / "ro") in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -1,12 +1,14 @@
 """Small shared helpers."""
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["CorruptFileError", "atomic_write", "cache_dir", "file_digest", "load_torch_file", "one_thread", "remove_stale_tmp",
+__all__ = ["CorruptFileError", "DiskWriteError", "atomic_write", "cache_dir", "file_digest", "load_torch_file", "one_thread", "remove_stale_tmp",
            "save_torch_file", "threads", "to_plain"]
 
 
@@ -114,16 +116,46 @@ def remove_stale_tmp(folder: str | os.PathLike, max_age_s: float = 3600.0) -> li
     return removed
 
 
+class DiskWriteError(OSError):
+    """A file the library writes could not be written (a full disk, a read-only or forbidden folder): one line naming the
+    folder and what to do (the CLI prints it as it is)."""
+
+
+#: the errnos of a folder that cannot take a file: full, over quota, read-only, forbidden
+DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
+
+
+def disk_write_error(err: OSError, path: str | os.PathLike) -> DiskWriteError:
+    """``err`` (a write that failed) as a :class:`DiskWriteError` naming ``path``'s folder and the fix."""
+    folder = Path(path).expanduser().parent
+    try:
+        free = f"; {shutil.disk_usage(folder).free / 2**20:.0f} MiB free there"
+    except OSError:
+        free = ""
+    what = err.strerror or (os.strerror(err.errno) if err.errno else str(err))
+    out = DiskWriteError(err.errno or errno.EIO, f"cannot write {Path(path).name} in {folder}: {what}{free}. Free space there, make it "
+                         "writable, or point out_root= (runs) / $TORCHRL_OFFHRL_CACHE (datasets and models) at a folder that is")
+    out.filename = str(folder)
+    return out
+
+
 @contextmanager
 def atomic_write(path: str | os.PathLike):
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
 
     On any error (or interrupt) the temporary file is removed, so a reader
-    never sees a half-written file under the final name.
+    never sees a half-written file under the final name. A folder that cannot
+    take the file (full, read-only, forbidden) raises :class:`DiskWriteError`
+    naming it, whatever wrote the file.
     """
     path = Path(path).expanduser()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    except OSError as err:
+        if err.errno in DISK_ERRNOS:
+            raise disk_write_error(err, path) from None
+        raise
     os.close(fd)
     try:
         yield tmp
@@ -132,9 +164,13 @@ def atomic_write(path: str | os.PathLike):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(err, OSError) and not isinstance(err, DiskWriteError) and err.errno in DISK_ERRNOS:
+            raise disk_write_error(err, path) from None
+        if isinstance(err, RuntimeError) and "write" in str(err).lower():  # torch.save's writer on a full disk
+            raise disk_write_error(OSError(errno.ENOSPC, str(err)), path) from None
         raise
 
 

@@ -16,10 +16,12 @@ Writing: :func:`save_dataset` (the project's HDF5) and :func:`export_minari`
 """
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
 import re
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +29,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from ..utils import atomic_write
+from ..utils import atomic_write, disk_write_error
 from .dataset import DatasetError, OfflineDataset, check_finite, check_plausible
 
 __all__ = ["export_minari", "load_dataset", "save_dataset", "METADATA_ATTR"]
@@ -272,6 +274,13 @@ def save_dataset(dataset: OfflineDataset, path: str | os.PathLike, compression: 
     meta.pop("split", None)
     meta["action_low"] = dataset.action_low.tolist()
     meta["action_high"] = dataset.action_high.tolist()
+    # h5py on a disk that fills up mid-write fails deep in HDF5 (and has crashed the interpreter): check the room first,
+    # against the uncompressed size (an upper bound of what is written)
+    need = sum(v.numel() * v.element_size() for v in td.values(include_nested=True, leaves_only=True)) + 2**20
+    path.parent.mkdir(parents=True, exist_ok=True)
+    free = shutil.disk_usage(path.parent).free
+    if free < need:
+        raise disk_write_error(OSError(errno.ENOSPC, f"the dataset needs up to {need / 2**20:.0f} MiB"), path)
     with atomic_write(path) as tmp, h5py.File(tmp, "w") as f:
 
         def put(name, tensor):
