@@ -310,6 +310,16 @@ def table() -> str:
         "two behaviours are averaged by the origin's regression, and where that average decodes to depends on the fit. On "
         "hopper-medium at dataset seed 2 the start (37.0-43.7, the data 34.3) beat every trained policy (25.1-32.8) and the "
         "guard returned it 5 times of 5.",
+        "5. Third round (2026-12-06): the origin regressed on the data's highest-return episodes holding 10% of its "
+        "transitions (`model_env.latent_origin=best`: percentile behaviour cloning, the share taken from the literature, "
+        "Chen et al. 2021, not tuned). Written and frozen in commit 6c633d4 after one agent-free check on the design data "
+        "(30 real episodes of the untrained agent, all-data origin refitted vs best episodes' origin: hopper-medium-expert "
+        "28.6 vs 101.4, halfcheetah-medium-expert 40.4 vs 64.3, hopper-medium 29.2 vs 36.2, halfcheetah-medium 41.3 vs 41.4) "
+        "and the same check on the previous round's dataset-seed-2 hopper data (medium-expert 29.7 vs 101.7, medium 29.5 vs "
+        "31.1), which had shown the all-data origin's failure; no other share was tried. Then MOC ran on the design datasets "
+        "(tuning seeds 1-3), and once, with seeds 4-8, on hopper- and halfcheetah-medium-expert at a dataset seed never "
+        "generated before (3) and on the previous round's held-out and second-seed datasets (the 'best episodes' origin on "
+        "data it was not designed on' table).",
     ]
     rows_by = {g: rows(g) for g in groups}
     opts = rows("options_origin")

@@ -702,3 +702,40 @@ def test_mopo_trains_end_to_end_with_the_dataset_in_its_minibatches(hopper_file,
     run = Path(summary["run_dir"])
     assert run.name.startswith("mopo-hopper-hopper_random-") and run.name.endswith("-no_cvae-no_pessimism-seed0")
     assert summary["updates"] > 0 and summary["final"]["return_mean"] > 0
+
+
+@pytest.mark.parametrize("algo", ["moc", "ppo", "sac"])
+def test_a_killed_and_resumed_run_gives_the_records_of_an_uninterrupted_one(algo, hopper_file, cache, tmp_path, monkeypatch):
+    """Interrupted after its checkpoint at 128 frames and resumed, a run's later evaluations equal, bit for bit, those of the
+    same run made in one go: the checkpoint keeps the model envs where they stood (the collector's carrier, the env's RNG)
+    and the RNG is set again right before the first batch (recipes.sources.source_state / restore_source). The dataset
+    agents' counterpart: test_offline_agents.py::test_an_interrupted_dataset_run_resumes_to_the_same_agent."""
+    straight = train(_cfg(algo, hopper_file, tmp_path / "a"), progress=False)
+    cfg = _cfg(algo, hopper_file, tmp_path / "b")
+    real_make_agent = setting_mod.make_agent
+    calls = {"n": 0}
+    crash_at = 4  # the fourth batch of 64 frames: after the checkpoint at 128
+
+    def crashing_agent(*a, **k):
+        agent = real_make_agent(*a, **k)
+        real_update = agent.update
+
+        def update(batch):
+            calls["n"] += 1
+            if calls["n"] == crash_at:
+                raise KeyboardInterrupt
+            return real_update(batch)
+
+        agent.update = update
+        return agent
+
+    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, progress=False)
+    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
+    resumed = train(cfg, progress=False)
+    a = json.loads((Path(straight["run_dir"]) / "evals.json").read_text())
+    b = json.loads((Path(resumed["run_dir"]) / "evals.json").read_text())
+    assert [e["frames"] for e in a] == [e["frames"] for e in b] == [128, 256]
+    for x, y in zip(a, b):
+        assert {k: v for k, v in x.items() if k != "wall_s"} == {k: v for k, v in y.items() if k != "wall_s"}

@@ -20,7 +20,10 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
+
 from ..utils import save_torch_file
+from .sources import restore_source, source_state
 from .summary import fmt_number
 
 __all__ = ["OfflinePhase", "OnlinePhase", "Phase", "TrainingLoop"]
@@ -174,7 +177,7 @@ class TrainingLoop:
     def keep(self, rec: dict) -> None:
         """Keep an evaluation record: appended to the run's records, checkpointed with the agent, then reported."""
         self.run.records.append(rec)
-        self.run.checkpoint(self.agent)
+        self.run.checkpoint(self.agent, source=source_state(self.source) if getattr(self, "source", None) is not None else None)
         self.report(rec)
 
     def _next_eval(self, phase: Phase) -> int:
@@ -191,10 +194,18 @@ class TrainingLoop:
         remaining = phase.begin(self)
         if remaining <= 0:
             return
+        resumed, self.run.resume_state = self.run.resume_state, None
+        if resumed is not None and resumed.get("source") is None:  # checkpointed with no source running (the evaluation at
+            torch.set_rng_state(resumed["rng"])                    # step 0, a dataset agent): the source starts from this RNG
         source = phase.batches(remaining, self.run.frames)
+        if resumed is not None and resumed.get("source") is not None:  # where the checkpointed run's source stood, and the RNG it
+            restore_source(source, resumed["source"])                  # had there: the batches the uninterrupted run drew
+            torch.set_rng_state(resumed["rng"])
+        self.source = source
         try:
             self._train(phase, source)
         finally:
+            self.source = None
             if hasattr(source, "shutdown"):
                 source.shutdown()
 

@@ -60,6 +60,7 @@ class RunDirectory:
         self.unit = "frames"  # what the run's budget counts: "frames" (collected) or "updates" (gradient steps, dataset agents)
         self.records: list[dict] = []
         self.selector = None  # a PolicySelector: its state (the selected policy) is checkpointed with the run
+        self.resume_state = None  # after resume(): the RNG and batch-source state to set on the first source
         self._replay: str | None = None
 
     @property
@@ -139,6 +140,9 @@ class RunDirectory:
         if self.selector is not None:
             self.selector.load_state_dict(state.get("selection"))
         torch.set_rng_state(state["rng"])
+        # the batch source's state and the RNG as they were at the checkpoint: set again on the new source, right before
+        # its first batch (TrainingLoop.run_phase), so that a resumed run draws what the uninterrupted one drew
+        self.resume_state = {"rng": state["rng"], "source": state.get("source")}
         replay = state.get("replay")
         if replay is not None and not (isinstance(replay, str) and re.fullmatch(r"replay-\d+", replay)):
             # the name is later joined to the run directory and removed with rmtree: never outside it
@@ -157,8 +161,9 @@ class RunDirectory:
             Path(tmp).write_text(json.dumps(obj, indent=2, default=str))
         return self.path / name
 
-    def checkpoint(self, agent) -> None:
-        """Save the agent, its replay buffer (if any and not empty), the counters, the records and the RNG state."""
+    def checkpoint(self, agent, source: dict | None = None) -> None:
+        """Save the agent, its replay buffer (if any and not empty), the counters, the records, the RNG state and the batch
+        source's state (``source``: :func:`~torchrl_offhrl.recipes.sources.source_state`, the model envs where they stand)."""
         new_replay = None
         rb = agent.replay_buffer
         if rb is not None and len(rb):  # an empty buffer (the evaluation before training) has nothing to save
@@ -168,7 +173,7 @@ class RunDirectory:
         state = {
             "agent": agent.state_dict(), "frames": self.frames, "updates": self.updates, "records": self.records,
             "rng": torch.get_rng_state(), "replay": new_replay, "fingerprint": self.fingerprint, "data_hash": self.data_hash,
-            "selection": None if self.selector is None else self.selector.state_dict(),
+            "selection": None if self.selector is None else self.selector.state_dict(), "source": source,
         }
         if self.checkpoint_path.is_file():  # the one before stays, for a checkpoint damaged later (resume falls back to it)
             for src, dst in ((self.checkpoint_path, self.previous_path),

@@ -5,6 +5,8 @@ The loop only iterates over batches and hands them to ``agent.update``.
 """
 from __future__ import annotations
 
+import torch
+
 __all__ = ["dataset_batches", "dataset_replay_buffer", "env_collector", "model_env_metrics", "online_metrics"]
 
 
@@ -65,3 +67,37 @@ def dataset_batches(data, agent, updates: int, device="cpu"):
     rb = dataset_replay_buffer(data, agent, device)
     for _ in range(int(updates)):
         yield rb.sample()
+
+
+def source_state(source) -> dict | None:
+    """What a batch source carries from one batch to the next, for a checkpoint: a collector's carrier (the envs' current
+    states, e.g. the model env's observation, member and step) and its base env's RNG; None for other sources (the
+    dataset's minibatches draw from torch's global RNG only, which the checkpoint keeps)."""
+    carrier = getattr(source, "_carrier", None)  # TorchRL's Collector: not serialisable in general (it resets on load),
+    if carrier is None:                          # but a model env's state lives in it whole
+        return None
+    out = {"carrier": carrier.cpu().to_dict()}  # plain nested tensors: what torch.load(weights_only=True) reads back
+    rng = getattr(getattr(getattr(source, "env", None), "base_env", None), "_rng", None)
+    if isinstance(rng, torch.Generator):
+        out["env_rng"] = rng.get_state()
+    return out
+
+
+def restore_source(source, state: dict | None) -> bool:
+    """Put a new source where a checkpointed one stood (:func:`source_state`); False when it cannot (another kind of source,
+    or a carrier of other keys or shape: the source then starts from fresh resets, as TorchRL's own collectors do)."""
+    carrier = getattr(source, "_carrier", None)
+    if not state or carrier is None or "carrier" not in state:
+        return False
+    from tensordict import TensorDict
+
+    saved = TensorDict.from_dict(state["carrier"], batch_size=carrier.batch_size)
+    keys = list(carrier.keys(True, True))  # what a fresh carrier holds (the saved one may also hold the policy's last outputs)
+    if any(k not in saved.keys(True, True) or saved.get(k).shape != carrier.get(k).shape for k in keys):
+        return False
+    saved = saved.select(*keys)
+    carrier.update_(saved.to(carrier.device) if carrier.device is not None else saved)
+    rng = getattr(getattr(getattr(source, "env", None), "base_env", None), "_rng", None)
+    if isinstance(rng, torch.Generator) and "env_rng" in state:
+        rng.set_state(state["env_rng"])
+    return True
