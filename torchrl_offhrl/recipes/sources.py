@@ -69,12 +69,20 @@ def dataset_batches(data, agent, updates: int, device="cpu"):
         yield rb.sample()
 
 
+def _state_in_carrier(source) -> bool:
+    """Whether a collector's env keeps its whole state in the tensordict it steps (the model envs; a real env's simulator
+    holds its own, which a restored carrier would contradict)."""
+    from ..envs import BlockStackModelEnv, PessimisticModelEnv
+
+    return isinstance(getattr(getattr(source, "env", None), "base_env", None), (PessimisticModelEnv, BlockStackModelEnv))
+
+
 def source_state(source) -> dict | None:
     """What a batch source carries from one batch to the next, for a checkpoint: a collector's carrier (the envs' current
     states, e.g. the model env's observation, member and step) and its base env's RNG; None for other sources (the
     dataset's minibatches draw from torch's global RNG only, which the checkpoint keeps)."""
     carrier = getattr(source, "_carrier", None)  # TorchRL's Collector: not serialisable in general (it resets on load),
-    if carrier is None:                          # but a model env's state lives in it whole
+    if carrier is None or not _state_in_carrier(source):  # but a model env's state lives in it whole (a simulator's does not)
         return None
     out = {"carrier": carrier.cpu().to_dict()}  # plain nested tensors: what torch.load(weights_only=True) reads back
     rng = getattr(getattr(getattr(source, "env", None), "base_env", None), "_rng", None)
@@ -87,7 +95,7 @@ def restore_source(source, state: dict | None) -> bool:
     """Put a new source where a checkpointed one stood (:func:`source_state`); False when it cannot (another kind of source,
     or a carrier of other keys or shape: the source then starts from fresh resets, as TorchRL's own collectors do)."""
     carrier = getattr(source, "_carrier", None)
-    if not state or carrier is None or "carrier" not in state:
+    if not state or carrier is None or "carrier" not in state or not _state_in_carrier(source):
         return False
     from tensordict import TensorDict
 
