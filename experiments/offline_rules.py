@@ -324,13 +324,18 @@ def table() -> str:
     rows_by = {g: rows(g) for g in groups}
     opts = rows("options_origin")
     best_algos = {r["algo"] for r in rows_by["best"]}
-    if len(best_algos) > 1:
+    if best_algos:
         by_algo = {a: [r for r in rows_by["best"] if r["algo"] == a] for a in ("moc", "moc_1opt", "ppo") if a in best_algos}
-        text += ["", "## The options question on the default now (best episodes' origin; design datasets, tuning seeds)", "",
-                 "What each algorithm's default returns (last + guard), IQM [95% CI] (runs) and per seed, and the paired "
-                 "differences with MOC's run of the same seed. MOC: 2 options; moc_1opt: the same agent and optimiser settings "
-                 "with one option (the exact ablation of the options); PPO: `algo=ppo` as shipped.", "",
-                 *comparison_table(by_algo)]
+        bc = final_rows("bc")
+        if bc:
+            by_algo["bc"] = bc
+        text += ["", "## The options question, and BC, on the default now (best episodes' origin; design datasets, tuning seeds)", "",
+                 "What each algorithm's default returns (model-env agents: last + guard; BC: its last policy, 81,920 updates on "
+                 "the same data, from the previous round), IQM [95% CI] (runs) and per seed, and the paired differences with "
+                 "MOC's run of the same seed. MOC: 2 options; moc_1opt: the same agent and optimiser settings with one option "
+                 "(the exact ablation of the options); PPO: `algo=ppo` as shipped. The start every model-env agent falls back to "
+                 "is itself a behaviour cloner (of the best 10% of the data), so the BC column is the plain-BC fallback the "
+                 "issue asks to compare with.", "", *comparison_table(by_algo)]
     if rows_by["origin"]:
         by_algo = {"moc": rows_by["origin"], **{a: [r for r in opts if r["algo"] == a] for a in ("moc_1opt", "ppo")}}
         by_algo = {a: rs for a, rs in by_algo.items() if rs}
@@ -349,7 +354,7 @@ def table() -> str:
     every = [r for rs in (*rows_by.values(), opts) for r in rs]
     if every:
         text += ["", "## The guard over every run of this issue", "",
-                 f"All {len(every)} runs with model evaluations on this page (every group, MOC, 1-option MOC and PPO, both origins), the "
+                 f"All {len(every)} runs with model evaluations on this page (every group, MOC, 1-option MOC and PPO, every origin), the "
                  "guard recomputed on each run's last policy and on model_gain_lcb's pick. Right when fired: the guarded policy "
                  "scored no better than the start in the real env (checked after the fact, never used to choose); right when "
                  "passed: it scored better.", "", *guard_table(every)]
