@@ -14,7 +14,7 @@ import sys
 import time
 
 EPILOG = """examples:
-  offhrl demo                                         # the embedded demo (short budget, 13-25 min on 2 CPUs with its fits)
+  offhrl demo                                         # the embedded demo (short budget, 13-30 min on 2 CPUs with its fits)
   offhrl policies                                     # shipped behaviour policies and their returns
   offhrl collect hopper medium -n 1000000             # D4RL-protocol dataset, cached
   offhrl fit env=hopper dataset=medium                # ensemble + CVAE, cached
@@ -220,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="command")
 
-    s = sub.add_parser("demo", help="the embedded demo: medium data -> models -> MOC -> real-env evaluation (13-25 min on 2 CPUs, models fitted to convergence)",
+    s = sub.add_parser("demo", help="the embedded demo: medium data -> models -> MOC -> real-env evaluation (13-30 min on 2 CPUs, models fitted to convergence)",
                        description="Collects a small Hopper-v5 dataset with the shipped medium policy, fits the ensemble and the CVAE, "
                        "trains MOC on the pessimistic model for a short budget, evaluates in the real env and prints a summary. "
                        "Extra key=value arguments override configs/demo.yaml.")
