@@ -340,7 +340,12 @@ def table() -> str:
                  "MOC's run of the same seed. MOC: 2 options; moc_1opt: the same agent and optimiser settings with one option "
                  "(the exact ablation of the options); PPO: `algo=ppo` as shipped. The start every model-env agent falls back to "
                  "is itself a behaviour cloner (of the best 10% of the data), so the BC column is the plain-BC fallback the "
-                 "issue asks to compare with.", "", *comparison_table(by_algo)]
+                 "issue asks to compare with.", "",
+                 "Read on 2026-12-06 (seeds 1-3; PPO and 1-option MOC on the medium datasets only): on hopper-medium the guard "
+                 "returned the start in all nine runs, while their last policies (hindsight) reached MOC 36.1 / 31.6 / 60.1, "
+                 "1-option MOC 54.5 / 55.7 / 46.2, PPO 28.6 / 50.3 / 76.9: training finds better gaits, the model cannot tell "
+                 "which; on halfcheetah-medium PPO is 0.6-3.2 points above MOC and 1-option MOC level with it. Nothing favours "
+                 "two options over one.", "", *comparison_table(by_algo)]
     if rows_by["origin"]:
         by_algo = {"moc": rows_by["origin"], **{a: [r for r in opts if r["algo"] == a] for a in ("moc_1opt", "ppo")}}
         by_algo = {a: rs for a, rs in by_algo.items() if rs}
