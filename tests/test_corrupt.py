@@ -235,3 +235,18 @@ def test_disk_faults_end_in_one_line_naming_the_folder_with_nothing_half_written
     assert main(["train", "algo=moc", "env=hopper", f"out_root={tmp_path / 'ro'}", "train.total_frames=128"]) == 2
     err = capsys.readouterr().err
     assert "Read-only file system" in err and str(tmp_path / "ro") in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_flipped_byte_in_a_saved_dataset_is_caught_by_its_checksum(tmp_path):
+    """A byte of the data itself (not the HDF5 structure) flipped after saving: h5py would read it without complaint."""
+    from torchrl_offhrl.data.io import save_dataset
+
+    path = tmp_path / "d.hdf5"
+    save_dataset(make_toy_dataset(num_episodes=50, episode_length=100), path, compression=None)
+    assert path.with_name("d.hdf5.sha256").is_file()
+    load_dataset(path)
+    _flip_byte(path, at=0.5)
+    with pytest.raises(DatasetError, match=r"d\.hdf5: cannot be read: the file is corrupt or truncated \(its bytes do not match its checksum"):
+        load_dataset(path)
+    path.with_name("d.hdf5.sha256").unlink()  # a file from elsewhere (no checksum): read as it is
+    load_dataset(path)
