@@ -8,8 +8,8 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["CorruptFileError", "DiskWriteError", "atomic_write", "cache_dir", "file_digest", "load_torch_file", "one_thread", "remove_stale_tmp",
-           "save_torch_file", "threads", "to_plain"]
+__all__ = ["CorruptFileError", "DiskWriteError", "atomic_write", "cache_dir", "checksum_mismatch", "checksum_path", "file_digest", "load_torch_file", "one_thread", "remove_stale_tmp",
+           "save_torch_file", "threads", "to_plain", "write_checksum"]
 
 
 class CorruptFileError(ValueError):
@@ -27,8 +27,32 @@ def file_digest(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def _digest_path(path: Path) -> Path:
+def checksum_path(path: str | os.PathLike) -> Path:
+    """Where the SHA-256 of a file the library writes is kept: ``<name>.sha256`` beside it."""
+    path = Path(path)
     return path.with_name(path.name + ".sha256")
+
+
+def write_checksum(path: str | os.PathLike, digest: str | None = None) -> Path:
+    """Write ``path``'s SHA-256 (``digest`` when already computed) beside it, atomically; returns the checksum file."""
+    out = checksum_path(path)
+    digest = file_digest(path) if digest is None else digest
+    with atomic_write(out) as tmp:
+        Path(tmp).write_text(digest + "\n")
+    return out
+
+
+def checksum_mismatch(path: str | os.PathLike) -> Path | None:
+    """The checksum file of ``path`` when the file's bytes do not match it (damaged after it was written), else None
+    (they match, or there is no checksum: a file written elsewhere or before checksums, read as it is)."""
+    digest_file = checksum_path(path)
+    if not (digest_file.is_file() and Path(path).is_file()):
+        return None
+    try:
+        expected = digest_file.read_text().strip()
+    except OSError:
+        expected = ""
+    return None if file_digest(path) == expected else digest_file
 
 
 def save_torch_file(obj, path: str | os.PathLike) -> Path:
@@ -50,8 +74,7 @@ def save_torch_file(obj, path: str | os.PathLike) -> Path:
     with atomic_write(path) as tmp:
         torch.save(obj, tmp)
         digest = file_digest(tmp)
-    with atomic_write(_digest_path(path)) as tmp:
-        Path(tmp).write_text(digest + "\n")
+    write_checksum(path, digest)
     return path
 
 
@@ -72,24 +95,17 @@ def load_torch_file(path: str | os.PathLike, what: str, fix: str, map_location="
         ...
         torchrl_offhrl.utils.CorruptFileError: .../model.pt: the checkpoint is corrupt or truncated (...); delete it
     """
-    import pickle
-
     import torch
 
-    digest_file = _digest_path(Path(path))
-    if digest_file.is_file() and Path(path).is_file():
-        try:
-            expected = digest_file.read_text().strip()
-        except OSError:
-            expected = ""
-        if file_digest(path) != expected:
-            raise CorruptFileError(f"{path}: the {what} is corrupt or truncated (its bytes do not match its checksum, {digest_file.name}: "
-                                   f"damaged after it was written); {fix}")
+    digest_file = checksum_mismatch(path)
+    if digest_file is not None:
+        raise CorruptFileError(f"{path}: the {what} is corrupt or truncated (its bytes do not match its checksum, {digest_file.name}: "
+                               f"damaged after it was written); {fix}")
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
     except FileNotFoundError:
         raise
-    except (RuntimeError, OSError, EOFError, pickle.UnpicklingError, Exception) as err:  # noqa: B014 - any reader error: damaged
+    except Exception as err:  # any reader error (RuntimeError, EOFError, UnpicklingError, struct.error, ...): a damaged file
         reason = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
         raise CorruptFileError(f"{path}: the {what} is corrupt or truncated ({reason}); {fix}") from None
 

@@ -24,15 +24,10 @@ from pathlib import Path
 
 import torch
 
-from ..utils import CorruptFileError, atomic_write, load_torch_file, save_torch_file
+from ..utils import CorruptFileError, atomic_write, checksum_path, load_torch_file, save_torch_file
 from .config import RESUMABLE_KEYS, fingerprints_match
 
 __all__ = ["RunDirectory", "RunInUseError", "trim_csv_logs"]
-
-
-def _sha(path: Path) -> Path:
-    """The checksum file :func:`~torchrl_offhrl.utils.save_torch_file` writes beside ``path``."""
-    return path.with_name(path.name + ".sha256")
 
 
 class RunInUseError(RuntimeError):
@@ -176,10 +171,11 @@ class RunDirectory:
             "selection": None if self.selector is None else self.selector.state_dict(), "source": source,
         }
         if self.checkpoint_path.is_file():  # the one before stays, for a checkpoint damaged later (resume falls back to it)
-            for src, dst in ((self.checkpoint_path, self.previous_path),
-                             *([(_sha(self.checkpoint_path), _sha(self.previous_path))] if _sha(self.checkpoint_path).is_file() else [])):
-                with atomic_write(dst) as tmp:
-                    shutil.copyfile(src, tmp)
+            # with the checksum it was written with (not one of its bytes now: a checkpoint damaged since stays damaged)
+            for src, dst in ((self.checkpoint_path, self.previous_path), (checksum_path(self.checkpoint_path), checksum_path(self.previous_path))):
+                if src.is_file():
+                    with atomic_write(dst) as tmp:
+                        shutil.copyfile(src, tmp)
         save_torch_file(state, self.checkpoint_path)  # with its checksum, checked on resume
         with atomic_write(self.path / "evals.json") as tmp:
             Path(tmp).write_text(json.dumps(self.records, indent=1))
