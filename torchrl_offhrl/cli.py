@@ -362,12 +362,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"offhrl {args.command}: error: {err}", file=sys.stderr)
         return 2
     except OSError as err:  # a folder that cannot take a file, met outside atomic_write (a run folder, a lock): one line too
-        from .utils import DISK_ERRNOS
+        from .utils import DISK_ERRNOS, disk_write_error
 
         if err.errno not in DISK_ERRNOS:
             raise
-        print(f"offhrl {args.command}: error: cannot write in {err.filename or 'a folder'}: {err.strerror}. Free space there, make it "
-              "writable, or point out_root= (runs) / $TORCHRL_OFFHRL_CACHE (datasets and models) at a folder that is", file=sys.stderr)
+        print(f"offhrl {args.command}: error: {disk_write_error(err, folder=err.filename)}", file=sys.stderr)
         return 2
     except SearchInterrupted as err:  # Ctrl-C during a search or sweep: the tables stay as they were
         print(f"offhrl {args.command}: {err}", file=sys.stderr)

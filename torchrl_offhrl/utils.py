@@ -141,15 +141,17 @@ class DiskWriteError(OSError):
 DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
 
 
-def disk_write_error(err: OSError, path: str | os.PathLike) -> DiskWriteError:
-    """``err`` (a write that failed) as a :class:`DiskWriteError` naming ``path``'s folder and the fix."""
-    folder = Path(path).expanduser().parent
+def disk_write_error(err: OSError, path: str | os.PathLike | None = None, folder: str | os.PathLike | None = None) -> DiskWriteError:
+    """``err`` (a write that failed) as a :class:`DiskWriteError` naming the file ``path`` and its folder (or only a
+    ``folder``: a run folder that could not be made) and the fix."""
+    folder = Path(path).expanduser().parent if path is not None else Path(folder if folder is not None else ".")
     try:
         free = f"; {shutil.disk_usage(folder).free / 2**20:.0f} MiB free there"
     except OSError:
         free = ""
     what = err.strerror or (os.strerror(err.errno) if err.errno else str(err))
-    out = DiskWriteError(err.errno or errno.EIO, f"cannot write {Path(path).name} in {folder}: {what}{free}. Free space there, make it "
+    target = f"{Path(path).name} in {folder}" if path is not None else f"in {folder}"
+    out = DiskWriteError(err.errno or errno.EIO, f"cannot write {target}: {what}{free}. Free space there, make it "
                          "writable, or point out_root= (runs) / $TORCHRL_OFFHRL_CACHE (datasets and models) at a folder that is")
     out.filename = str(folder)
     return out
