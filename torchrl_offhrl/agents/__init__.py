@@ -19,11 +19,11 @@ from collections.abc import Mapping
 
 from ..utils import to_plain
 from .base import Agent, DatasetAgent, MetricMeans, OnPolicyAgent, action_box, adam, sum_losses
-from .registry import AGENTS, agent_class, agent_defaults, goal_conditioned, register_agent, requires_goal
+from .registry import AGENTS, agent_class, agent_defaults, goal_conditioned, register_agent, requires_goal, unknown_hyperparameters
 
 __all__ = [
     "AGENTS", "Agent", "DatasetAgent", "MetricMeans", "OnPolicyAgent", "action_box", "adam", "agent_class", "agent_defaults", "goal_conditioned", "make_agent", "register_agent", "requires_goal",
-    "sum_losses",
+    "sum_losses", "unknown_hyperparameters",
 ]
 
 def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_scale=None, action_key: str = "latent_action", device="cpu",
@@ -46,10 +46,9 @@ def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_
     """
     cls = agent_class(name)
     cfg = {k: v for k, v in {**to_plain(cfg or {}), **kwargs}.items() if k not in ("name", "label")}
-    accepted = agent_defaults(name)
-    unknown = sorted(set(cfg) - set(accepted))
+    unknown = unknown_hyperparameters(name, cfg)
     if unknown:
-        raise TypeError(f"algo={name}: unknown hyper-parameter(s) {unknown}; {cls.__name__} accepts {sorted(accepted)}")
+        raise TypeError(f"algo={name}: unknown hyper-parameter(s) {unknown}; {cls.__name__} accepts {sorted(agent_defaults(name))}")
     context = {"obs_loc": obs_loc, "obs_scale": obs_scale, "action_key": action_key, "device": device}
     if goal_key is not None:
         if not goal_conditioned(name):

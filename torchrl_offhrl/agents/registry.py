@@ -5,7 +5,7 @@ import inspect
 
 from .base import Agent
 
-__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "register_agent", "requires_goal"]
+__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "register_agent", "requires_goal", "unknown_hyperparameters"]
 
 #: Registered agent classes by name.
 AGENTS: dict[str, type[Agent]] = {}
@@ -44,6 +44,12 @@ def agent_defaults(name: str) -> dict:
         if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
             break
     return out
+
+
+def unknown_hyperparameters(name: str, cfg) -> list[str]:
+    """The keys of an algorithm config agent ``name`` does not take (``name`` and ``label``, a config's run name, aside), sorted."""
+    accepted = agent_defaults(name)
+    return sorted(k for k in cfg if k not in ("name", "label") and k not in accepted)
 
 
 def agent_class(name: str) -> type[Agent]:

@@ -332,14 +332,13 @@ def _pessimism_ok(v) -> bool:
 
 def _algo_problems(algo: Mapping) -> list[str]:
     """An algorithm's keys its agent does not take (``name`` and ``label`` aside), named before any data or model work."""
-    from ..agents import AGENTS, agent_defaults
+    from ..agents import AGENTS, agent_defaults, unknown_hyperparameters
 
     name = algo.get("name")
     if name not in AGENTS:
         return [f"algo.name: expected one of {', '.join(sorted(AGENTS))}, got {name!r}"] if name is not None else []
-    accepted = agent_defaults(name)
-    return [f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {', '.join(sorted(accepted))}"
-            for k in algo if k not in ("name", "label") and k not in accepted]
+    takes = ", ".join(sorted(agent_defaults(name)))
+    return [f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown_hyperparameters(name, algo)]
 
 
 def _get(cfg: Mapping, path: str):
