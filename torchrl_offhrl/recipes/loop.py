@@ -162,6 +162,7 @@ class TrainingLoop:
         self.progress = progress
         self.env_label = env_label
         self.timing = {"update_time_s": 0.0}
+        self.source = None  # the phase's batch source while it trains (its state goes into each checkpoint)
 
     def evaluate(self, evaluator, save_to=None, phase: str | None = None, selects: bool = True) -> dict:
         """One evaluation record of the agent as it is now (and, with ``selects``, offered to the run's policy selection)."""
@@ -177,7 +178,7 @@ class TrainingLoop:
     def keep(self, rec: dict) -> None:
         """Keep an evaluation record: appended to the run's records, checkpointed with the agent, then reported."""
         self.run.records.append(rec)
-        self.run.checkpoint(self.agent, source=source_state(self.source) if getattr(self, "source", None) is not None else None)
+        self.run.checkpoint(self.agent, source=source_state(self.source))
         self.report(rec)
 
     def _next_eval(self, phase: Phase) -> int:

@@ -5,9 +5,7 @@ The loop only iterates over batches and hands them to ``agent.update``.
 """
 from __future__ import annotations
 
-import torch
-
-__all__ = ["dataset_batches", "dataset_replay_buffer", "env_collector", "model_env_metrics", "online_metrics"]
+__all__ = ["dataset_batches", "dataset_replay_buffer", "env_collector", "model_env_metrics", "online_metrics", "restore_source", "source_state"]
 
 
 def env_collector(env, agent, frames: int, frames_done: int = 0, device="cpu"):
@@ -69,33 +67,31 @@ def dataset_batches(data, agent, updates: int, device="cpu"):
         yield rb.sample()
 
 
-def _state_in_carrier(source) -> bool:
-    """Whether a collector's env keeps its whole state in the tensordict it steps (the model envs; a real env's simulator
-    holds its own, which a restored carrier would contradict)."""
-    from ..envs import BlockStackModelEnv, PessimisticModelEnv
+def _model_env(source):
+    """The model env a collector steps, or None: a model env keeps its whole state in the tensordict it steps (plus its
+    RNG), where a real env's simulator holds its own, which a restored carrier would contradict."""
+    from ..envs import PessimisticModelEnv  # BlockStackModelEnv is one
 
-    return isinstance(getattr(getattr(source, "env", None), "base_env", None), (PessimisticModelEnv, BlockStackModelEnv))
+    env = getattr(getattr(source, "env", None), "base_env", None)
+    return env if isinstance(env, PessimisticModelEnv) else None
 
 
 def source_state(source) -> dict | None:
     """What a batch source carries from one batch to the next, for a checkpoint: a collector's carrier (the envs' current
-    states, e.g. the model env's observation, member and step) and its base env's RNG; None for other sources (the
-    dataset's minibatches draw from torch's global RNG only, which the checkpoint keeps)."""
-    carrier = getattr(source, "_carrier", None)  # TorchRL's Collector: not serialisable in general (it resets on load),
-    if carrier is None or not _state_in_carrier(source):  # but a model env's state lives in it whole (a simulator's does not)
+    states, e.g. the model env's observation, member and step) and its model env's RNG; None for other sources (the
+    dataset's minibatches draw from torch's global RNG only, which the checkpoint keeps; a real env's collector)."""
+    carrier, env = getattr(source, "_carrier", None), _model_env(source)  # TorchRL's Collector: its carrier is not
+    if carrier is None or env is None:                                    # serialisable in general, a model env's is
         return None
-    out = {"carrier": carrier.cpu().to_dict()}  # plain nested tensors: what torch.load(weights_only=True) reads back
-    rng = getattr(getattr(getattr(source, "env", None), "base_env", None), "_rng", None)
-    if isinstance(rng, torch.Generator):
-        out["env_rng"] = rng.get_state()
-    return out
+    return {"carrier": carrier.cpu().to_dict(),  # plain nested tensors: what torch.load(weights_only=True) reads back
+            "env_rng": env._rng.get_state()}
 
 
 def restore_source(source, state: dict | None) -> bool:
     """Put a new source where a checkpointed one stood (:func:`source_state`); False when it cannot (another kind of source,
     or a carrier of other keys or shape: the source then starts from fresh resets, as TorchRL's own collectors do)."""
-    carrier = getattr(source, "_carrier", None)
-    if not state or carrier is None or "carrier" not in state or not _state_in_carrier(source):
+    carrier, env = getattr(source, "_carrier", None), _model_env(source)
+    if not state or carrier is None or env is None or "carrier" not in state:
         return False
     from tensordict import TensorDict
 
@@ -105,7 +101,6 @@ def restore_source(source, state: dict | None) -> bool:
         return False
     saved = saved.select(*keys)
     carrier.update_(saved.to(carrier.device) if carrier.device is not None else saved)
-    rng = getattr(getattr(getattr(source, "env", None), "base_env", None), "_rng", None)
-    if isinstance(rng, torch.Generator) and "env_rng" in state:
-        rng.set_state(state["env_rng"])
+    if "env_rng" in state:
+        env._rng.set_state(state["env_rng"])
     return True
