@@ -235,17 +235,14 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
 def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed: int, speed: list[str],
                 changes: list[str] = (), tag: str | None = None) -> dict:
     """The config of one Table I run (``speed``: checked not to change it; ``changes``: a variant named ``tag``)."""
-    from ..agents import agent_defaults
     from ..recipes.config import compose, config_fingerprint
     from ..utils import to_plain
 
     name = f"{algo}_{tag}" if tag else algo
     overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
                  f"run_dir={run_dir(where, env, name, seed, dataset)}", *PRESET[scale], *BUDGET[scale]]
-    cfg = compose(CONFIG[scale], overrides)
-    if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
-        overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
-    elif "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
+    cfg = compose(CONFIG[scale], overrides)  # the demo's on-policy minibatch is already left out for the agents without one
+    if "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
         overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
     if tag:
         overrides += [*changes, f"++algo.label={name}"]  # after the scale's own: the variant's settings win

@@ -49,7 +49,6 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
         extra: list[str] = (), tag: str | None = None, tuning: bool = False) -> None:
     """Every (env, kind, algo, seed) run in turn; ``extra`` overrides go to every run, ``tag`` names such a variant
     (its run directories and its rows: ``algo.label=<algo>_<tag>``)."""
-    from ..agents import agent_defaults
     from ..recipes.config import compose
     from ..recipes.report import format_summary
     from ..recipes.train import train
@@ -63,9 +62,7 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
                     overrides = [f"algo={algo}", f"env={env}", "dataset=medium", f"seed={seed}", f"run_dir={run_dir(env, algo, kind, seed, tag, out)}",
                                  *BUDGET["demo"], *KINDS[kind], f"transfer.online_frames={online_frames}", *extra,
                                  *([f"++algo.label={algo}_{tag}"] if tag else [])]
-                    cfg = compose("demo", overrides)
-                    if "minibatch_size" in cfg.algo and "minibatch_size" not in agent_defaults(cfg.algo.name):
-                        overrides.append("~algo.minibatch_size")  # the demo's setting for the on-policy agents
+                    # (the demo's on-policy minibatch is left out by compose for the agents without one)
                     print(format_summary(train(to_plain(compose("demo", overrides)))), flush=True)
                     archive(tuning)
 
