@@ -328,12 +328,11 @@ def table() -> str:
     ]
     rows_by = {g: rows(g) for g in groups}
     opts = rows("options_origin")
+    bc_rows = final_rows("bc")
+    bc = {"bc": bc_rows} if bc_rows else {}  # BC beside both options tables (it learns from the data only)
     best_algos = {r["algo"] for r in rows_by["best"]}
     if best_algos:
-        by_algo = {a: [r for r in rows_by["best"] if r["algo"] == a] for a in ("moc", "moc_1opt", "ppo") if a in best_algos}
-        bc = final_rows("bc")
-        if bc:
-            by_algo["bc"] = bc
+        by_algo = {**{a: [r for r in rows_by["best"] if r["algo"] == a] for a in ("moc", "moc_1opt", "ppo") if a in best_algos}, **bc}
         text += ["", "## The options question, and BC, on the default now (best episodes' origin; design datasets, tuning seeds)", "",
                  "What each algorithm's default returns (model-env agents: last + guard; BC: its last policy, 81,920 updates on "
                  "the same data, from the previous round), IQM [95% CI] (runs) and per seed, and the paired differences with "
@@ -348,10 +347,7 @@ def table() -> str:
                  "two options over one.", "", *comparison_table(by_algo)]
     if rows_by["origin"]:
         by_algo = {"moc": rows_by["origin"], **{a: [r for r in opts if r["algo"] == a] for a in ("moc_1opt", "ppo")}}
-        by_algo = {a: rs for a, rs in by_algo.items() if rs}
-        bc = final_rows("bc")
-        if bc:
-            by_algo["bc"] = bc
+        by_algo = {**{a: rs for a, rs in by_algo.items() if rs}, **bc}
         text += ["", "## The options question, and BC, on the default (design datasets, tuning seeds)", "",
                  "What each algorithm's default returns (model-env agents: last + guard; BC: its last policy, 81,920 updates on "
                  "the same 100k transitions), IQM [95% CI] (runs) and per seed, and the paired differences with MOC's run of "
