@@ -18,6 +18,16 @@ def _truncate(path, keep=0.5):
     path.write_bytes(data[: int(len(data) * keep)])
 
 
+def _tiny_models(tmp_path, monkeypatch):
+    """Toy data and a config of two-step model fits, cached under ``tmp_path``."""
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
+    data = make_toy_dataset(num_episodes=4, episode_length=25)
+    fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
+    cfg = {"seed": 0, "dataset": {"val_ratio": 0.2}, "ensemble": {"num_models": 2, "hidden_sizes": [8], "loss": "l1", "fit": fit},
+           "cvae": {"hidden_sizes": [8], "kl_weight": 0.05, "fit": fit}}
+    return data, cfg
+
+
 class _Agent:
     replay_buffer = None
 
@@ -73,11 +83,7 @@ def test_a_damaged_cached_dataset_is_generated_again(tmp_path, monkeypatch):
 
 
 def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
-    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
-    data = make_toy_dataset(num_episodes=4, episode_length=25)
-    fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
-    cfg = {"seed": 0, "dataset": {"val_ratio": 0.2}, "ensemble": {"num_models": 2, "hidden_sizes": [8], "loss": "l1", "fit": fit},
-           "cvae": {"hidden_sizes": [8], "kl_weight": 0.05, "fit": fit}}
+    data, cfg = _tiny_models(tmp_path, monkeypatch)
     _, _, info = fit_or_load_models(cfg, data, progress=False)
     e_path = tmp_path / "models" / info["model_dir"].rsplit("/", 1)[1] / "ensemble.pt"
     _truncate(e_path)
@@ -90,11 +96,7 @@ def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
 
 
 def test_a_model_is_reused_when_only_the_other_models_settings_change(tmp_path, monkeypatch):
-    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
-    data = make_toy_dataset(num_episodes=4, episode_length=25)
-    fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
-    cfg = {"seed": 0, "dataset": {"val_ratio": 0.2}, "ensemble": {"num_models": 2, "hidden_sizes": [8], "loss": "l1", "fit": fit},
-           "cvae": {"hidden_sizes": [8], "kl_weight": 0.05, "fit": fit}}
+    data, cfg = _tiny_models(tmp_path, monkeypatch)
     ens, _, first = fit_or_load_models(cfg, data, progress=False)
     other = {**cfg, "cvae": {**cfg["cvae"], "hidden_sizes": [6]}}
     ens2, cvae2, info = fit_or_load_models(other, data, progress=False)
@@ -173,11 +175,7 @@ def test_a_flipped_byte_or_junk_in_a_checkpoint_is_caught_by_its_checksum_and_th
 
 
 def test_a_flipped_byte_in_a_cached_model_is_fitted_again(tmp_path, monkeypatch):
-    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
-    data = make_toy_dataset(num_episodes=4, episode_length=25)
-    fit = {"lr": 1e-3, "batch_size": 32, "max_epochs": 1, "max_steps": 2, "patience": 1}
-    cfg = {"seed": 0, "dataset": {"val_ratio": 0.2}, "ensemble": {"num_models": 2, "hidden_sizes": [8], "loss": "l1", "fit": fit},
-           "cvae": {"hidden_sizes": [8], "kl_weight": 0.05, "fit": fit}}
+    data, cfg = _tiny_models(tmp_path, monkeypatch)
     _, _, info = fit_or_load_models(cfg, data, progress=False)
     c_path = tmp_path / "models" / info["model_dir"].rsplit("/", 1)[1] / "cvae.pt"
     _flip_byte(c_path, at=0.9)

@@ -42,6 +42,31 @@ def _cfg(algo, data, out, extra=()):
         return compose("offline_train", overrides=[f"algo={algo}", f"dataset={data}", f"out_root={out}", *TINY, *ALGO_TINY[algo], *extra])
 
 
+def _interrupt_at_update(cfg, n: int, monkeypatch) -> None:
+    """Train ``cfg`` until its agent's ``n``-th update, interrupted there (KeyboardInterrupt, as a kill); the agent factory
+    is restored afterwards, so the next ``train(cfg)`` resumes the run."""
+    real_make_agent = setting_mod.make_agent
+    calls = {"n": 0}
+
+    def crashing_agent(*a, **k):
+        agent = real_make_agent(*a, **k)
+        real_update = agent.update
+
+        def update(batch):
+            calls["n"] += 1
+            if calls["n"] == n:
+                raise KeyboardInterrupt
+            return real_update(batch)
+
+        agent.update = update
+        return agent
+
+    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, progress=False)
+    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
+
+
 @pytest.mark.parametrize("algo", ["sac", "ppo", "moc"])
 def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
     summary = train(_cfg(algo, hopper_file, tmp_path), progress=False)
@@ -74,30 +99,11 @@ def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
 
 def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, monkeypatch):
     cfg = _cfg("moc", hopper_file, tmp_path)
-    real_make_agent = setting_mod.make_agent
-    calls = {"n": 0}
-
-    def crashing_agent(*a, **k):
-        agent = real_make_agent(*a, **k)
-        real_update = agent.update
-
-        def crash_on_fourth(batch):
-            calls["n"] += 1
-            if calls["n"] == 4:  # after the checkpoint at 128 frames and the logged update at 192
-                raise KeyboardInterrupt
-            return real_update(batch)
-
-        agent.update = crash_on_fourth
-        return agent
-
-    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, progress=False)
+    _interrupt_at_update(cfg, 4, monkeypatch)  # after the checkpoint at 128 frames and the logged update at 192
     run = next(tmp_path.glob("moc-*"))
     first = json.loads((run / "evals.json").read_text())
     assert [e["frames"] for e in first] == [128]
     saved = torch.load(run / "checkpoint.pt", weights_only=True)["agent"]["loss"]
-    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
 
     loaded = {}
     real_load = setting_mod.make_agent
@@ -712,27 +718,7 @@ def test_a_killed_and_resumed_run_gives_the_records_of_an_uninterrupted_one(algo
     agents' counterpart: test_offline_agents.py::test_an_interrupted_dataset_run_resumes_to_the_same_agent."""
     straight = train(_cfg(algo, hopper_file, tmp_path / "a"), progress=False)
     cfg = _cfg(algo, hopper_file, tmp_path / "b")
-    real_make_agent = setting_mod.make_agent
-    calls = {"n": 0}
-    crash_at = 4  # the fourth batch of 64 frames: after the checkpoint at 128
-
-    def crashing_agent(*a, **k):
-        agent = real_make_agent(*a, **k)
-        real_update = agent.update
-
-        def update(batch):
-            calls["n"] += 1
-            if calls["n"] == crash_at:
-                raise KeyboardInterrupt
-            return real_update(batch)
-
-        agent.update = update
-        return agent
-
-    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, progress=False)
-    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
+    _interrupt_at_update(cfg, 4, monkeypatch)  # the fourth batch of 64 frames: after the checkpoint at 128
     resumed = train(cfg, progress=False)
     a = json.loads((Path(straight["run_dir"]) / "evals.json").read_text())
     b = json.loads((Path(resumed["run_dir"]) / "evals.json").read_text())
