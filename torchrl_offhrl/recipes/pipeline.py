@@ -189,8 +189,8 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
     return ensemble.to(device), (cvae.to(device) if cvae is not None else None), info
 
 
-#: ``model_env.latent_origin``'s choices: the share of the data (its highest-return episodes) the origin regresses on, None: no origin
-ORIGIN_SHARES = {"best": None, "behaviour": 1.0, "zero": None}
+#: ``model_env.latent_origin``'s choices
+LATENT_ORIGINS = ("best", "behaviour", "zero")
 #: the share of the data's transitions ``latent_origin=best`` clones when ``model_env.origin_share`` is not given
 DEFAULT_ORIGIN_SHARE = 0.1
 
@@ -198,11 +198,9 @@ DEFAULT_ORIGIN_SHARE = 0.1
 def origin_share(env: Mapping) -> float | None:
     """The share of the data the latent origin is fitted on for a model env config (None: ``latent_origin=zero``)."""
     mode = env.get("latent_origin", "zero")
-    if mode not in ORIGIN_SHARES:
-        raise ValueError(f"model_env.latent_origin must be one of {', '.join(ORIGIN_SHARES)}, got {mode!r}")
-    if mode == "best":
-        return float(env.get("origin_share", DEFAULT_ORIGIN_SHARE))
-    return ORIGIN_SHARES[mode]
+    if mode not in LATENT_ORIGINS:
+        raise ValueError(f"model_env.latent_origin must be one of {', '.join(LATENT_ORIGINS)}, got {mode!r}")
+    return {"best": float(env.get("origin_share", DEFAULT_ORIGIN_SHARE)), "behaviour": 1.0, "zero": None}[mode]
 
 
 def origin_path(model_dir, share: float) -> Path:
