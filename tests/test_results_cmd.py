@@ -119,7 +119,7 @@ def test_the_guides_summary_is_the_pages_table(tmp_path):
     assert lines[0] == GUIDE_BEGIN and lines[-1] == GUIDE_END
     assert lines[2] == ("| final evaluation, IQM [95% CI] (seeds) | hopper-medium, demo | hopper-medium, full | hopper-medium-expert, full "
                         "| halfcheetah-medium, demo | halfcheetah-medium, full | halfcheetah-medium-expert, full |")
-    assert lines[4:-2] == ["| MOC | 55.1 [28.4, 84.6] (5) |  |  |  |  |  |",
+    assert lines[4:-2] == ["| MOC (the default) | 55.1 [28.4, 84.6] (5) |  |  |  |  |  |",
                            "| IQL |  |  |  |  | 44.9 (1) |  |",  # one seed: no interval, as on the table page
                            "| CQL |  |  |  |  | 38.8 [24.6, 46.2] (3) |  |",
                            "| TD3+BC |  |  | 91.3 [57.8, 102.0] (5) |  |  |  |",

@@ -314,6 +314,23 @@ TABLE_COLUMNS: dict[str, str] = {
 }
 #: columns outside Table I's standard ones that have a title of their own
 EXTRA_COLUMNS: dict[str, str] = {"moc_1opt": "MOC, 1 option", "ppoc": "PPOC (eta 0)", "morel_style": "MOReL-style (old)"}
+#: a model-env run made with the paper's per-dataset settings (``preset=paper``, or before the offline rules became the
+#: default on 2026-12-06) is not what ``offhrl train`` runs now: its own column, ``<label>_paper``
+PAPER_SUFFIX = "_paper"
+
+
+def made_with_paper_settings(cfg: Mapping) -> bool:
+    """Whether a model-env run's config is the paper's per-dataset tables rather than the offline rules: its latent origin is
+    the paper's (``zero``, what ``preset=paper`` sets) or absent (a run made before the rules, 2026-12-06). Dataset agents
+    (IQL, CQL, TD3+BC, BC) use no model, so no preset changes them: never."""
+    from .config import learns_from_dataset
+
+    try:
+        if learns_from_dataset(cfg):
+            return False
+    except (KeyError, ValueError):  # an algorithm this version no longer ships
+        return False
+    return (cfg.get("model_env") or {}).get("latent_origin", "zero") == "zero"
 
 
 def table_column(run: dict) -> str:
@@ -321,8 +338,12 @@ def table_column(run: dict) -> str:
     official code (no behaviour-cloned start: PPO in real actions from a random policy, threshold max / 3) are
     ``morel_style``, apart from ``morel``."""
     label, _, _, abl = group_key(run)
-    if label == "morel":
-        return "morel" if (run["config"].get("algo") or {}).get("bc_init_steps") else "morel_style"
+    if label == "morel" and not (run["config"].get("algo") or {}).get("bc_init_steps"):
+        return "morel_style"
+    paper = PAPER_SUFFIX if made_with_paper_settings(run["config"]) and not label.endswith(PAPER_SUFFIX) else ""
+    if label == "morel":  # MOReL acts in real actions by design: no_cvae is part of it
+        return label + paper
+    label += paper
     own = _own_ablations(str((run["config"].get("algo") or {}).get("name", "")))  # MOPO is SAC without CVAE or P-MDP by design
     parts = [a for a in abl.split(",") if a != "-"]
     abl = ",".join([*(a for a in parts if a not in own), *(f"{a}=false" for a in sorted(own - set(parts)))]) or "-"
@@ -341,6 +362,9 @@ def _own_ablations(algo: str) -> frozenset[str]:
 
 
 def column_title(column: str) -> str:
+    if column.endswith(PAPER_SUFFIX) and column not in EXTRA_COLUMNS:
+        base = column[: -len(PAPER_SUFFIX)]
+        return f"{TABLE_COLUMNS.get(base) or EXTRA_COLUMNS.get(base) or base} (paper preset)"
     return TABLE_COLUMNS.get(column) or EXTRA_COLUMNS.get(column) or column
 
 
@@ -466,7 +490,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     datasets = sorted({(k[0], k[1]) for k in groups})
     row_name = {(e, d): f"{_env_name(e)}-{_dataset_name(d)}" for e, d in datasets}  # "hopper-medium": table rows, missing cells, figures
     present = {k[2] for k in groups}
-    columns = [*TABLE_COLUMNS, *sorted(present - set(TABLE_COLUMNS))]  # every standard column (missing ones shown as —), then others
+    paper = [c + PAPER_SUFFIX for c in TABLE_COLUMNS if c + PAPER_SUFFIX in present]  # the same agents on the paper preset
+    columns = [*TABLE_COLUMNS, *paper, *sorted(present - set(TABLE_COLUMNS) - set(paper))]  # every standard column (missing: —), then others
     titles = [column_title(c) for c in columns]
     instances, mixed = _dataset_instances(groups, row_name, columns)
     episodes, mixed_episodes = _eval_episodes(groups, row_name, columns)

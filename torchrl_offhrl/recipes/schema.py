@@ -112,8 +112,8 @@ def _unit(unit: str) -> str:
 class TrainConfig:
     """``train``: the training budget."""
 
-    total_frames: int = _setting(_int(1), 1_000_000)  # agents on the model env (and online): frames collected
-    total_updates: int = _setting(_int(1), 1_000_000)  # agents learning from the dataset itself: gradient steps
+    total_frames: int = _setting(_int(1), 204_800)  # agents on the model env (and online): frames collected
+    total_updates: int = _setting(_int(1), 100_000)  # agents learning from the dataset itself: gradient steps
     online: bool = _setting(_bool(), False)  # train in the real env from scratch, in real actions (no models, no CVAE)
     snapshot_frames: tuple[int, ...] = _setting(_positive_ints(), ())  # keep the agent's state at these steps too
 
@@ -128,8 +128,8 @@ class EvalConfig:
 
     at_start: bool = _setting(_bool(), True)  # also evaluate the untrained agent
     model_env: bool = _setting(_bool(), True)  # also roll the policy out in the model (the model-real gap)
-    every_frames: int = _setting(_int(1), 50_000)
-    every_updates: int = _setting(_int(1), 50_000)
+    every_frames: int = _setting(_int(1), 40_960)
+    every_updates: int = _setting(_int(1), 10_000)
     episodes: int = _setting(_int(1), 30)  # deterministic real-env episodes per evaluation
     model_episodes: int | None = _setting(_int(1, optional=True), 50)  # episodes in the model env (null: episodes)
     sampled: bool = _setting(_bool(), False)  # also evaluate the sampled policy
@@ -222,7 +222,7 @@ class RunConfig:
     Example:
         >>> rc = RunConfig.parse({"seed": 3, "train": {"total_frames": 4096}, "transfer": {"task": "backward"}})
         >>> rc.train.total("frames"), rc.eval.every("updates"), rc.transfer.task, rc.transfer.online_frames
-        (4096, 50000, 'backward', 300000)
+        (4096, 10000, 'backward', 300000)
         >>> RunConfig.parse({"seed": 0}).transfer is None
         True
         >>> RunConfig.parse({"train": {"total_frame": 10}})

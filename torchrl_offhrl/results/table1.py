@@ -71,11 +71,15 @@ CONFIG = {"demo": "demo", "full": "offline_train"}
 # (issue 15's minimum; CORL and the papers run 1M), evaluated every 10k
 # every evaluation also runs the sampled policy (actions and options drawn) on the same start states: the tables report both
 UPDATES = ["train.total_updates=100000", "eval.every_updates=10000", "eval.sampled=true"]
-BUDGET = {"demo": ["train.total_frames=204800", "eval.every_frames=40960", "ensemble.fit.max_steps=20000", "cvae.fit.max_steps=20000", *UPDATES],
-          "full": ["train.total_frames=204800", "eval.every_frames=40960", *UPDATES]}
-#: the settings every archived Table I run was made with (before the offline rules became the default, 2026-12-06): the
-#: paper preset's tables, and at the demo scale the demo's branched 100-step episodes; reruns resume those runs
-PRESET = {"demo": ["preset=paper", "model_env.horizon=100", "model_env.reset_states=any", "cvae.fit.lr=1e-3"], "full": ["preset=paper"]}
+BUDGET = {"demo": ["train.total_frames=204800", "eval.every_frames=40960", *UPDATES],
+          "full": ["train.total_frames=204800", "eval.every_frames=40960", *UPDATES]}  # `full`: offline_train.yaml's own budget
+#: ``--paper``: the settings every archived model-env run of Table I was made with (before the offline rules became the
+#: default, 2026-12-06): the paper preset's tables, and at the demo scale the demo's branched 100-step episodes and fixed
+#: fit budgets; their runs are ``<algo>_paper-<env>-<dataset>-seed<N>``, column "<algo> (paper preset)", and resume under it.
+#: Without ``--paper`` a run is the shipped default, the headline column: at the full scale ``offhrl train algo=<algo>
+#: env=<env> dataset=<level> seed=<N>`` exactly (the evaluation's sampled episodes aside, which train nothing).
+PRESET = {"demo": ["preset=paper", "model_env.horizon=100", "model_env.reset_states=any", "cvae.fit.lr=1e-3",
+                   "ensemble.fit.max_steps=20000", "cvae.fit.max_steps=20000"], "full": ["preset=paper"]}
 ON_POLICY_MINIBATCH = {"demo": None, "full": 256}  # the demo's minibatch size (configs/demo.yaml sets it for every scale that extends it)
 # what a reader of a scale's report must know about how its seeds were used
 NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the config as it stands (`configs/demo.yaml`: 100-step model "
@@ -90,7 +94,13 @@ NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the conf
                   "(a config that no longer exists: PPO in real actions from a random policy, threshold max / 3; "
                   "`configs/algo/morel.yaml` now follows MOReL's code) are listed at the end as rebuilt rows and counted in no "
                   "cell.")}
-NOTES["full"] = ("Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
+_HEADLINE = ("Since 2026-12-06 the headline model-env columns (MOC, PPO, SAC, MOReL, MOPO) are the shipped default, {command} "
+             "(the offline rules, the best episodes' latent origin, the guard; 204,800 frames, minibatches of 256), and have not "
+             "run at this scale yet (the missing "
+             "cells say what they need). Every model-env run below was made before, on the paper's per-dataset settings, and sits "
+             "in the '(paper preset)' columns (runs `<algo>_paper-...`; `offhrl results table1 run --paper` resumes them). ")
+NOTES["demo"] = _HEADLINE.format(command="`offhrl demo algo=<algo> env=<env> dataset=<level>` at that budget") + NOTES["demo"]
+NOTES["full"] = (_HEADLINE.format(command="`offhrl train algo=<algo> env=<env> dataset=<level>` exactly") + "Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
                  "seeds 4-8 on 2026-12-03 with `--batch-seeds` (each algorithm's five seeds as one computation on one model env "
                  "of 5 x 64 envs, each seed still its own run; the paper's 1000-step model episodes from the data's start states), "
                  "on data and models generated on this machine: they replace the rows rebuilt from an earlier page. The columns "
@@ -197,13 +207,14 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
 
 
 def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], datasets: tuple[str, ...] = ("medium",), tuning: bool = False,
-        speed: list[str] = (), batch_seeds: bool = False, changes: list[str] = (), tag: str | None = None) -> None:
+        speed: list[str] = (), batch_seeds: bool = False, changes: list[str] = (), tag: str | None = None, paper: bool = False) -> None:
     """Every (dataset, env, algo, seed) run in turn. ``speed``: overrides that must not change the run (e.g. ``device=cuda``,
     ``algo.cudagraphs=true``): each run's resume fingerprint is checked to be the same with them and without.
     ``batch_seeds``: the seeds of an (env, dataset, algo) whose seeds can batch (:func:`~torchrl_offhrl.recipes.seed_runs.batchable`)
     train as one computation, each still its own run directory; the others go seed by seed.
     ``changes`` (with ``tag``): overrides that do change the runs, a variant of the scale's config: its runs are named
-    ``<algo>_<tag>-<env>-<dataset>-seed<N>`` and labelled ``<algo>_<tag>`` (their own column of the tables)."""
+    ``<algo>_<tag>-<env>-<dataset>-seed<N>`` and labelled ``<algo>_<tag>`` (their own column of the tables).
+    ``paper``: on the paper preset (:data:`PRESET`), as every archived model-env run before 2026-12-06; else the default."""
     if bool(changes) != bool(tag):
         raise SystemExit("--extra and --tag go together: a variant's runs need a name of their own (--tag NAME) beside the scale's own runs")
     if tag and not tag.replace("_", "").isalnum():
@@ -214,7 +225,7 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
     where = folder(scale, tuning)
     for env, dataset in ((e, d) for d in datasets for e in envs):
         for algo in algos:
-            configs = [_run_config(scale, where, env, dataset, algo, seed, speed, changes, tag) for seed in seeds]
+            configs = [_run_config(scale, where, env, dataset, algo, seed, speed, changes, tag, paper) for seed in seeds]
             summaries = None
             if batch_seeds and len(configs) > 1 and batchable(configs[0]):
                 try:
@@ -233,14 +244,15 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
 
 
 def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed: int, speed: list[str],
-                changes: list[str] = (), tag: str | None = None) -> dict:
-    """The config of one Table I run (``speed``: checked not to change it; ``changes``: a variant named ``tag``)."""
+                changes: list[str] = (), tag: str | None = None, paper: bool = False) -> dict:
+    """The config of one Table I run (``speed``: checked not to change it; ``changes``: a variant named ``tag``; ``paper``:
+    on the paper preset, :data:`PRESET`)."""
     from ..recipes.config import compose, config_fingerprint
     from ..utils import to_plain
 
-    name = f"{algo}_{tag}" if tag else algo
+    name = f"{algo}_{tag}" if tag else f"{algo}_paper" if paper else algo
     overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
-                 f"run_dir={run_dir(where, env, name, seed, dataset)}", *PRESET[scale], *BUDGET[scale]]
+                 f"run_dir={run_dir(where, env, name, seed, dataset)}", *(PRESET[scale] if paper else []), *BUDGET[scale]]
     cfg = compose(CONFIG[scale], overrides)  # the demo's on-policy minibatch is already left out for the agents without one
     if "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
         overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
@@ -301,14 +313,29 @@ _HC_MOPO_CHECKPOINT = "81,920-frame"
 _HOPPER_SAC_CHECKPOINT = "0-frame"
 
 
+_DEFAULT_NOT_RUN = ("The shipped default (the offline rules, the best episodes' latent origin and the guard, adopted on 2026-12-06; "
+                    "at this scale `offhrl train algo={algo} env={env} dataset={level}` as it ships) has not run at the `{scale}` "
+                    "scale yet: on the 2-core CPU machine each row needs its data, model fits to convergence and five seeds, "
+                    "more than a session holds beside the other work. `offhrl results table1 run --scale {scale} --envs {env} "
+                    "--datasets {level} --algos {algo}` runs it. The column '(paper preset)' is the same agent on the paper's "
+                    "per-dataset settings; the default itself is measured at the demo scale on docs/results/offline_rules.md.")
+MODEL_ENV_COLUMNS = ("moc", "ppo", "sac", "morel", "mopo")
+
+
 def _missing(scale: str) -> dict[str, str]:
-    """The medium rows' reasons at ``scale`` (seeds 7-8, the new peers); the full scale's medium-expert rows come from MISSING."""
+    """The medium rows' reasons at ``scale`` (seeds 7-8, the new peers); the full scale's medium-expert rows come from MISSING;
+    the model-env columns (the shipped default since 2026-12-06) from ``_DEFAULT_NOT_RUN``, which wins over both."""
     out = {}
     for env in ("hopper", "halfcheetah"):
         out[f"{env}-medium"] = _SEEDS_7_8.format(scale=scale, env=env)
         for algo in ("morel", "mopo"):
             out[f"{env}-medium:{algo}"] = _NEW_PEERS.format(hc_mopo=_HC_MOPO_CHECKPOINT)
     return out
+
+
+def _default_not_run(scale: str) -> dict[str, str]:
+    return {f"{env}-{level}:{algo}": _DEFAULT_NOT_RUN.format(algo=algo, env=env, level=level, scale=scale)
+            for env in ("hopper", "halfcheetah") for level in ("medium", "medium-expert") for algo in MODEL_ENV_COLUMNS}
 
 
 _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside other jobs: each 1M-transition part ~8-10 min, "
@@ -348,7 +375,7 @@ def report(scale: str, tuning: bool = False) -> str:
     name, scale = scale, folder(scale, tuning)  # `name`: the scale (its description); `scale`: the folder from here on
     archive(scale)
     kept = sorted(d for d in archive_dir(scale).glob("*-seed*") if (d / "summary.json").is_file())
-    legacy, legacy_diag = legacy_runs(scale, {d.name for d in kept})
+    legacy, legacy_diag = legacy_runs(scale, {d.name.replace("_paper-", "-", 1) for d in kept})  # legacy.json: names before "_paper"
     runs = [{**load_run(d), "name": d.name} for d in kept]  # the tables count archived runs only (issue 37: no cell on legacy rows)
     if not runs:
         raise SystemExit(f"no finished runs under {ROOT / 'outputs' / 'results' / scale} or {archive_dir(scale)}: "
@@ -359,7 +386,7 @@ def report(scale: str, tuning: bool = False) -> str:
     cmd = f"offhrl results table1 report --scale {name}{' --tuning' if tuning else ''}"
     table = aggregate(runs, out, made_by=cmd)
     # headline cells need 5 seeds (issue 37: seeds 4-8); the tuning pages compare settings on seeds 1-3
-    paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale", missing_reasons={**_missing(name), **MISSING.get(scale, {})}, made_by=cmd,
+    paper_table(runs, out, title=f"Offline RL on our generated datasets, `{scale}` scale", missing_reasons={**_missing(name), **MISSING.get(scale, {}), **_default_not_run(name)}, made_by=cmd,
                 min_seeds=3 if tuning else 5)  # table.md: the paper's Table I layout
     lines = [f"# Offline results, `{name}` scale" + (", tuning seeds" if tuning else ""), "", __doc__.split("Scales:")[1].split("Seeds 4")[0].strip(), "",
              f"Made by `{cmd}` from the finished runs: those under `outputs/results/{scale}/` "
@@ -416,9 +443,14 @@ def report(scale: str, tuning: bool = False) -> str:
 GUIDE_BEGIN = "<!-- table1 summary: written by `offhrl results table1 report` from docs/results/{demo,full}/table.csv; edits here are overwritten -->"
 GUIDE_END = "<!-- end of the table1 summary -->"
 #: the summary's rows: Table I's columns, then the variants the guide discusses (run label -> title)
-SUMMARY_ROWS = {"moc": "MOC", "moc_fit60k_g998": "MOC, recipe (60k fit, gamma 0.998)", "moc_pf108": "MOC, threshold 1.08 x max",
-                "ppo": "PPO", "ppo_fit60k_g998": "PPO, recipe (60k fit, gamma 0.998)", "ppo_pf108": "PPO, threshold 1.08 x max",
-                "sac": "SAC", "morel": "MOReL", "mopo": "MOPO", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC"}
+SUMMARY_ROWS = {"moc": "MOC (the default)", "moc_paper": "MOC, paper preset",
+                "moc_fit60k_g998_paper": "MOC, paper preset + recipe (60k fit, gamma 0.998)",
+                "moc_pf108_paper": "MOC, paper preset, threshold 1.08 x max",
+                "ppo": "PPO (the default)", "ppo_paper": "PPO, paper preset",
+                "ppo_fit60k_g998_paper": "PPO, paper preset + recipe (60k fit, gamma 0.998)",
+                "ppo_pf108_paper": "PPO, paper preset, threshold 1.08 x max",
+                "sac": "SAC (the default)", "sac_paper": "SAC, paper preset", "morel": "MOReL (the default)", "morel_paper": "MOReL, paper preset",
+                "mopo": "MOPO (the default)", "mopo_paper": "MOPO, paper preset", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC"}
 _SUMMARY_COLS = [("demo", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium-expert"),
                  ("demo", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium-expert")]
 
@@ -514,6 +546,8 @@ def main(argv=None) -> int:
     r.add_argument("--extra", nargs="+", default=[], metavar="KEY=VALUE", dest="changes",
                    help="a variant of the scale's config (e.g. model_env.reset_states=any model_env.horizon=100), with --tag")
     r.add_argument("--tag", default=None, help="the variant's name: runs <algo>_<tag>-<env>-<dataset>-seed<N>, their own column")
+    r.add_argument("--paper", action="store_true", help="on the paper preset, as the archived runs before 2026-12-06 "
+                   "(runs <algo>_paper-...; column '<algo> (paper preset)'); without it the shipped default, the headline column")
     g = sub.add_parser("report")
     g.add_argument("--scale", choices=sorted(CONFIG), default="demo")
     g.add_argument("--tuning", action="store_true", help="the tuning runs' page, docs/results/<scale>_tuning/README.md")
@@ -522,7 +556,7 @@ def main(argv=None) -> int:
         seeds = a.seeds if a.seeds is not None else [1, 2, 3] if a.tuning else [4, 5, 6, 7, 8]
         if a.tuning and any(s >= FIRST_EVAL_SEED for s in seeds):
             raise SystemExit("--tuning runs use the tuning seeds; seeds 4 and up are the evaluation seeds of docs/results/<scale>/")
-        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning, a.speed, batch_seeds=a.batch_seeds, changes=a.changes, tag=a.tag)
+        run(a.scale, a.envs, a.algos, seeds, a.datasets, a.tuning, a.speed, batch_seeds=a.batch_seeds, changes=a.changes, tag=a.tag, paper=a.paper)
     else:
         print(report(a.scale, a.tuning))
     return 0
