@@ -136,3 +136,25 @@ def test_the_guides_summary_is_the_pages_table(tmp_path):
     assert guide.read_text() == "before\n" + guide_summary(tmp_path) + "\nafter\n"
     text = GUIDE.read_text()  # the committed guide: its block is the committed pages'
     assert text[text.index(GUIDE_BEGIN):text.index(GUIDE_END) + len(GUIDE_END)] == guide_summary(ROOT)
+
+
+def test_a_run_on_the_paper_settings_gets_its_own_column_beside_the_default():
+    """Table I's headline model-env columns hold the shipped default only: a run whose latent origin is the paper's (``zero``,
+    preset=paper) or absent (made before the offline rules) goes to ``<label>_paper``; dataset agents use no model and stay."""
+    from torchrl_offhrl.recipes.report import column_title, table_column
+
+    def run(algo, model_env=None, label=None, **algo_keys):
+        cfg = {"algo": {"name": algo, **({"label": label} if label else {}), **algo_keys}, "env": {"env_id": "Hopper-v5"},
+               "dataset": "medium", "seed": 4}
+        return {"config": {**cfg, **({"model_env": model_env} if model_env is not None else {})}}
+
+    assert table_column(run("moc", {"latent_origin": "best"})) == "moc"
+    assert table_column(run("moc", {"latent_origin": "behaviour"})) == "moc"
+    assert table_column(run("moc", {"latent_origin": "zero"})) == "moc_paper"
+    assert table_column(run("moc")) == "moc_paper"  # before the rules: no latent origin in the config
+    assert table_column(run("moc", {"latent_origin": "zero"}, label="moc_1opt")) == "moc_1opt_paper"
+    assert table_column(run("iql")) == "iql" and table_column(run("bc", {"latent_origin": "zero"})) == "bc"
+    assert table_column(run("ppo", {"latent_origin": "zero"}, label="morel", bc_init_steps=10)) == "morel_paper"
+    assert table_column(run("ppo", None, label="morel")) == "morel_style"  # the old MOReL-style config stays apart
+    assert column_title("moc_paper") == "MOC (paper preset)" and column_title("moc_1opt_paper") == "MOC, 1 option (paper preset)"
+    assert column_title("moc") == "MOC"
