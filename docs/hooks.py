@@ -16,7 +16,7 @@ CONFIGS = ROOT / "torchrl_offhrl" / "configs"
 API = {
     "data": "torchrl_offhrl.data", "models": "torchrl_offhrl.models", "envs": "torchrl_offhrl.envs",
     "modules": "torchrl_offhrl.modules", "objectives": "torchrl_offhrl.objectives", "agents": "torchrl_offhrl.agents",
-    "recipes": "torchrl_offhrl.recipes", "results": "torchrl_offhrl.results", "blockstack": "torchrl_offhrl.blockstack", "stats": "torchrl_offhrl.stats",
+    "recipes": "torchrl_offhrl.recipes", "blockstack": "torchrl_offhrl.blockstack", "stats": "torchrl_offhrl.stats",
     "scores": "torchrl_offhrl.scores", "registry": "torchrl_offhrl.registry",
 }
 

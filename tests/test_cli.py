@@ -150,7 +150,7 @@ def test_console_script_installed():
 
 
 def test_hydra_deletion_overrides_are_accepted():
-    """``~key`` (hydra's deletion, as torchrl_offhrl/results/transfer.py passes for agents without a minibatch) composes."""
+    """``~key`` (hydra's deletion, as experiments/results/transfer.py passes for agents without a minibatch) composes."""
     from torchrl_offhrl.recipes.config import compose
 
     cfg = compose("demo", ["algo=sac", "~algo.minibatch_size"])
@@ -209,12 +209,12 @@ def test_the_demo_cites_no_check_its_config_has_not_had():
 
 
 def test_the_robustness_page_is_what_its_archived_runs_give():
-    """docs/results/demo_robustness.md is rebuilt exactly from docs/results/demo_robustness_runs/ (torchrl_offhrl/results/robustness.py table)."""
+    """docs/results/demo_robustness.md is rebuilt exactly from docs/results/demo_robustness_runs/ (experiments/results/robustness.py table)."""
     from pathlib import Path
 
     from importlib import import_module
 
-    mod = import_module("torchrl_offhrl.results.robustness")
+    mod = import_module("experiments.results.robustness")
     page = (Path(__file__).resolve().parents[1] / "docs" / "results" / "demo_robustness.md").read_text()
     assert mod.table(list(mod.VARIANTS)) + "\n" == page
     rows = mod.rows_of(mod.SHIPPED)
@@ -231,7 +231,7 @@ def test_the_robustness_variants_rerun_what_their_archived_runs_ran():
     import json
 
     from torchrl_offhrl.recipes.config import compose, pessimism_for, pessimism_table
-    from torchrl_offhrl.results import robustness as mod
+    from experiments.results import robustness as mod
     from torchrl_offhrl.utils import to_plain
 
     archived = json.loads((mod.ARCHIVE / mod.SHIPPED / "d4" / "config.json").read_text())

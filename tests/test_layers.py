@@ -2,9 +2,12 @@
 
 Layers, lowest first (DESIGN): the shared base modules (``utils``, ``scores``, ``stats``,
 ``registry``, ``nets``, ``rollouts``) < ``data`` < ``models`` < ``envs`` <
-``modules`` / ``objectives`` < ``agents`` < ``recipes`` < ``results`` < ``cli``. Every
+``modules`` / ``objectives`` < ``agents`` < ``recipes`` < ``cli``. Every
 import counts, those inside functions too. The checker is tested on
 synthetic sources, so a contract that could not fail would be caught.
+
+Beside the package, ``experiments/`` (the results pages' drivers, not installed) imports the package's public names only,
+by absolute imports, and the package imports nothing of it (the CLI's ``offhrl results`` forwards to a checkout's).
 """
 from __future__ import annotations
 
@@ -16,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1] / PKG
 LAYERS = {
     "utils": 0, "scores": 0, "stats": 0, "registry": 0, "nets": 0, "rollouts": 0, "blockstack": 0,
     "data": 1, "models": 2, "envs": 3, "modules": 4, "objectives": 4,
-    "agents": 5, "recipes": 6, "results": 7, "cli": 8,
+    "agents": 5, "recipes": 6, "cli": 8,
 }
 
 
@@ -172,3 +175,49 @@ def test_the_task_registry_is_the_one_place_that_knows_the_stacking_envs():
                  for path in sorted(top.rglob("*.py")) if path.name != "registry.py"
                  for i, line in enumerate(path.read_text().splitlines(), 1) if pattern.search(line)]
     assert not offenders, offenders
+
+
+EXPERIMENTS = ROOT.parent / "experiments"
+
+
+def experiment_violations(root: Path = EXPERIMENTS, package: Path = ROOT) -> list[str]:
+    """The experiments' imports of the package that are relative, of a module that does not exist, or of a private name."""
+    modules = module_sources(package)
+    bad = []
+    for path in sorted(root.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level and path.parent == root:
+                bad.append(f"{path.name}:{node.lineno} imports relatively from the top of experiments/")
+            names = ([(a.name, None) for a in node.names] if isinstance(node, ast.Import) else
+                     [(node.module or "", a.name) for a in node.names] if isinstance(node, ast.ImportFrom) and not node.level else [])
+            for module, name in names:
+                if module.split(".")[0] != PKG:
+                    continue
+                if module not in modules:
+                    bad.append(f"{path.relative_to(root)}:{node.lineno} imports {module}, not a module of {PKG}")
+                if (name or "").startswith("_") or any(part.startswith("_") for part in module.split(".")):
+                    bad.append(f"{path.relative_to(root)}:{node.lineno} imports a private name: {module} {name or ''}".rstrip())
+    return bad
+
+
+def test_the_experiments_stand_beside_the_package():
+    """experiments/ imports the package by absolute, public names; no module of the package imports experiments (the CLI's
+    forwarder does so by name at run time, from a checkout); the wheel holds none of it (pyproject's package list)."""
+    assert experiment_violations() == []
+    offenders = [m for m, src in module_sources().items() for node in ast.walk(ast.parse(src))
+                 if isinstance(node, (ast.Import, ast.ImportFrom)) and m != f"{PKG}.cli"
+                 and any((a.name if isinstance(node, ast.Import) else node.module or "").startswith("experiments") for a in node.names)]
+    assert offenders == []
+    assert 'include = ["torchrl_offhrl*"]' in (ROOT.parent / "pyproject.toml").read_text()
+
+
+def test_the_experiments_checker_catches_relative_and_private_imports(tmp_path):
+    pkg = _fake_package(tmp_path, {"__init__.py": "", "data/__init__.py": "", "data/io.py": "def load():\n    pass\n"})
+    exp = tmp_path / "experiments"
+    exp.mkdir()
+    (exp / "run.py").write_text("from torchrl_offhrl.data.io import load\nfrom torchrl_offhrl.data.io import _x\n"
+                                "from torchrl_offhrl.nothing import y\nfrom . import z\n")
+    assert experiment_violations(exp, pkg) == ["run.py:2 imports a private name: torchrl_offhrl.data.io _x",
+                                               "run.py:3 imports torchrl_offhrl.nothing, not a module of torchrl_offhrl",
+                                               "run.py:4 imports relatively from the top of experiments/"]

@@ -300,7 +300,8 @@ def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, a
                                               for s, v in zip(steps, scores)]))
     cfg = {"algo": {"name": "ppo" if algo == "morel" else algo, **({"label": "morel"} if algo == "morel" else {}), **(algo_cfg or {})},
            "env": {"env_id": env_id},
-           "dataset": dataset, "ablation": ablation or {}, "unit": unit, "seed": seed, **({"data_hash": data_hash} if data_hash else {})}
+           "dataset": dataset, "ablation": ablation or {}, "unit": unit, "seed": seed, **({"data_hash": data_hash} if data_hash else {}),
+           "model_env": {"latent_origin": "best"}}  # today's default (a run without one was made on the paper's settings)
     (d / "config.json").write_text(json.dumps(cfg))
     (d / "summary.json").write_text(json.dumps({"unit": unit, "behaviour_normalized_d4rl": behaviour, **(timing or {})}))
     return d
@@ -312,7 +313,8 @@ def test_table_column_leaves_out_the_ablations_an_algorithm_is_made_of():
     from torchrl_offhrl.recipes.report import table_column
 
     def run(name, **ablation):
-        return {"config": {"algo": {"name": name}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": ablation}}
+        return {"config": {"algo": {"name": name}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": ablation,
+                           "model_env": {"latent_origin": "best"}}}
 
     assert table_column(run("mopo", no_cvae=True, no_pessimism=True)) == "mopo"
     assert table_column(run("mopo", no_cvae=True, no_pessimism=False)) == "mopo [no_pessimism=false]"
@@ -547,8 +549,8 @@ def test_partial_runs_count_in_the_tables_but_draw_no_curves(tmp_path):
 
 
 def test_results_script_rebuilds_lost_runs_from_the_committed_record():
-    """torchrl_offhrl/results/table1.py: the committed legacy record gives back the committed table's per-seed scores, and a rerun takes a run's place."""
-    mod = import_module("torchrl_offhrl.results.table1")
+    """experiments/results/table1.py: the committed legacy record gives back the committed table's per-seed scores, and a rerun takes a run's place."""
+    mod = import_module("experiments.results.table1")
     runs, diag = mod.legacy_runs("full", skip=set())
     by_name = {r["name"]: r for r in runs}
     seed4 = by_name["moc-hopper-medium-seed4"]  # start 31.4, final 95.9, best 95.9 at the end: two evaluations
@@ -563,10 +565,10 @@ def test_results_script_rebuilds_lost_runs_from_the_committed_record():
 
 
 def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories(monkeypatch):
-    """torchrl_offhrl/results/table1.py run --datasets medium-expert: the dataset reaches the config and names the run directory."""
+    """experiments/results/table1.py run --datasets medium-expert: the dataset reaches the config and names the run directory."""
     import torchrl_offhrl.recipes.train as train_mod
 
-    mod = import_module("torchrl_offhrl.results.table1")
+    mod = import_module("experiments.results.table1")
     seen = []
     monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"final": {"normalized_d4rl": 1.0}})
     monkeypatch.setattr(mod, "archive", lambda scale: [])
@@ -582,10 +584,10 @@ def test_results_script_runs_the_medium_expert_rows_in_their_own_run_directories
 
 
 def test_results_script_keeps_tuning_runs_apart(monkeypatch):
-    """torchrl_offhrl/results/table1.py run --tuning: seeds 1-3 by default, run directories and archive under <scale>_tuning; seeds 4-6 refused."""
+    """experiments/results/table1.py run --tuning: seeds 1-3 by default, run directories and archive under <scale>_tuning; seeds 4-6 refused."""
     import torchrl_offhrl.recipes.train as train_mod
 
-    mod = import_module("torchrl_offhrl.results.table1")
+    mod = import_module("experiments.results.table1")
     seen, archived = [], []
     monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"final": {"normalized_d4rl": 1.0}})
     monkeypatch.setattr(mod, "archive", lambda scale: archived.append(scale) or [])
@@ -603,18 +605,22 @@ def test_results_script_keeps_tuning_runs_apart(monkeypatch):
     assert Path(seen[-1]["run_dir"]).name == "moc_branch-hopper-medium-seed2" and seen[-1]["algo"]["label"] == "moc_branch"
     assert seen[-1]["model_env"]["horizon"] == 100 and seen[-1]["model_env"]["reset_states"] == "any"
     assert seen[-1]["algo"]["minibatch_size"] == 256 and seen[-1]["train"]["total_frames"] == 204800  # the scale's own settings stay
-    mod.main(["run", "--tuning", "--scale", "full", "--envs", "hopper", "--algos", "moc", "--seeds", "2"])
-    assert seen[-1]["model_env"]["horizon"] == 1000 and "label" not in seen[-1]["algo"]
+    mod.main(["run", "--tuning", "--scale", "full", "--envs", "hopper", "--algos", "moc", "--seeds", "2"])  # the default: the rules
+    assert seen[-1]["model_env"]["horizon"] == "auto" and seen[-1]["model_env"]["latent_origin"] == "best"
+    assert "label" not in seen[-1]["algo"] and Path(seen[-1]["run_dir"]).name == "moc-hopper-medium-seed2"
+    mod.main(["run", "--tuning", "--scale", "full", "--envs", "hopper", "--algos", "moc", "--seeds", "2", "--paper"])
+    assert seen[-1]["model_env"]["horizon"] == 1000 and seen[-1]["model_env"]["latent_origin"] == "zero"
+    assert Path(seen[-1]["run_dir"]).name == "moc_paper-hopper-medium-seed2"  # beside the default's, never over it
     with pytest.raises(SystemExit, match="go together"):
         mod.main(["run", "--tuning", "--algos", "moc", "--extra", "model_env.horizon=100"])
 
 
 def test_transfer_script_keeps_variants_and_tuning_runs_apart(monkeypatch):
-    """torchrl_offhrl/results/transfer.py run --tuning --tag T --extra ...: the overrides reach the config, the tag names the run
+    """experiments/results/transfer.py run --tuning --tag T --extra ...: the overrides reach the config, the tag names the run
     directory and the rows (algo.label), tuning runs go to their own folder; seeds 4-6 and untagged overrides are refused."""
     import torchrl_offhrl.recipes.train as train_mod
 
-    mod = import_module("torchrl_offhrl.results.transfer")
+    mod = import_module("experiments.results.transfer")
     seen = []
     monkeypatch.setattr(train_mod, "train", lambda cfg: seen.append(cfg) or {"run_dir": cfg["run_dir"], "algo": "moc"})
     monkeypatch.setattr("torchrl_offhrl.recipes.report.format_summary", lambda s: "")
@@ -813,10 +819,10 @@ def test_cudagraphs_switch_is_the_same_update_off_a_gpu(algo):
 
 
 def test_transfer_script_compares_deterministic_and_sampled_final_policies(monkeypatch, tmp_path):
-    """torchrl_offhrl/results/transfer.py sampled: each finished run evaluated both ways on the same seed, mean ± std per group, cached until the run moves."""
+    """experiments/results/transfer.py sampled: each finished run evaluated both ways on the same seed, mean ± std per group, cached until the run moves."""
     import torchrl_offhrl.recipes.evaluation as ev_mod
 
-    mod = import_module("torchrl_offhrl.results.transfer")
+    mod = import_module("experiments.results.transfer")
     monkeypatch.setattr(mod, "OUT", tmp_path / "runs")
     monkeypatch.setattr(mod, "SAMPLED_PAGE", tmp_path / "sampled.md")
     for seed in (4, 5):
@@ -844,7 +850,7 @@ def test_transfer_script_compares_deterministic_and_sampled_final_policies(monke
 
 def test_transfer_page_lists_the_rows_short_of_three_seeds():
     """Every row the transfer setting asks for is named on the page while it has fewer than 3 seeds, with its reason."""
-    mod = import_module("torchrl_offhrl.results.transfer")
+    mod = import_module("experiments.results.transfer")
     names = [f"{a}-{e}-medium-{k}-seed{s}" for a, e, k in mod.EXPECTED for s in (4, 5, 6)]
     assert mod.short_rows(names) == []
     names.remove("ppo-hopper-medium-scratch-seed6")

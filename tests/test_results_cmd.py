@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from torchrl_offhrl.cli import main
-from torchrl_offhrl.results import PRESETS
+from experiments.results import PRESETS
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
@@ -76,7 +76,7 @@ def test_list_and_unknown_preset(capsys):
 
 
 def test_a_folder_that_is_no_checkout_is_refused(tmp_path):
-    from torchrl_offhrl.results.paths import require_checkout
+    from experiments.results.paths import require_checkout
 
     with pytest.raises(FileNotFoundError, match="run it from the repository root"):
         require_checkout(tmp_path)
@@ -105,7 +105,7 @@ def test_the_guides_summary_is_the_pages_table(tmp_path):
     """The offline guide's summary block is what table1's report writes from the pages' table.csv: hand-made csvs give a
     hand-written block (IQM [CI] (seeds), empty where no run, the behaviour row), and the committed guide holds the block of
     the committed csvs."""
-    from torchrl_offhrl.results.table1 import GUIDE_BEGIN, GUIDE_END, guide_summary, write_guide_summary
+    from experiments.results.table1 import GUIDE_BEGIN, GUIDE_END, guide_summary, write_guide_summary
 
     head = "env,dataset,algo,seeds,score_iqm,score_ci,behaviour_score\n"
     for scale, rows in {"demo": ["Hopper-v5,medium,moc,5,55.14,\"(28.41, 84.56)\",35.89"],
@@ -158,3 +158,15 @@ def test_a_run_on_the_paper_settings_gets_its_own_column_beside_the_default():
     assert table_column(run("ppo", None, label="morel")) == "morel_style"  # the old MOReL-style config stays apart
     assert column_title("moc_paper") == "MOC (paper preset)" and column_title("moc_1opt_paper") == "MOC, 1 option (paper preset)"
     assert column_title("moc") == "MOC"
+
+
+def test_offhrl_results_outside_a_checkout_says_where_the_experiments_are(tmp_path, monkeypatch):
+    """An installed (non-editable) library has no experiments: `offhrl results` refuses in one message naming what to do."""
+    from torchrl_offhrl import cli
+
+    monkeypatch.setattr(cli, "__file__", str(tmp_path / "site-packages" / "torchrl_offhrl" / "cli.py"))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("TORCHRL_OFFHRL_ROOT", raising=False)
+    with pytest.raises(SystemExit, match="not installed with the library.*run it from the repository root"):
+        cli.cmd_results(type("Args", (), {"args": ["list"]})())
+    assert cli.checkout_root() == tmp_path

@@ -400,8 +400,8 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
 
 
 def test_blockstack_report_reads_archived_runs_and_keeps_lost_groups_from_the_earlier_page(tmp_path, monkeypatch):
-    """torchrl_offhrl/results/blockstack.py: a finished run is archived and reported; a group with no archived run is the earlier page's text."""
-    mod = import_module("torchrl_offhrl.results.blockstack")
+    """experiments/results/blockstack.py: a finished run is archived and reported; a group with no archived run is the earlier page's text."""
+    mod = import_module("experiments.results.blockstack")
     monkeypatch.setattr(mod, "BASE", tmp_path / "outputs")
     monkeypatch.setattr(mod, "OUT", tmp_path / "docs")
     monkeypatch.setattr(mod, "ARCHIVE", tmp_path / "docs" / "blockstack" / "runs")
@@ -476,7 +476,7 @@ def test_blockstack_variants_run_uof_with_their_setting_under_their_own_name(tmp
     override, named so that the report groups it apart (and parses the dataset back)."""
     import torchrl_offhrl.recipes.train as train_mod
 
-    mod = import_module("torchrl_offhrl.results.blockstack")
+    mod = import_module("experiments.results.blockstack")
     monkeypatch.setattr(mod, "BASE", tmp_path / "outputs")
     monkeypatch.setattr(mod, "archive", lambda: [])
     seen = []

@@ -197,8 +197,29 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def checkout_root() -> "Path":
+    """The repository checkout whose ``experiments/`` makes the results pages: the checkout this package is installed from
+    in editable mode (``make install``), else the current directory, else ``$TORCHRL_OFFHRL_ROOT`` (which also says where
+    the pages are written: ``experiments.results.paths``)."""
+    from pathlib import Path
+
+    candidates = [Path(__file__).resolve().parents[1], Path.cwd().resolve()]
+    if os.environ.get("TORCHRL_OFFHRL_ROOT"):
+        candidates.append(Path(os.environ["TORCHRL_OFFHRL_ROOT"]).resolve())
+    return next((c for c in candidates if (c / "experiments" / "results" / "__init__.py").is_file()), candidates[-1])
+
+
 def cmd_results(args) -> int:
-    from .results import main as results_main
+    """``offhrl results``: the experiments that make the results pages are not part of the installed library; they live in
+    the repository's ``experiments/results/`` (``python -m experiments.results ...`` from a checkout), and this forwards to it."""
+    root = checkout_root()
+    if not (root / "experiments" / "results" / "__init__.py").is_file():
+        raise SystemExit(f"offhrl results: the results pages are made by the experiments of a checkout of torchrl_offhrl "
+                         f"(experiments/results/, not installed with the library), and {root} has none: run it from the "
+                         "repository root, install the checkout with `pip install -e .`, or set TORCHRL_OFFHRL_ROOT")
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    from experiments.results import main as results_main
 
     return results_main(args.args)
 

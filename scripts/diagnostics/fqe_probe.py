@@ -3,7 +3,7 @@
     python scripts/diagnostics/fqe_probe.py RUN_DIR [RUN_DIR ...] [--steps 5000] [--out FILE.json]
 
 For every ``snapshot-<frames>.pt`` of a run (the runs of
-``torchrl_offhrl/results/robustness.py`` keep one per evaluation after step 0), the policy's
+``experiments/results/robustness.py`` keep one per evaluation after step 0), the policy's
 deterministic action is computed at every dataset state (through the run's
 CVAE decoder, as the latent transform decodes it), and all of them are scored
 by one batched FQE fit (:func:`torchrl_offhrl.objectives.fqe.fitted_q_evaluation`)

@@ -3,7 +3,7 @@
     python scripts/diagnostics/selection_probe.py RUN_DIR [RUN_DIR ...] [--out FILE.json]
 
 For every ``snapshot-<frames>.pt`` of a run (``train.snapshot_frames``; the
-runs of ``torchrl_offhrl/results/robustness.py`` keep one per evaluation), the policy is
+runs of ``experiments/results/robustness.py`` keep one per evaluation), the policy is
 rolled out deterministically in the run's pessimistic model env as its
 training evaluations do (``eval.model_episodes`` episodes from the data's
 start states, member ``i % K`` for episode ``i``, the evaluation's seed), and

@@ -82,16 +82,15 @@ class MOCAgent(OnPolicyAgent):
       ``beta (Q - V + xi)``, in units of the rewards the agent learns from
       (``model_env.reward_scale=auto``).
     * ``anneal_lr`` True (official, as we read it: constant step sizes):
-      every step size decays linearly to 0 over the frame budget. Chosen on
-      the development seed at the demo's 82k frames (47.8 -> 89.0). It does
-      not cure the late fall: on seeds 1-3 at 164k frames MOC ends at
-      31.0 +- 4.1 with it and 41.3 +- 39.0 without (51.6 untrained), after
-      bests of 71.7 +- 10.2 and 84.9 +- 3.6.
+      every step size decays linearly to 0 over the frame budget, so the
+      policy settles instead of drifting late in training. Chosen on the
+      development seed at the demo's budget; it does not cure the late fall
+      of the last policy on Hopper, which the run's guard answers
+      (``selection`` in ``configs/offline_train.yaml``).
 
-    On the cached demo setting (hopper-medium, one development seed) these
-    give options of ~13 steps with pi_O entropy ~0.47 and a real-env score of
-    96.8 after 164k frames from 47.8 untrained
-    (``docs/results/moc_demo_experiments.md``, row ``official_fast_xi``).
+    What these settings give (option lengths, pi_O's entropy, scores) is
+    measured in ``docs/results/moc_demo_experiments.md`` (row
+    ``official_fast_xi``).
     The network and loss arguments are documented in
     :class:`~torchrl_offhrl.modules.OptionHeads` and
     :class:`~torchrl_offhrl.objectives.OptionCriticLoss`.

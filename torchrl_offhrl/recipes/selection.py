@@ -38,8 +38,8 @@ above the untrained start and the data in 6 of 6 hopper-medium tuning runs
 3 of 5; ``docs/results/full/experiments.md``): the worst member's return
 falls as soon as a policy leaves the data, so early, near-data policies
 often win.
-``torchrl_offhrl/results/robustness.py`` and the tuning pages of
-``torchrl_offhrl/results/table1.py`` score every criterion on every run they make.
+``experiments/results/robustness.py`` and the tuning pages of
+``experiments/results/table1.py`` score every criterion on every run they make.
 
 Evaluations at step 0 (the untrained agent) are candidates only with
 ``include_start=True``: by default the returned policy is a trained one.

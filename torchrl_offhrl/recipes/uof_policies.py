@@ -11,7 +11,7 @@ episodes x 25 steps: 20k frames). Here:
    scripted dataset gives only the input statistics, see
    :mod:`~torchrl_offhrl.agents.uof`), evaluating per goal every epoch and
    keeping ``snapshot-<frames>.pt`` at the epochs asked for
-   (``torchrl_offhrl/results/uof_online.py`` runs it and ships the snapshots);
+   (``experiments/results/uof_online.py`` runs it and ships the snapshots);
 2. :func:`ship_uof_policy` writes the acting part of a snapshot (the
    low-level actor and the first target Q-network of DIOL, which UOF picks
    options with: about 1 MB) with a card (env, epoch, the snapshot's real-env

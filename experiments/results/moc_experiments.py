@@ -129,9 +129,9 @@ def overrides_of(name: str) -> list[str]:
 
 
 def run(names: list[str]) -> None:
-    from ..recipes.config import compose
-    from ..recipes.train import train
-    from ..utils import to_plain
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
 
     for name in names:
         cfg = to_plain(compose("demo", [*overrides_of(name), f"run_dir={OUT / name}"]))
@@ -140,7 +140,7 @@ def run(names: list[str]) -> None:
 
 
 def table() -> str:
-    from ..recipes.report import logged_tail_mean
+    from torchrl_offhrl.recipes.report import logged_tail_mean
 
     lines = [
         "| variant | what | final D4RL | best D4RL (frames) | untrained | model-real gap (final) | " + " | ".join(DIAG) + " |",

@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 
 from .paths import ROOT  # noqa: E402  (the checkout the pages and runs live in)
-from ..recipes.uof_policies import EPOCH_FRAMES as EPOCH  # noqa: E402  (frames of one UOF epoch)
+from torchrl_offhrl.recipes.uof_policies import EPOCH_FRAMES as EPOCH  # noqa: E402  (frames of one UOF epoch)
 
 
 def run_dir(env: str, seed: int) -> Path:
@@ -46,15 +46,15 @@ def overrides(env: str, epochs: list[int], seed: int) -> list[str]:
 
 
 def run(env: str, epochs: list[int], seed: int) -> None:
-    from ..recipes.config import compose
-    from ..recipes.train import train
-    from ..utils import to_plain
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
 
     train(to_plain(compose("offline_train", overrides(env, epochs, seed))))
 
 
 def ship(env: str, epochs: list[int], seed: int) -> None:
-    from ..recipes.uof_policies import ship_uof_policy
+    from torchrl_offhrl.recipes.uof_policies import ship_uof_policy
 
     cfg = json.loads((run_dir(env, seed) / "config.json").read_text())  # the run's own epochs, whatever is shipped now
     ran = sorted({*(int(f) // EPOCH for f in cfg["train"]["snapshot_frames"]), int(cfg["train"]["total_frames"]) // EPOCH})
@@ -72,8 +72,8 @@ def collect(env: str, epochs: list[int], transitions: int) -> None:
 
     record = ROOT / "docs" / "results" / "uof_online" / "datasets.json"
     done = json.loads(record.read_text()) if record.is_file() else {}
-    from ..data import load_dataset
-    from ..recipes.uof_policies import uof_dataset_path
+    from torchrl_offhrl.data import load_dataset
+    from torchrl_offhrl.recipes.uof_policies import uof_dataset_path
 
     for e in epochs:
         name = f"{env}-uof-epoch{e}"
@@ -89,7 +89,7 @@ def collect(env: str, epochs: list[int], transitions: int) -> None:
 
 
 def report(env: str, seed: int) -> str:
-    from ..recipes.report import archive_run, load_run, plot_goal_success
+    from torchrl_offhrl.recipes.report import archive_run, load_run, plot_goal_success
 
     out = ROOT / "docs" / "results" / "uof_online"
     src = run_dir(env, seed)

@@ -31,7 +31,7 @@ the config now follows MOReL's official code: a behaviour-cloned start, a
 KL-bounded step, 3 x max, and has not been run at these scales yet).
 
 Seeds 4-8 by default (a headline cell takes 5 seeds): seeds 0 and 10 were the development seeds of
-``torchrl_offhrl/results/moc_experiments.py``, and seeds 1-3 were looked at while choosing
+``experiments/results/moc_experiments.py``, and seeds 1-3 were looked at while choosing
 ``anneal_lr`` (their runs are kept in ``docs/results/demo_seeds1-3/``), so the
 reported seeds' evaluation episodes were never looked at while choosing settings. Every run is an ordinary run
 directory under ``outputs/results/<scale>/``: rerunning resumes from its
@@ -173,7 +173,7 @@ def archive_dir(scale: str) -> Path:
 
 def archive(scale: str) -> list[Path]:
     """Archive every finished run under ``outputs/results/<scale>/`` (:func:`~torchrl_offhrl.recipes.report.archive_run`)."""
-    from ..recipes.report import archive_runs
+    from torchrl_offhrl.recipes.report import archive_runs
 
     return archive_runs(ROOT / "outputs" / "results" / scale, archive_dir(scale))
 
@@ -185,7 +185,7 @@ def legacy_runs(scale: str, skip: set[str]) -> tuple[list[dict], dict]:
     no curve) with three evaluations: the untrained one (step 0), the best one and the final one, returns back-computed
     from the scores. Also returns the file's MOC diagnostics (mean over seeds, per ``moc-<env>``).
     """
-    from ..scores import return_for_score
+    from torchrl_offhrl.scores import return_for_score
 
     path = archive_dir(scale) / "legacy.json"
     if not path.is_file():
@@ -219,8 +219,8 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
         raise SystemExit("--extra and --tag go together: a variant's runs need a name of their own (--tag NAME) beside the scale's own runs")
     if tag and not tag.replace("_", "").isalnum():
         raise SystemExit(f"--tag {tag!r}: letters, digits and _ only (it becomes part of the run directories' names)")
-    from ..recipes.seed_runs import RunsApart, batchable, train_seed_configs
-    from ..recipes.train import train
+    from torchrl_offhrl.recipes.seed_runs import RunsApart, batchable, train_seed_configs
+    from torchrl_offhrl.recipes.train import train
 
     where = folder(scale, tuning)
     for env, dataset in ((e, d) for d in datasets for e in envs):
@@ -247,8 +247,8 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
                 changes: list[str] = (), tag: str | None = None, paper: bool = False) -> dict:
     """The config of one Table I run (``speed``: checked not to change it; ``changes``: a variant named ``tag``; ``paper``:
     on the paper preset, :data:`PRESET`)."""
-    from ..recipes.config import compose, config_fingerprint
-    from ..utils import to_plain
+    from torchrl_offhrl.recipes.config import compose, config_fingerprint
+    from torchrl_offhrl.utils import to_plain
 
     name = f"{algo}_{tag}" if tag else f"{algo}_paper" if paper else algo
     overrides = [f"algo={algo}", f"env={env}", f"dataset={dataset}", f"seed={seed}",
@@ -370,7 +370,7 @@ MISSING = {"full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": 
 
 
 def report(scale: str, tuning: bool = False) -> str:
-    from ..recipes.report import aggregate, load_run, paper_table
+    from torchrl_offhrl.recipes.report import aggregate, load_run, paper_table
 
     name, scale = scale, folder(scale, tuning)  # `name`: the scale (its description); `scale`: the folder from here on
     archive(scale)
@@ -462,7 +462,7 @@ def guide_summary(root: Path = ROOT) -> str:
     """
     import csv
 
-    from ..recipes.report import fmt_iqm
+    from torchrl_offhrl.recipes.report import fmt_iqm
 
     cells, behaviour = {}, {}
     for scale in ("demo", "full"):
@@ -507,7 +507,7 @@ def write_guide_summary(root: Path = ROOT) -> bool:
 
 def _criteria_section(runs: list[dict]) -> list[str]:
     """Tuning pages: each offline selection criterion scored afterwards on each group of model-env runs (the real score of
-    the evaluation it would have returned; :func:`~torchrl_offhrl.results.robustness.criteria_rows`)."""
+    the evaluation it would have returned; :func:`~experiments.results.robustness.criteria_rows`)."""
     from .robustness import criteria_rows
 
     groups: dict[str, list[dict]] = {}

@@ -150,17 +150,17 @@ def dataset_spec(task: str, dataset: str, transitions: int) -> str:
     collected and cached on first use."""
     if not dataset.startswith("uof-"):
         return dataset
-    from ..data.stacking import SCRIPT_LEVELS
-    from ..recipes.uof_policies import uof_route_dataset
+    from torchrl_offhrl.data.stacking import SCRIPT_LEVELS
+    from torchrl_offhrl.recipes.uof_policies import uof_route_dataset
 
     random_prob, noise_std = SCRIPT_LEVELS["medium"]
     return str(uof_route_dataset(task, f"{task}-{dataset}", transitions, random_prob=random_prob, noise_std=noise_std))
 
 
 def run(tasks, datasets, algos, seeds, ablations: list[str] | None, frames: int, transitions: int, variants: list[str] | None = None) -> None:
-    from ..recipes.config import compose
-    from ..recipes.train import train
-    from ..utils import to_plain
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
 
     jobs = [(t, d, a, s, None) for t in tasks for d in datasets for s in seeds for a in algos]
     if ablations:
@@ -192,7 +192,7 @@ def _sac_her_note(groups: dict) -> str:
 
 def archive() -> list[Path]:
     """Archive every finished run under ``outputs/results/blockstack/`` to ``docs/results/blockstack/runs/<run>/``."""
-    from ..recipes.report import archive_runs
+    from torchrl_offhrl.recipes.report import archive_runs
 
     return archive_runs(BASE, ARCHIVE, extra=("option_usage.pt",))
 
@@ -209,7 +209,7 @@ def _fmt(xs) -> str:
         >>> _fmt([1.0, 1.0, 1.0]), _fmt([0.5]), _fmt([float("nan")])
         ('1.00 [1.00, 1.00]', '0.50', 'n/a')
     """
-    from ..stats import iqm_ci
+    from torchrl_offhrl.stats import iqm_ci
 
     xs = [x for x in xs if x == x]
     if not xs:
@@ -227,7 +227,7 @@ def report() -> str:
     import matplotlib.pyplot as plt
     import torch
 
-    from ..recipes.report import plot_goal_success
+    from torchrl_offhrl.recipes.report import plot_goal_success
 
     archive()
     runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
@@ -294,7 +294,7 @@ def report() -> str:
             usage = [torch.load(d / "option_usage.pt", weights_only=True) for d in algos[key] if (d / "option_usage.pt").is_file()]
             if not usage:
                 continue
-            from ..agents.uof import plot_goal_option_usage
+            from torchrl_offhrl.agents.uof import plot_goal_option_usage
 
             t = min(u.shape[1] for u in usage)
             mean = torch.stack([u[:, :t] for u in usage]).mean(0)
@@ -375,7 +375,7 @@ def _earlier_left(section: str, rerun: dict[str, int], figures: bool = True) -> 
 def _against_paper(groups: dict) -> list[str]:
     """The paper's Table II beside this page's runs of the same task (``blockstack3``, medium-expert: the scripted data
     closest to its 200-epoch UOF data), goal by goal: the final success at horizon 25, IQM over seeds."""
-    from ..stats import iqm_ci
+    from torchrl_offhrl.stats import iqm_ci
 
     out = []
     for task, rows in PAPER.items():
@@ -410,7 +410,7 @@ def last_goal_comparison(uof: list[float], bc: list[float], name: str = "UOF") -
         >>> last_goal_comparison([0.8, 0.9, 0.7], [0.0, 0.1, 0.0]).split(": ")[-1]
         'UOF above BC, the CIs apart.'
     """
-    from ..stats import iqm_ci
+    from torchrl_offhrl.stats import iqm_ci
 
     (mu, lu, hu), (mb, lb, hb) = iqm_ci(uof), iqm_ci(bc)
     verdict = (f"{name} above BC, the CIs apart." if lu > hb else f"BC above {name}, the CIs apart." if lb > hu

@@ -41,7 +41,7 @@ def name(n: int) -> str:
 
 
 def run(concurrent: list[int], steps: int) -> None:
-    from ..utils import cache_dir  # the default cache: where hopper-medium already is, or gets generated once
+    from torchrl_offhrl.utils import cache_dir  # the default cache: where hopper-medium already is, or gets generated once
 
     datasets = cache_dir() / "datasets"
     datasets.mkdir(parents=True, exist_ok=True)

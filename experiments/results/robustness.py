@@ -139,7 +139,7 @@ def parse_name(name: str) -> tuple[int, int]:
 
 
 def run(variant: str, seeds: list[int], agent_seeds: list[int] = (0,)) -> None:
-    from ..recipes.demo import run_demo
+    from torchrl_offhrl.recipes.demo import run_demo
 
     ov = overrides(variant)
     # every evaluation's policy kept (snapshot-<frames>.pt): other selection criteria can be scored afterwards
@@ -160,7 +160,7 @@ def run(variant: str, seeds: list[int], agent_seeds: list[int] = (0,)) -> None:
 
 
 def archive(variant: str, name: str) -> None:
-    from ..recipes.report import archive_run
+    from torchrl_offhrl.recipes.report import archive_run
 
     archive_run(OUT / variant / name, ARCHIVE / variant / name, extra=("demo_summary.json",))
 
@@ -205,7 +205,7 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]], names: list[str] | N
     """Every selection criterion scored afterwards on the same runs: the real score of the evaluation its selector picks.
 
     ``runs``: ``(key, evaluation records, summary)``; a pick is named ``d<label(key)>``, or by ``names`` where given."""
-    from ..recipes.selection import CRITERIA, PolicySelector
+    from torchrl_offhrl.recipes.selection import CRITERIA, PolicySelector
 
     class _Index:  # stands for the agent: its "state" is the index of the evaluation being considered
         i = 0
@@ -239,7 +239,7 @@ def criteria_rows(runs: list[tuple[int, list[dict], dict]], names: list[str] | N
 
 def paired_rows(variant: str, baseline: str, rs: list[dict]) -> list[str]:
     """``variant``'s returned policies against ``baseline``'s on the runs both have (same seeds): per run and the paired change."""
-    from ..stats import paired_change
+    from torchrl_offhrl.stats import paired_change
 
     base = {(r["dataset_seed"], r["agent_seed"]): r for r in rows_of(baseline)}
     both = [(r, base[(r["dataset_seed"], r["agent_seed"])]) for r in rs if (r["dataset_seed"], r["agent_seed"]) in base]
@@ -253,7 +253,7 @@ def paired_rows(variant: str, baseline: str, rs: list[dict]) -> list[str]:
 
 
 def table(variants: list[str]) -> str:
-    from ..stats import iqm_ci, mean_std
+    from torchrl_offhrl.stats import iqm_ci, mean_std
 
     lines = ["# The demo on many dataset seeds", "",
              "Made by `offhrl results robustness table` from the runs archived in `docs/results/demo_robustness_runs/` by `offhrl results robustness run VARIANT --dataset-seeds ...`.",

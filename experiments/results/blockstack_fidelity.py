@@ -42,14 +42,14 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..data.stacking import SCRIPT_LEVELS, generate_stacking_dataset, scripted_success
-    from ..registry import ENV_IDS
-    from ..blockstack import goals as G
-    from ..envs.calibration import calibrate_threshold
-    from ..envs.goal_model import replay_open_loop
-    from ..recipes.config import compose, model_config, resolve_dataset
-    from ..recipes.pipeline import fit_or_load_models
-    from ..utils import to_plain
+    from torchrl_offhrl.data.stacking import SCRIPT_LEVELS, generate_stacking_dataset, scripted_success
+    from torchrl_offhrl.registry import ENV_IDS
+    from torchrl_offhrl.blockstack import goals as G
+    from torchrl_offhrl.envs.calibration import calibrate_threshold
+    from torchrl_offhrl.envs.goal_model import replay_open_loop
+    from torchrl_offhrl.recipes.config import compose, model_config, resolve_dataset
+    from torchrl_offhrl.recipes.pipeline import fit_or_load_models
+    from torchrl_offhrl.utils import to_plain
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

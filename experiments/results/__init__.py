@@ -19,8 +19,8 @@ The presets (``offhrl results list`` prints the pages each writes):
 - ``moc-experiments``, ``option-check``, ``blockstack-fidelity``: MOC's development variants, whether its options
   differ, the stacking env against the paper's.
 
-The modules hold each preset's logic (``torchrl_offhrl.results.table1`` ...);
-where the pages and runs live: :mod:`torchrl_offhrl.results.paths`.
+The modules hold each preset's logic (``experiments.results.table1`` ...);
+where the pages and runs live: :mod:`experiments.results.paths`.
 """
 from __future__ import annotations
 

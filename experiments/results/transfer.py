@@ -6,7 +6,7 @@
 
 Kinds of run (every one an ordinary run directory under ``outputs/results/transfer/``, resumable by rerunning):
 
-* ``transfer``: the paper's setting. The offline phase is the ``demo`` scale of ``torchrl_offhrl/results/table1.py`` (100k generated
+* ``transfer``: the paper's setting. The offline phase is the ``demo`` scale of ``experiments/results/table1.py`` (100k generated
   ``medium`` transitions, demo-size models fitted 20k steps, 205k model-env frames), then ``--online-frames`` real-env
   frames (default 300k) on the ``backward`` task with the decoder discarded;
 * ``scratch``: the same agent trained online only, from its initial weights, on the backward task (the baseline);
@@ -49,10 +49,10 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
         extra: list[str] = (), tag: str | None = None, tuning: bool = False) -> None:
     """Every (env, kind, algo, seed) run in turn; ``extra`` overrides go to every run, ``tag`` names such a variant
     (its run directories and its rows: ``algo.label=<algo>_<tag>``)."""
-    from ..recipes.config import compose
-    from ..recipes.report import format_summary
-    from ..recipes.train import train
-    from ..utils import to_plain
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.report import format_summary
+    from torchrl_offhrl.recipes.train import train
+    from torchrl_offhrl.utils import to_plain
 
     out = TUNING_OUT if tuning else OUT
     for env in envs:
@@ -70,14 +70,14 @@ def run(envs: list[str], algos: list[str], kinds: list[str], seeds: list[int], o
 def archive(tuning: bool = False) -> list[Path]:
     """Archive every finished run under ``outputs/results/transfer/`` to ``docs/results/transfer/runs/<run>/``
     (``tuning``: ``outputs/results/transfer_tuning/`` to ``docs/results/transfer/tuning/``)."""
-    from ..recipes.report import archive_runs
+    from torchrl_offhrl.recipes.report import archive_runs
 
     return archive_runs(TUNING_OUT, TUNING_ARCHIVE) if tuning else archive_runs(OUT, ARCHIVE)
 
 
 def tuning_report() -> str:
     """``docs/results/transfer_tuning.md``: the table and curves of the runs on the tuning seeds (``run --tuning``)."""
-    from ..recipes.report import aggregate
+    from torchrl_offhrl.recipes.report import aggregate
 
     archive(tuning=True)
     runs = sorted(d for d in TUNING_ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
@@ -101,7 +101,7 @@ def tuning_report() -> str:
 def report() -> str:
     import json
 
-    from ..recipes.report import aggregate, group_key, load_run
+    from torchrl_offhrl.recipes.report import aggregate, group_key, load_run
 
     archive()
     runs = sorted(d for d in ARCHIVE.glob("*-seed*") if (d / "summary.json").is_file())
@@ -182,7 +182,7 @@ def sampled(envs: list[str], episodes: int = 10, seed: int = 12345) -> str:
 
     import numpy as np
 
-    from ..recipes.evaluation import evaluate_run
+    from torchrl_offhrl.recipes.evaluation import evaluate_run
 
     cache = SAMPLED_PAGE.with_suffix(".json")
     done = json.loads(cache.read_text()) if cache.is_file() else {}
