@@ -25,6 +25,17 @@ def fitted_ensemble(toy_data):
 
 
 @pytest.fixture(scope="session")
+def fitted_gaussian_ensemble(toy_data):
+    """MOPO's kind of ensemble on the toy data: Gaussian members (loss nll, learned log-variance bounds), 4 fitted, 3 elites."""
+    from torchrl_offhrl.models import DynamicsEnsemble
+
+    torch.manual_seed(0)
+    ens = DynamicsEnsemble.for_dataset(toy_data, num_models=4, hidden_sizes=(64, 64), loss="nll", num_elites=3)
+    ens.fit(toy_data, lr=1e-3, batch_size=128, max_epochs=30, patience=10, progress=False)
+    return ens
+
+
+@pytest.fixture(scope="session")
 def fitted_cvae(toy_data):
     from torchrl_offhrl.models import ConditionalVAE
 

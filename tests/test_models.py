@@ -207,3 +207,109 @@ def test_goal_conditioned_cvae(toy_data):
     with pytest.raises(ValueError, match="goal-conditioned"):
         cvae.decoder(obs, torch.zeros(3, 2))
     data.data.del_("desired_goal")
+
+
+# ---------------------------------------------------------------- MOPO's Gaussian ensemble (issue 72)
+def _constant_members(ens, means, raw_logvars, reward_means=None, reward_raw_logvars=None):
+    """Zero every weight so that member k outputs its bias: ``means[k]`` and ``raw_logvars[k]`` (normalised units)."""
+    with torch.no_grad():
+        for p in ens.parameters():
+            p.zero_() if p.dim() == 3 and p.shape[1] != 1 else None
+        ens.dynamics.net[-1].bias.copy_(torch.cat([torch.tensor(means), torch.tensor(raw_logvars)], -1).unsqueeze(1))
+        if reward_means is not None:
+            ens.reward_net.net[-1].bias.copy_(torch.tensor([[m, v] for m, v in zip(reward_means, reward_raw_logvars)]).unsqueeze(1))
+        for head in ens.max_logvar:
+            ens.max_logvar[head].fill_(0.5)
+            ens.min_logvar[head].fill_(-10.0)
+
+
+def _softly_bounded(v, hi=0.5, lo=-10.0):
+    import math
+
+    sp = lambda x: math.log1p(math.exp(x))  # noqa: E731
+    v = hi - sp(hi - v)
+    return lo + sp(v - lo)
+
+
+def test_the_learned_log_variance_bounds_squash_as_mopo_does_and_are_pulled_together(toy_data):
+    """A raw log-variance far above the upper bound comes out at it, far below the lower one at it, 0 at the hand-computed
+    value; the loss is mean((mu - y)^2 exp(-v) + v) + 0.01 (sum max - sum min), hand-computed on a constant member; and a
+    fit moves the bounds (they are trained)."""
+    ens = DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(4,), loss="nll", learn_reward=False)
+    d = toy_data.observation_dim
+    _constant_members(ens, [[0.0] * d, [1.0] * d], [[100.0] * d, [-100.0] * d])
+    x = torch.zeros(1, d + toy_data.action_dim)
+    mean, logvar = ens._split(ens.dynamics(x))
+    assert torch.allclose(logvar[0], torch.full((1, d), 0.5), atol=1e-4) and torch.allclose(logvar[1], torch.full((1, d), -10.0), atol=1e-4)
+    _constant_members(ens, [[0.0] * d, [0.0] * d], [[0.0] * d, [0.0] * d])
+    v0 = _softly_bounded(0.0)
+    assert abs(v0 - (-0.4741)) < 1e-3 and torch.allclose(ens._split(ens.dynamics(x))[1], torch.full((2, 1, d), v0), atol=1e-5)
+    # the loss on one pair whose normalised target is 1 in every dimension: (0 - 1)^2 e^-v0 + v0, + 0.01 (0.5 d - (-10) d)
+    obs = torch.zeros(1, d)
+    target_delta = ens.delta_mean + ens.delta_std  # a residual of exactly one delta_std above the mean: target 1
+    batch = TensorDict({"observation": obs, "action": torch.zeros(1, toy_data.action_dim),
+                        ("next", "observation"): obs + target_delta, ("next", "reward"): torch.zeros(1)}, batch_size=[1])
+    import math
+
+    want = (math.exp(-v0) + v0) + 0.01 * (0.5 * d + 10.0 * d)
+    assert torch.allclose(ens.loss(batch), torch.full((2,), want), atol=1e-4)
+    assert torch.allclose(ens.val_loss(batch), torch.ones(2), atol=1e-5)  # held-out error: the mean's squared error only
+    fitted = DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(16,), loss="nll")
+    fitted.fit(toy_data, lr=1e-2, max_epochs=3, progress=False)
+    assert not torch.allclose(fitted.max_logvar["dynamics"], torch.full_like(fitted.max_logvar["dynamics"], 0.5))
+
+
+def test_the_elites_are_the_members_with_the_lowest_held_out_error(toy_data, tmp_path):
+    """Four untrained members, two of them spoiled: with num_elites=2 and no learning (lr 0) the fit keeps the two good ones, best
+    first; the pruned ensemble predicts as those members did, records what it kept, and saves and loads as a 2-member one."""
+    torch.manual_seed(0)
+    ens = DynamicsEnsemble.for_dataset(toy_data, num_models=4, hidden_sizes=(16,), loss="nll", num_elites=2)
+    with torch.no_grad():
+        ens.dynamics.net[-1].bias[1] += 50.0  # members 1 and 3 now predict far off
+        ens.dynamics.net[-1].bias[3] += 80.0
+    val = toy_data.split(0.1, seed=0)[1].data
+    errors = ens.val_loss(val.select(*ens.train_keys))
+    obs, act = toy_data[:5]["observation"], toy_data[:5]["action"]
+    before = ens.predict(obs, act)["next_observation"]
+    ens.fit(toy_data, lr=0.0, max_epochs=1, progress=False)  # lr 0: the weights stay; only the elites are chosen
+    order = [int(i) for i in errors.argsort()[:2]]
+    assert sorted(order) == [0, 2] and ens.config["elites"]["kept"] == order and ens.config["elites"]["trained"] == 4
+    assert ens.num_models == 2 and ens.config["num_models"] == 2 and ens.max_logvar["dynamics"].shape[0] == 2
+    assert torch.allclose(ens.predict(obs, act)["next_observation"], before[order], atol=1e-6)
+    again = DynamicsEnsemble.load(ens.save(tmp_path / "elites.pt"))
+    assert again.num_models == 2 and torch.allclose(again.predict(obs, act)["next_observation"], before[order], atol=1e-6)
+    with pytest.raises(ValueError, match="num_elites must be between 2 and num_models"):
+        DynamicsEnsemble.for_dataset(toy_data, num_models=4, num_elites=5, loss="nll")
+
+
+def test_mopos_penalty_is_the_largest_norm_of_the_members_predicted_std(toy_data):
+    """Hand-made members: raw log-variances 0 and log 4 (stds 1 and 2 in normalised units), the reward's 0 and 0: in the data's
+    units member k's std is std_k * delta_std (state) and std_k * reward_std (reward), and the penalty is the larger norm."""
+    import math
+
+    ens = DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(4,), loss="nll")
+    d = toy_data.observation_dim
+    with torch.no_grad():
+        for head in ens.max_logvar:  # wide bounds: the squashing leaves these values (nearly) as they are
+            ens.max_logvar[head].fill_(20.0)
+            ens.min_logvar[head].fill_(-20.0)
+        for p in ens.parameters():
+            if p.dim() == 3 and p.shape[1] != 1:
+                p.zero_()
+        ens.dynamics.net[-1].bias.copy_(torch.tensor([[0.0] * d + [0.0] * d, [0.0] * d + [math.log(4.0)] * d]).unsqueeze(1))
+        ens.reward_net.net[-1].bias.copy_(torch.tensor([[0.0, 0.0], [0.0, 0.0]]).unsqueeze(1))
+    obs, act = toy_data[:3]["observation"], toy_data[:3]["action"]
+    pred = ens.predict(obs, act)
+    std_k = torch.tensor([1.0, 2.0])
+    norms = torch.stack([torch.cat([s * ens.delta_std, ens.reward_std]).norm() for s in std_k])
+    want = norms.max().expand(3)
+    assert torch.allclose(pred["std"][1, 0, :d], 2.0 * ens.delta_std, rtol=1e-4)
+    assert torch.allclose(ens.discrepancy_of(pred["delta"], "aleatoric", pred["std"]), want, rtol=1e-4)
+    assert torch.allclose(ens.discrepancy(obs, act, "aleatoric"), want, rtol=1e-4)
+    l1 = DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(4,))
+    with pytest.raises(ValueError, match="loss='nll'"):
+        l1.discrepancy(obs, act, "aleatoric")
+    from torchrl_offhrl.envs import PessimisticModelEnv
+
+    with pytest.raises(ValueError, match="predicts none"):
+        PessimisticModelEnv(l1, toy_data, discrepancy="aleatoric", threshold=1.0)

@@ -623,15 +623,18 @@ def test_each_config_is_exactly_one_setting():
     assert TransferSetting.needs_models(cfg) and ModelEnvSetting.needs_models(cfg) and not DatasetSetting.needs_models(cfg)
 
 
-def test_mopo_config_is_sac_on_penalised_short_rollouts(toy_data, fitted_ensemble):
+def test_mopo_config_is_sac_on_penalised_short_rollouts(toy_data, fitted_gaussian_ensemble):
     from torchrl_offhrl.recipes.config import model_env_config
     from torchrl_offhrl.recipes.pipeline import make_model_env
 
     cfg = to_plain(compose("offline_train", ["algo=mopo", "model_env.reward_scale=1.0"]))
     assert cfg["algo"]["name"] == "mopo" and cfg["algo"]["label"] == "mopo" and cfg["ablation"] == {"no_cvae": True, "no_pessimism": True}
     assert cfg["algo"]["real_ratio"] == 0.05 and cfg["algo"]["utd_ratio"] == 1.0  # the SAC group's settings, inherited
+    # MOPO's model: 7 Gaussian members, 5 elites; its penalty: the largest norm of their predicted std
+    assert (cfg["ensemble"]["loss"], cfg["ensemble"]["num_models"], cfg["ensemble"]["num_elites"]) == ("nll", 7, 5)
+    assert cfg["model_env"]["discrepancy"] == "aleatoric"
     settings, pess = model_env_config(cfg, "medium")
-    env = make_model_env({"env": settings}, fitted_ensemble, None, toy_data, batch_size=8, latent=False).base_env
+    env = make_model_env({"env": settings}, fitted_gaussian_ensemble, None, toy_data, batch_size=8, latent=False).base_env
     assert env.reward_penalty == 5.0 and env.horizon == 5 and env.threshold == float("inf") and env.penalty == 0.0
     td = env.rollout(5, break_when_any_done=False)
     assert not td["next", "penalized"].any() and td["next", "truncated"][:, -1].all()  # MOPO never ends an episode by disagreement
@@ -673,7 +676,7 @@ def test_on_record_sees_every_evaluation_after_its_checkpoint(hopper_file, cache
     assert all(f == ckpt for f, ckpt in seen)
 
 
-def test_mopo_mixes_real_ratio_of_each_minibatch_from_the_scaled_dataset(toy_data, fitted_ensemble):
+def test_mopo_mixes_real_ratio_of_each_minibatch_from_the_scaled_dataset(toy_data, fitted_gaussian_ensemble):
     """MOPOAgent: of a 40-row minibatch, round(40 * 0.25) = 10 rows come from the dataset (marked here by a reward of 7,
     which the model env never gives), with the reward scale the env's rewards get (x 0.5 -> 3.5); the rest from the model
     rollouts' replay. An agent in latent actions is refused with the fix named; its hyper-parameters include SAC's."""
@@ -683,7 +686,7 @@ def test_mopo_mixes_real_ratio_of_each_minibatch_from_the_scaled_dataset(toy_dat
 
     cfg = to_plain(compose("offline_train", ["algo=mopo", "model_env.reward_scale=1.0"]))
     settings, _ = model_env_config(cfg, "medium")
-    env = make_model_env({"env": settings}, fitted_ensemble, None, toy_data, batch_size=8, latent=False)
+    env = make_model_env({"env": settings}, fitted_gaussian_ensemble, None, toy_data, batch_size=8, latent=False)
     agent = make_agent("mopo", env, action_key="action", hidden_sizes=[16], batch_size=40, real_ratio=0.25, init_random_frames=0)
     assert {"real_ratio", "utd_ratio", "batch_size"} <= set(agent_defaults("mopo"))
     marked = toy_data[:].clone()

@@ -60,8 +60,11 @@ class PessimisticModelEnv(EnvBase):
             paper's P-MDP, which only ends episodes above the threshold).
             Measured on the demo in ``docs/results/demo_robustness_notes.md``.
         discrepancy (str): ``"variance"`` (the paper), ``"std"`` (its square
-            root: in the state's units, the scale of MOPO's uncertainty) or
-            ``"max_pairwise"`` (MOReL).
+            root: in the state's units, the scale of MOPO's uncertainty),
+            ``"max_pairwise"`` (MOReL) or ``"aleatoric"`` (MOPO's own penalty:
+            the largest norm of the members' predicted standard deviations,
+            for an ensemble fitted with ``loss="nll"``; with
+            ``reward_penalty`` it is MOPO's ``r - lambda u(s, a)``).
         quantile / fraction: calibration, see ``threshold``.
         termination_fn: ``"auto"`` (by the dataset's env id), a callable
             ``f(next_obs) -> bool[...]``, or ``None`` (never).
@@ -131,6 +134,10 @@ class PessimisticModelEnv(EnvBase):
         super().__init__(device=device, batch_size=batch_size)
         if discrepancy not in DISCREPANCIES:
             raise ValueError(f"discrepancy must be one of {DISCREPANCIES}, got {discrepancy!r}.")
+        if discrepancy == "aleatoric" and getattr(ensemble, "loss_type", "nll") != "nll":
+            raise ValueError(f"discrepancy='aleatoric' (MOPO's penalty) reads the members' predicted standard deviations, and "
+                             f"this ensemble was fitted with loss={ensemble.loss_type!r}, which predicts none: fit it with "
+                             "loss='nll' (ensemble.loss=nll) or choose another discrepancy.")
         if member_mode not in _MEMBER_MODES:
             raise ValueError(f"member_mode must be one of {_MEMBER_MODES}, got {member_mode!r}.")
         if member_draw not in ("random", "cyclic"):
@@ -264,7 +271,7 @@ class PessimisticModelEnv(EnvBase):
         chunk = self.predict_chunk if obs.device.type == "cpu" else None
         # the chunk argument only where it chunks: an ensemble (or a stand-in) with predict(obs, act) still serves smaller batches
         pred = self.ensemble.predict(obs, act, chunk=chunk) if chunk is not None and n > chunk else self.ensemble.predict(obs, act)
-        disc = self.ensemble.discrepancy_of(pred["delta"], self.discrepancy_kind)
+        disc = self.ensemble.discrepancy_of(pred["delta"], self.discrepancy_kind, pred.get("std"))
         rewards = pred["reward"]
         if rewards is None:  # a subclass that computes its own rewards (needs_model_reward = False)
             rewards = torch.zeros(self.num_members, n, device=self.device, dtype=obs.dtype)

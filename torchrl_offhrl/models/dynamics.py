@@ -13,8 +13,11 @@ from .ensemble import EnsembleMLP
 __all__ = ["DynamicsEnsemble", "DISCREPANCIES"]
 
 _LOSSES = ("l1", "mse", "nll")
-DISCREPANCIES = ("variance", "std", "max_pairwise")
-_LOGVAR_MIN, _LOGVAR_MAX = -10.0, 2.0
+DISCREPANCIES = ("variance", "std", "max_pairwise", "aleatoric")
+#: where a Gaussian member's learned log-variance bounds start (MOPO's and MBPO's code: -10 and 0.5)
+LOGVAR_MIN_INIT, LOGVAR_MAX_INIT = -10.0, 0.5
+#: weight of the bounds' regulariser in each member's loss (MOPO's code: 0.01 x (sum of max - sum of min))
+LOGVAR_BOUND_WEIGHT = 0.01
 
 
 class DynamicsEnsemble(FitMixin, nn.Module):
@@ -30,8 +33,14 @@ class DynamicsEnsemble(FitMixin, nn.Module):
         observation_dim / action_dim: sizes.
         num_models: ``K`` (paper: 5).
         hidden_sizes: hidden widths of each member (paper: ``(512, 512)``).
-        loss: ``"l1"`` (paper), ``"mse"`` or ``"nll"`` (Gaussian negative
-            log-likelihood; members then also predict a log-variance).
+        loss: ``"l1"`` (paper), ``"mse"`` or ``"nll"`` (MOPO's Gaussian
+            ensemble: members also predict a log-variance, softly bounded by
+            learned bounds, see below).
+        num_elites: MOPO's elites: after :meth:`fit`, keep only this many
+            members, those with the lowest held-out error of their mean
+            prediction (MOPO trains 7 and keeps 5); ``None`` keeps all. The
+            kept members become the ensemble (``num_models`` is then the
+            elites' count; ``elites`` records which were kept and why).
         learn_reward: learn a reward ensemble; set ``False`` and pass
             ``reward_fn`` for a known reward.
         reward_hidden_sizes: hidden widths of the reward members (default:
@@ -42,6 +51,23 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             instead of the learned one when given. Not saved in checkpoints:
             pass it again to :meth:`load` through ``reward_fn=...`` on the
             returned model.
+        elites: set by :meth:`fit` when ``num_elites`` pruned the ensemble
+            (the trained count, the kept members, their held-out errors);
+            stored in the checkpoint's config.
+
+    With ``loss="nll"`` each member predicts a mean and a log-variance for
+    the state residual and the reward. As in MOPO's code, the log-variance
+    is squashed between a learned upper and lower bound,
+    ``max - softplus(max - v)`` then ``min + softplus(v - min)``, which start
+    at 0.5 and -10 and are pushed together by ``0.01 (sum max - sum min)``
+    in the loss; the loss is ``mean((mu - y)^2 exp(-v) + v)``. Each member
+    has its own bounds (MOPO shares one pair across members) so that the
+    trainer restores every member's best weights, bounds included, on their
+    own; early stopping and the elites use the held-out mean squared error
+    of the means (:meth:`val_loss`), as MOPO's does. :meth:`predict` then
+    also returns every member's predicted standard deviation in the data's
+    units (``std``), from which ``discrepancy="aleatoric"`` is MOPO's
+    penalty.
 
     Examples:
         >>> import torch
@@ -70,12 +96,17 @@ class DynamicsEnsemble(FitMixin, nn.Module):
         learn_reward: bool = True,
         reward_hidden_sizes: Sequence[int] | None = None,
         reward_fn: Callable | None = None,
+        num_elites: int | None = None,
+        elites: dict | None = None,
     ):
         super().__init__()
         if loss not in _LOSSES:
             raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}.")
         if num_models < 2:
             raise ValueError(f"an ensemble needs num_models >= 2 to measure disagreement, got {num_models}.")
+        if num_elites is not None and not 2 <= int(num_elites) <= num_models:
+            raise ValueError(f"num_elites must be between 2 and num_models ({num_models}), got {num_elites}: the elites are "
+                             "the members kept after the fit, and the pessimism needs two of them to disagree.")
         self.config = {
             "observation_dim": int(observation_dim),
             "action_dim": int(action_dim),
@@ -84,6 +115,8 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             "loss": loss,
             "learn_reward": bool(learn_reward),
             "reward_hidden_sizes": None if reward_hidden_sizes is None else [int(h) for h in reward_hidden_sizes],
+            "num_elites": None if num_elites is None else int(num_elites),
+            "elites": elites,
         }
         self.observation_dim = observation_dim
         self.action_dim = action_dim
@@ -97,6 +130,10 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             else None
         )
         self.reward_fn = reward_fn
+        if loss == "nll":  # learned log-variance bounds, one pair per member and output (see the class docstring)
+            outs = {"dynamics": observation_dim, **({"reward": 1} if learn_reward else {})}
+            self.max_logvar = nn.ParameterDict({k: nn.Parameter(torch.full((num_models, 1, d), LOGVAR_MAX_INIT)) for k, d in outs.items()})
+            self.min_logvar = nn.ParameterDict({k: nn.Parameter(torch.full((num_models, 1, d), LOGVAR_MIN_INIT)) for k, d in outs.items()})
         for name, size in [
             ("obs_mean", observation_dim), ("obs_std", observation_dim),
             ("delta_mean", observation_dim), ("delta_std", observation_dim),
@@ -124,10 +161,16 @@ class DynamicsEnsemble(FitMixin, nn.Module):
     def _inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return torch.cat([(obs - self.obs_mean) / self.obs_std, action], -1)
 
-    def _split(self, out: torch.Tensor):
+    def _split(self, out: torch.Tensor, head: str = "dynamics"):
+        """``(mean, log-variance or None)`` of a head's output ``[K, N, 2D]``: the log-variance softly bounded by that head's
+        learned bounds (``loss="nll"``)."""
         if self.loss_type == "nll":
             mean, logvar = out.chunk(2, -1)
-            return mean, logvar.clamp(_LOGVAR_MIN, _LOGVAR_MAX)
+            hi, lo = self.max_logvar[head], self.min_logvar[head]
+            if logvar.dim() == 2:  # one member's output (not produced here, kept general)
+                hi, lo = hi[0], lo[0]
+            logvar = hi - nn.functional.softplus(hi - logvar)
+            return mean, lo + nn.functional.softplus(logvar - lo)
         return out, None
 
     def predict(self, observation: torch.Tensor, action: torch.Tensor, chunk: int | None = None) -> dict:
@@ -153,23 +196,26 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             parts = [self.predict(o, a) for o, a in zip(observation.split(chunk), action.split(chunk))]
             return {k: None if parts[0][k] is None else torch.cat([p[k] for p in parts], dim=1) for k in parts[0]}
         x = self._inputs(observation, action)
-        delta, _ = self._split(self.dynamics(x))
+        delta, logvar = self._split(self.dynamics(x))
         next_obs = observation + self.delta_mean + self.delta_std * delta
+        std = None if logvar is None else (0.5 * logvar).exp() * self.delta_std  # [K, N, D], the state's units
         if self.reward_fn is not None:
             # [K, N] (computed per member's next state) or [N] / [N, 1] (shared)
             r = self.reward_fn(observation, action, next_obs)
             reward = r.reshape(-1, observation.shape[0]).expand(self.num_members, -1)
         elif self.reward_net is not None:
-            r, _ = self._split(self.reward_net(x))
+            r, r_logvar = self._split(self.reward_net(x), "reward")
             reward = (self.reward_mean + self.reward_std * r).squeeze(-1)
+            if std is not None:  # MOPO's model predicts the reward beside the state: its std counts in the penalty too
+                std = torch.cat([std, (0.5 * r_logvar).exp() * self.reward_std], -1)
         else:
             reward = None
-        return {"next_observation": next_obs, "reward": reward, "delta": delta}
+        return {"next_observation": next_obs, "reward": reward, "delta": delta, "std": std}
 
     forward = predict
 
     @staticmethod
-    def discrepancy_of(delta: torch.Tensor, kind: str = "variance") -> torch.Tensor:
+    def discrepancy_of(delta: torch.Tensor, kind: str = "variance", std: torch.Tensor | None = None) -> torch.Tensor:
         """Disagreement of member predictions ``delta`` ``[K, N, D]`` -> ``[N]``.
 
         * ``"variance"`` (the paper): the variance across members, summed over
@@ -179,8 +225,18 @@ class DynamicsEnsemble(FitMixin, nn.Module):
           uncertainty (the norm of a learned standard deviation) and
           MOReL's distance are, where the variance is in squared units;
         * ``"max_pairwise"`` (MOReL): the largest L2 distance between two
-          members' predictions.
+          members' predictions;
+        * ``"aleatoric"`` (MOPO's penalty): not a disagreement but the largest
+          L2 norm over members of each member's own predicted standard
+          deviation, ``std`` ``[K, N, D']`` (:meth:`predict`'s, state and
+          reward, in the data's units): needs an ensemble with ``loss="nll"``.
         """
+        if kind == "aleatoric":
+            if std is None:
+                raise ValueError("discrepancy='aleatoric' (MOPO's penalty) is the norm of the members' predicted standard "
+                                 "deviations: it needs an ensemble that predicts them, fitted with loss='nll' "
+                                 "(ensemble.loss=nll), not one fitted with an L1 or MSE loss.")
+            return std.norm(dim=-1).amax(0)
         if kind in ("variance", "std"):
             trace = delta.var(0, unbiased=False).sum(-1)
             return trace.sqrt() if kind == "std" else trace
@@ -192,21 +248,72 @@ class DynamicsEnsemble(FitMixin, nn.Module):
     @torch.no_grad()
     def discrepancy(self, observation: torch.Tensor, action: torch.Tensor, kind: str = "variance") -> torch.Tensor:
         """:meth:`discrepancy_of` the members' predictions for these pairs, ``[N]``."""
+        if kind == "aleatoric":
+            pred = self.predict(observation, action)
+            return self.discrepancy_of(pred["delta"], kind, pred["std"])
         x = self._inputs(observation, action)
         delta, _ = self._split(self.dynamics(x))
         return self.discrepancy_of(delta, kind)
 
     # ------------------------------------------------------------- training
-    def _member_loss(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        mean, logvar = self._split(pred)
+    def _member_loss(self, pred: torch.Tensor, target: torch.Tensor, head: str = "dynamics") -> torch.Tensor:
+        mean, logvar = self._split(pred, head)
         if self.loss_type == "l1":
             err = (mean - target).abs()
         elif self.loss_type == "mse":
             err = (mean - target).pow(2)
         else:
-            err = 0.5 * (logvar + (mean - target).pow(2) * torch.exp(-logvar))
-        return err.flatten(1).mean(-1) if err.dim() == 3 else err.mean()
+            err = logvar + (mean - target).pow(2) * torch.exp(-logvar)
+        loss = err.flatten(1).mean(-1) if err.dim() == 3 else err.mean()
+        if self.loss_type == "nll":  # the bounds' regulariser: pulls each member's max and min log-variance together
+            loss = loss + LOGVAR_BOUND_WEIGHT * (self.max_logvar[head].flatten(1).sum(-1) - self.min_logvar[head].flatten(1).sum(-1))
+        return loss
 
+    @torch.no_grad()
+    def val_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """Held-out error per member, ``[K]``, what early stopping and the elites compare: the training loss, except for
+        ``loss="nll"``, where it is the mean squared error of the means (state residual and reward, normalised), as in
+        MOPO's code (a likelihood rewards a member that only widens its variance)."""
+        if self.loss_type != "nll":
+            return self.loss(batch)
+        obs, act, nobs = batch.get("observation"), batch.get("action"), batch.get(("next", "observation"))
+        x = self._inputs(obs, act)
+        target = ((nobs - obs) - self.delta_mean) / self.delta_std
+        err = (self._split(self.dynamics(x))[0] - target).pow(2).flatten(1).mean(-1)
+        if self.reward_net is not None:
+            r = (batch.get(("next", "reward")) - self.reward_mean) / self.reward_std
+            err = err + (self._split(self.reward_net(x), "reward")[0] - r.reshape(-1, 1)).pow(2).flatten(1).mean(-1)
+        return err
+
+    def fit(self, data, val_ratio: float = 0.1, split_seed: int = 0, **trainer_kwargs) -> "DynamicsEnsemble":
+        """:meth:`FitMixin.fit <torchrl_offhrl.models._common.FitMixin.fit>`, then, with ``num_elites``, keep the elites:
+        the members with the lowest :meth:`val_loss` on the held-out episodes (the same split), in that order."""
+        super().fit(data, val_ratio=val_ratio, split_seed=split_seed, **trainer_kwargs)
+        elites = self.config["num_elites"]
+        if elites is None or elites == self.num_members:
+            return self
+        held_out = data.split(val_ratio, seed=split_seed)[1] if val_ratio and data.num_episodes >= 2 else data
+        device = next(self.parameters()).device
+        errors = self.val_loss(held_out.data.select(*self.train_keys).to(device))
+        keep = errors.argsort()[:elites]
+        return self.keep_members(keep, errors)
+
+    @torch.no_grad()
+    def keep_members(self, members: torch.Tensor, errors: torch.Tensor | None = None) -> "DynamicsEnsemble":
+        """Keep only ``members`` (indices, in that order): every per-member parameter is sliced, ``num_models`` becomes
+        their count and ``config["elites"]`` records what was kept (the trained count, the members, their errors)."""
+        members = torch.as_tensor(members, dtype=torch.long).reshape(-1)
+        trained = self.num_members
+        for mod in self.modules():
+            if hasattr(mod, "num_members") and mod is not self:
+                mod.num_members = len(members)
+        for name, p in list(self.named_parameters()):
+            p.data = p.data.index_select(0, members.to(p.device))
+        self.num_members = len(members)
+        self.config.update(num_models=len(members), num_elites=None, elites={
+            "trained": trained, "kept": members.tolist(),
+            **({"val_mse": [float(errors[i]) for i in members]} if errors is not None else {})})
+        return self
     def loss(self, batch: TensorDictBase) -> torch.Tensor:
         """Per-member training loss, ``[K]``; batch ``[K, B]`` or ``[B]``."""
         obs = batch.get("observation")

@@ -177,14 +177,15 @@ class SupervisedTrainer:
 
     @torch.no_grad()
     def evaluate(self, model: TrainableModel, data: TensorDictBase, chunk: int = 8192) -> torch.Tensor:
-        """Mean loss of every member on ``data`` (the same samples for all), shape ``[K]``."""
+        """Mean held-out loss of every member on ``data`` (the same samples for all), shape ``[K]``: the model's ``val_loss``
+        where it has one (e.g. the mean's error of a Gaussian ensemble), else its training ``loss``."""
         was_training = model.training
         model.eval()
         total = None
         n = data.shape[0]
         for start in range(0, n, chunk):
             part = data[start : start + chunk]
-            loss = model.loss(part) * part.shape[0]
+            loss = getattr(model, "val_loss", model.loss)(part) * part.shape[0]
             total = loss if total is None else total + loss
         model.train(was_training)
         return total / n

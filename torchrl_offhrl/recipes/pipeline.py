@@ -134,8 +134,9 @@ def fit_or_load_models(
 def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with_cvae: bool) -> tuple:
     device = torch.device(cfg.get("device", "cpu"))
     ecfg, ccfg = fit_as_before(to_plain(cfg["ensemble"])), fit_as_before(to_plain(cfg["cvae"]))  # rel_tol 0: the cache entries as before
-    if ecfg.get("reward_hidden_sizes", "absent") is None:  # the default (the transition widths): the cache key of configs without the key
-        ecfg.pop("reward_hidden_sizes")
+    for key in ("reward_hidden_sizes", "num_elites"):  # their defaults (the transition widths; every member kept): the cache key as before
+        if ecfg.get(key, "absent") is None:
+            ecfg.pop(key)
     ident = {
         "data": data.content_hash(),  # the content, not the path: a file replaced by other data gets new models
         "ensemble": ecfg,
@@ -165,7 +166,7 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
     else:
         ensemble = DynamicsEnsemble.for_dataset(
             data, num_models=ecfg["num_models"], hidden_sizes=ecfg["hidden_sizes"], loss=ecfg["loss"], learn_reward=ecfg.get("learn_reward", True),
-            reward_hidden_sizes=ecfg.get("reward_hidden_sizes"),
+            reward_hidden_sizes=ecfg.get("reward_hidden_sizes"), num_elites=ecfg.get("num_elites"),
         ).to(device)
         ensemble.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ecfg["fit"])
         ensemble.save(e_path)
