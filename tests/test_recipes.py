@@ -233,12 +233,24 @@ def test_aggregate_seeds(tmp_path):
 
 
 def test_offline_train_script_cli(hopper_file, cache, tmp_path):
-    """The user-facing command, through hydra's command line."""
-    args = [sys.executable, str(ROOT / "examples" / "offline_train.py"), "algo=moc", f"dataset={hopper_file}", f"out_root={tmp_path}", *TINY, *ALGO_TINY["moc"]]
+    """The user-facing script, through hydra's command line, runs the one training loop as `train` does: the same
+    evaluation records (wall times aside) and the same returned policy as `train` on the same config."""
+    script = tmp_path / "script"
+    args = [sys.executable, str(ROOT / "examples" / "offline_train.py"), "algo=moc", f"dataset={hopper_file}", f"out_root={script}",
+            *TINY, *ALGO_TINY["moc"]]
     proc = subprocess.run(args, capture_output=True, text=True, timeout=300, env={**os.environ})
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "D4RL-normalised" in proc.stdout
-    assert len(list(tmp_path.glob("moc-hopper-hopper_random-*-seed0/summary.json"))) == 1
+    assert "D4RL-normalised" in proc.stdout and "calibration report" in proc.stdout
+    (by_script,) = script.glob("moc-hopper-hopper_random-*-seed0/summary.json")
+    by_train = Path(train(_cfg("moc", hopper_file, tmp_path / "train"), progress=False)["run_dir"])
+    a = json.loads((by_script.parent / "evals.json").read_text())
+    b = json.loads((by_train / "evals.json").read_text())
+    assert len(a) == len(b) > 1
+    for x, y in zip(a, b):
+        assert {k: v for k, v in x.items() if k != "wall_s"} == {k: v for k, v in y.items() if k != "wall_s"}
+    sa, sb = json.loads(by_script.read_text()), json.loads((by_train / "summary.json").read_text())
+    timeless = lambda d: {k: timeless(v) if isinstance(v, dict) else v for k, v in d.items() if k != "wall_s"}  # noqa: E731
+    assert timeless(sa["selected"]) == timeless(sb["selected"]) and sa["guard"]["fired"] == sb["guard"]["fired"]
 
 
 def test_option_usage_hand_computed():

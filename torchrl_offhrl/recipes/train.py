@@ -1,7 +1,8 @@
 """The offline training recipe, the same for every agent: ``train(cfg)``.
 
 Driven by ``offhrl train`` and ``offhrl demo`` (``examples/offline_train.py``
-writes the same steps out as a script):
+and ``examples/offline_baseline.py`` run the same steps and the same loop as
+scripts):
 
 1. config -> dataset (a file, a local Minari id, or a named level generated
    and cached on first use) -> cached dynamics ensemble and CVAE;
