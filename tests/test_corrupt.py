@@ -149,6 +149,25 @@ def test_aggregate_names_an_empty_or_damaged_evals_file(tmp_path):
         load_run(run)
 
 
+def test_a_run_record_changed_after_it_was_written_is_refused_by_its_checksum(tmp_path):
+    """A record the run wrote (evals.json) with one number changed is still valid JSON, which json.loads would read as
+    it is: its checksum refuses it, naming the file and both ways out; without the .sha256 (an archived copy) it reads."""
+    from torchrl_offhrl.recipes.report import load_run
+    from torchrl_offhrl.recipes.runs import read_json, write_json
+    from torchrl_offhrl.utils import CorruptFileError, checksum_path
+
+    run = tmp_path / "run"
+    run.mkdir()
+    records = [{"frames": 0, "step": 0, "return_mean": 10.0, "normalized_d4rl": 1.0}]
+    write_json(run / "evals.json", records, indent=1)
+    assert checksum_path(run / "evals.json").is_file() and read_json(run / "evals.json") == records
+    (run / "evals.json").write_text((run / "evals.json").read_text().replace("10.0", "90.0"))
+    with pytest.raises(CorruptFileError, match=r"run/evals\.json does not match its checksum evals\.json\.sha256.*delete evals\.json\.sha256"):
+        load_run(run)
+    checksum_path(run / "evals.json").unlink()
+    assert read_json(run / "evals.json")[0]["return_mean"] == 90.0
+
+
 def _flip_byte(path, at=0.6):
     data = bytearray(path.read_bytes())
     data[int(len(data) * at)] ^= 0x40

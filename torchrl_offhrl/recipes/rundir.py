@@ -15,7 +15,6 @@ so its fallback stops with the missing buffer named).
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import re
 import shutil
@@ -26,6 +25,7 @@ import torch
 
 from ..utils import CorruptFileError, atomic_write, checksum_path, load_torch_file, save_torch_file
 from .config import RESUMABLE_KEYS, fingerprints_match
+from .runs import write_json
 
 __all__ = ["RunDirectory", "RunInUseError", "trim_csv_logs"]
 
@@ -152,9 +152,8 @@ class RunDirectory:
         return True
 
     def write_json(self, name: str, obj) -> Path:
-        with atomic_write(self.path / name) as tmp:
-            Path(tmp).write_text(json.dumps(obj, indent=2, default=str))
-        return self.path / name
+        """A record of the run, written atomically with its checksum (:func:`~torchrl_offhrl.recipes.runs.write_json`)."""
+        return write_json(self.path / name, obj)
 
     def checkpoint(self, agent, source: dict | None = None) -> None:
         """Save the agent, its replay buffer (if any and not empty), the counters, the records, the RNG state and the batch
@@ -177,8 +176,7 @@ class RunDirectory:
                     with atomic_write(dst) as tmp:
                         shutil.copyfile(src, tmp)
         save_torch_file(state, self.checkpoint_path)  # with its checksum, checked on resume
-        with atomic_write(self.path / "evals.json") as tmp:
-            Path(tmp).write_text(json.dumps(self.records, indent=1))
+        write_json(self.path / "evals.json", self.records, indent=1)
         if self._replay is not None and self._replay != new_replay:  # one buffer on disk: the previous checkpoint
             shutil.rmtree(self.path / self._replay, ignore_errors=True)  # keeps the agent, not its (large) buffer
         self._replay = new_replay

@@ -12,7 +12,7 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..utils import atomic_write
+from ..utils import CorruptFileError, atomic_write, checksum_mismatch, write_checksum
 
 __all__ = ["archive_run", "archive_runs", "expand_run_dirs", "load_run", "logged_tail_mean", "read_json", "read_scalar_logs", "record_step", "run_unit"]
 
@@ -42,8 +42,24 @@ def load_run(run_dir) -> dict:
     return {"dir": str(d), "config": cfg, "evals": evals, "summary": summary}
 
 
+def write_json(path: Path, obj, indent: int = 2) -> Path:
+    """Write a run's JSON record atomically, with its SHA-256 beside it (``<name>.sha256``), which :func:`read_json` checks."""
+    path = Path(path)
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text(json.dumps(obj, indent=indent, default=str))
+    write_checksum(path)
+    return path
+
+
 def read_json(path: Path):
-    """A run's JSON record (``config.json``, ``summary.json``, ``evals.json``); a damaged one is named in a ``ValueError``."""
+    """A run's JSON record (``config.json``, ``summary.json``, ``evals.json``); a damaged one is named in a ``ValueError``:
+    not valid JSON, or (a :class:`~torchrl_offhrl.utils.CorruptFileError`) valid but no longer the bytes the run wrote
+    (its ``.sha256``; a record without one, e.g. an archived copy, is read as it is)."""
+    path = Path(path)
+    digest = checksum_mismatch(path)
+    if digest is not None:
+        raise CorruptFileError(f"{path} does not match its checksum {digest.name}: it changed after the run wrote it (damaged, or "
+                               f"edited by hand); rerun or resume the run to write it again, or delete {digest.name} to read it as it is")
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as err:

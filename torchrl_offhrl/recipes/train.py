@@ -39,7 +39,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from ..utils import save_torch_file, to_plain
+from ..utils import checksum_path, save_torch_file, to_plain
 from .config import config_fingerprint, default_run_dir
 from .loop import TrainingLoop
 from .plots import plot_training_metrics
@@ -128,6 +128,7 @@ class PreparedRun:
             except ValueError as err:  # damaged: the run is taken further all the same, and writes it again
                 warnings.warn(f"{err}; the previous summary is dropped", stacklevel=2)
             (run.path / "summary.json").unlink()  # a run taken further is unfinished until its new summary: archives skip it meanwhile
+            checksum_path(run.path / "summary.json").unlink(missing_ok=True)
         if s.rules is not None:  # the calibration report: what the offline rules chose, and why (text, JSON, figure)
             run.write_json("calibration.json", s.rules.as_dict())
             s.rules.plot(run.path / "calibration.png")
