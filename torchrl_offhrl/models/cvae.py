@@ -128,13 +128,11 @@ class LatentOrigin(FitMixin, nn.Module):
     dataset's pairs (:meth:`ConditionalVAE.fit_origin`). Decoded, ``z_b(s)``
     is the data's action; the prior's mean ``z = 0`` is not: with a weak KL
     term the decoder spreads the data's actions over the latent box and
-    ``decoder(s, 0)`` is an average of them. Measured on the demo's
-    hopper-medium-expert data (dataset seed 1; agent-free, 10 real episodes):
-    ``decoder(s, 0)`` scores 34.0, ``decoder(s, z_b(s))`` 86.7 (the data:
-    53.3). Its limit: on data of several behaviours the regression averages
-    their latents, and where that average decodes depends on the fit (on the
-    same level at dataset seed 2 the start scored 29.8-36.7, the data 51.2;
-    ``docs/results/offline_rules.md``).
+    ``decoder(s, 0)`` is an average of them. Its limit: on data of several
+    behaviours the regression averages their latents, and where that average
+    decodes depends on the fit; fitted on the data's best episodes only
+    (``model_env.latent_origin=best``, the default) it clones the best one.
+    Measured in ``docs/results/offline_rules.md``.
 
     Examples:
         >>> import torch
