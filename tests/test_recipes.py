@@ -236,13 +236,14 @@ def test_offline_train_script_cli(hopper_file, cache, tmp_path):
     """The user-facing script, through hydra's command line, runs the one training loop as `train` does: the same
     evaluation records (wall times aside) and the same returned policy as `train` on the same config."""
     script = tmp_path / "script"
+    one_thread = ["torch_threads=1", "fit_threads=1"]  # both processes sum in the same order, whatever threads pytest runs with
     args = [sys.executable, str(ROOT / "examples" / "offline_train.py"), "algo=moc", f"dataset={hopper_file}", f"out_root={script}",
-            *TINY, *ALGO_TINY["moc"]]
+            *TINY, *ALGO_TINY["moc"], *one_thread]
     proc = subprocess.run(args, capture_output=True, text=True, timeout=300, env={**os.environ})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "D4RL-normalised" in proc.stdout and "calibration report" in proc.stdout
     (by_script,) = script.glob("moc-hopper-hopper_random-*-seed0/summary.json")
-    by_train = Path(train(_cfg("moc", hopper_file, tmp_path / "train"), progress=False)["run_dir"])
+    by_train = Path(train(_cfg("moc", hopper_file, tmp_path / "train", one_thread), progress=False)["run_dir"])
     a = json.loads((by_script.parent / "evals.json").read_text())
     b = json.loads((by_train / "evals.json").read_text())
     assert len(a) == len(b) > 1
