@@ -10,7 +10,11 @@ Measures, in one run on one machine:
     (a) our EnsembleMLP (one baddbmm per layer), (b) a Python loop over 5
     separate nn.Sequential models; both with fused Adam;
   * samples/s (member-samples: K x B per step), achieved GFLOP/s (forward +
-    backward = 3x forward FLOPs) and the ratio to the measured matmul rates.
+    backward = 3x forward FLOPs) and the ratio to the measured matmul rates;
+  * the library's own training step (``DynamicsEnsemble.loss`` with the reward
+    members, Adam) for the paper's L1 ensemble of 5 and MOPO's Gaussian one
+    (``loss="nll"``: mean and log-variance heads, learned bounds) of 5 and of
+    7 members (MOPO's count), side by side: what MOPO's model costs.
 """
 from __future__ import annotations
 
@@ -99,6 +103,32 @@ def main():
     for name, dt in (("EnsembleMLP (batched)", t_ens), ("loop over 5 nn.Sequential", t_loop)):
         gf = flops_step / dt / 1e9
         print(f"{name:28s} {1 / dt:9.1f} {K * bsz / dt:11,.0f} {gf:9.1f} {gf / mm:9.0%} {gf / bm:8.0%} {t_loop / dt:8.2f}x")
+
+    # the library's training step (dynamics and reward members, as a fit runs it): the paper's L1 ensemble and MOPO's Gaussian one
+    from tensordict import TensorDict
+
+    from torchrl_offhrl.models import DynamicsEnsemble
+
+    def library_step(loss: str, k: int):
+        model = DynamicsEnsemble(OBS, ACT, num_models=k, hidden_sizes=(H, H), loss=loss).to(device)
+        batch = TensorDict({"observation": torch.randn(k, bsz, OBS), "action": torch.randn(k, bsz, ACT),
+                            ("next", "observation"): torch.randn(k, bsz, OBS), ("next", "reward"): torch.randn(k, bsz, 1)},
+                           batch_size=[k, bsz], device=device)
+        opt_m = make_adam(model.parameters(), lr=1e-3)
+
+        def step():
+            loss_k = model.loss(batch)
+            opt_m.zero_grad(set_to_none=True)
+            loss_k.sum().backward()
+            opt_m.step()
+        return timeit(step, device, args.steps)
+
+    rows = [(f"{loss}, {k} members", k, library_step(loss, k)) for loss, k in (("l1", 5), ("nll", 5), ("nll", 7))]
+    base = rows[0][2]
+    print(f"\nDynamicsEnsemble.loss + Adam (dynamics and reward members), batch {bsz}/member:")
+    print(f"{'variant':28s} {'steps/s':>9s} {'samples/s':>11s} {'time vs l1, 5':>14s}")
+    for name, k, dt in rows:
+        print(f"{name:28s} {1 / dt:9.1f} {k * bsz / dt:11,.0f} {dt / base:13.2f}x")
 
 
 if __name__ == "__main__":
