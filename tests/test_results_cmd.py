@@ -158,6 +158,9 @@ def test_a_run_on_the_paper_settings_gets_its_own_column_beside_the_default():
     assert table_column(run("ppo", None, label="morel")) == "morel_style"  # the old MOReL-style config stays apart
     assert column_title("moc_paper") == "MOC (paper preset)" and column_title("moc_1opt_paper") == "MOC, 1 option (paper preset)"
     assert column_title("moc") == "MOC"
+    stacking = run("uof", {"latent_origin": "zero"})
+    stacking["config"]["env"] = {"env_id": "BlockStack2-v0"}
+    assert table_column(stacking) == "uof"  # block stacking ships the paper's setting: no preset column
 
 
 def test_offhrl_results_outside_a_checkout_says_where_the_experiments_are(tmp_path, monkeypatch):

@@ -321,12 +321,14 @@ PAPER_SUFFIX = "_paper"
 
 def made_with_paper_settings(cfg: Mapping) -> bool:
     """Whether a model-env run's config is the paper's per-dataset tables rather than the offline rules: its latent origin is
-    the paper's (``zero``, what ``preset=paper`` sets) or absent (a run made before the rules, 2026-12-06). Dataset agents
-    (IQL, CQL, TD3+BC, BC) use no model, so no preset changes them: never."""
+    the paper's (``zero``, what ``preset=paper`` sets, or chosen by hand) or absent (a run made before the rules,
+    2026-12-06). Dataset agents (IQL, CQL, TD3+BC, BC) use no model, so no preset changes them: never; nor block-stacking
+    runs, whose shipped setting is the paper's (``configs/env/blockstack*.yaml``)."""
+    from ..registry import task_of
     from .config import learns_from_dataset
 
     try:
-        if learns_from_dataset(cfg):
+        if learns_from_dataset(cfg) or task_of((cfg.get("env") or {}).get("env_id")).goal_conditioned:
             return False
     except (KeyError, ValueError):  # an algorithm this version no longer ships
         return False
