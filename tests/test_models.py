@@ -256,7 +256,9 @@ def test_the_learned_log_variance_bounds_squash_as_mopo_does_and_are_pulled_toge
     assert torch.allclose(ens.val_loss(batch), torch.ones(2), atol=1e-5)  # held-out error: the mean's squared error only
     fitted = DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(16,), loss="nll")
     fitted.fit(toy_data, lr=1e-2, max_epochs=3, progress=False)
-    assert not torch.allclose(fitted.max_logvar["dynamics"], torch.full_like(fitted.max_logvar["dynamics"], 0.5))
+    for head in ("dynamics", "reward"):  # each head's own bounds are trained (the reward's by the reward's loss)
+        assert not torch.allclose(fitted.max_logvar[head], torch.full_like(fitted.max_logvar[head], 0.5)), head
+        assert not torch.allclose(fitted.min_logvar[head], torch.full_like(fitted.min_logvar[head], -10.0)), head
 
 
 def test_the_elites_are_the_members_with_the_lowest_held_out_error(toy_data, tmp_path):

@@ -328,5 +328,5 @@ class DynamicsEnsemble(FitMixin, nn.Module):
             r = (batch.get(("next", "reward")) - self.reward_mean) / self.reward_std
             if r.dim() == 2:
                 r = r.unsqueeze(0).expand(self.num_members, *r.shape)
-            loss = loss + self._member_loss(self.reward_net(x), r)
+            loss = loss + self._member_loss(self.reward_net(x), r, "reward")
         return loss
