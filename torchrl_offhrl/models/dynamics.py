@@ -167,8 +167,6 @@ class DynamicsEnsemble(FitMixin, nn.Module):
         if self.loss_type == "nll":
             mean, logvar = out.chunk(2, -1)
             hi, lo = self.max_logvar[head], self.min_logvar[head]
-            if logvar.dim() == 2:  # one member's output (not produced here, kept general)
-                hi, lo = hi[0], lo[0]
             logvar = hi - nn.functional.softplus(hi - logvar)
             return mean, lo + nn.functional.softplus(logvar - lo)
         return out, None
@@ -276,13 +274,10 @@ class DynamicsEnsemble(FitMixin, nn.Module):
         MOPO's code (a likelihood rewards a member that only widens its variance)."""
         if self.loss_type != "nll":
             return self.loss(batch)
-        obs, act, nobs = batch.get("observation"), batch.get("action"), batch.get(("next", "observation"))
-        x = self._inputs(obs, act)
-        target = ((nobs - obs) - self.delta_mean) / self.delta_std
+        x, target, r = self._inputs_and_targets(batch)
         err = (self._split(self.dynamics(x))[0] - target).pow(2).flatten(1).mean(-1)
-        if self.reward_net is not None:
-            r = (batch.get(("next", "reward")) - self.reward_mean) / self.reward_std
-            err = err + (self._split(self.reward_net(x), "reward")[0] - r.reshape(-1, 1)).pow(2).flatten(1).mean(-1)
+        if r is not None:
+            err = err + (self._split(self.reward_net(x), "reward")[0] - r).pow(2).flatten(1).mean(-1)
         return err
 
     def fit(self, data, val_ratio: float = 0.1, split_seed: int = 0, **trainer_kwargs) -> "DynamicsEnsemble":
@@ -307,26 +302,34 @@ class DynamicsEnsemble(FitMixin, nn.Module):
         for mod in self.modules():
             if hasattr(mod, "num_members") and mod is not self:
                 mod.num_members = len(members)
-        for name, p in list(self.named_parameters()):
+        for p in self.parameters():
             p.data = p.data.index_select(0, members.to(p.device))
         self.num_members = len(members)
         self.config.update(num_models=len(members), num_elites=None, elites={
             "trained": trained, "kept": members.tolist(),
             **({"val_mse": [float(errors[i]) for i in members]} if errors is not None else {})})
         return self
-    def loss(self, batch: TensorDictBase) -> torch.Tensor:
-        """Per-member training loss, ``[K]``; batch ``[K, B]`` or ``[B]``."""
+
+    def _inputs_and_targets(self, batch: TensorDictBase):
+        """``(inputs, state-residual targets [K, B, D], reward targets [K, B, 1] or None)``, normalised, of a batch ``[K, B]``
+        or ``[B]`` (the same pairs for every member)."""
         obs = batch.get("observation")
-        act = batch.get("action")
         nobs = batch.get(("next", "observation"))
-        x = self._inputs(obs, act)
+        x = self._inputs(obs, batch.get("action"))
         target = ((nobs - obs) - self.delta_mean) / self.delta_std
         if target.dim() == 2:
             target = target.unsqueeze(0).expand(self.num_members, *target.shape)
-        loss = self._member_loss(self.dynamics(x), target)
+        r = None
         if self.reward_net is not None:
             r = (batch.get(("next", "reward")) - self.reward_mean) / self.reward_std
             if r.dim() == 2:
                 r = r.unsqueeze(0).expand(self.num_members, *r.shape)
+        return x, target, r
+
+    def loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """Per-member training loss, ``[K]``; batch ``[K, B]`` or ``[B]``."""
+        x, target, r = self._inputs_and_targets(batch)
+        loss = self._member_loss(self.dynamics(x), target)
+        if r is not None:
             loss = loss + self._member_loss(self.reward_net(x), r, "reward")
         return loss
