@@ -257,6 +257,12 @@ HELD_READING = (
     "trained policies it could not certify (hindsight: the per-run tables below) are where the missing points are.")
 
 
+def per_algo(rs: list[dict], algos) -> dict[str, list[dict]]:
+    """``{algo: its rows}`` for the ``algos`` (in that order) that have rows in ``rs``."""
+    out = {a: [r for r in rs if r["algo"] == a] for a in algos}
+    return {a: x for a, x in out.items() if x}
+
+
 def table() -> str:
     groups = {
         "best": ("The default now: the best episodes' origin (`model_env.latent_origin=best`), last policy + guard, on the design "
@@ -341,8 +347,8 @@ def table() -> str:
         "against a stronger start, fires more often and is right more often (held-out: 19 of 26 fires right).",
     ]
     rows_by = {g: rows(g) for g in groups}
-    held = {a: [r for r in rows_by["best_heldout"] if r["algo"] == a] for a in ("moc", "ppo")}
-    if held["moc"] and held["ppo"]:
+    held = per_algo(rows_by["best_heldout"], ("moc", "ppo"))
+    if len(held) == 2:
         text += ["", "## MOC and PPO on the default, evaluation seeds 4-8, on data the default was not designed on", "",
                  "What `offhrl demo algo=moc|ppo dataset=<level>` returns (last policy + guard, the shipped default) on the "
                  "held-out, fresh-seed and second-seed datasets of the last section, IQM [95% CI] (runs) and per seed, and PPO's "
@@ -351,9 +357,8 @@ def table() -> str:
     opts = rows("options_origin")
     bc_rows = final_rows("bc")
     bc = {"bc": bc_rows} if bc_rows else {}  # BC beside both options tables (it learns from the data only)
-    best_algos = {r["algo"] for r in rows_by["best"]}
-    if best_algos:
-        by_algo = {**{a: [r for r in rows_by["best"] if r["algo"] == a] for a in ("moc", "moc_1opt", "ppo") if a in best_algos}, **bc}
+    if rows_by["best"]:
+        by_algo = {**per_algo(rows_by["best"], ("moc", "moc_1opt", "ppo")), **bc}
         text += ["", "## The options question, and BC, on the default now (best episodes' origin; design datasets, tuning seeds)", "",
                  "What each algorithm's default returns (model-env agents: last + guard; BC: its last policy, 81,920 updates on "
                  "the same data, from the previous round), IQM [95% CI] (runs) and per seed, and the paired differences with "
@@ -373,8 +378,7 @@ def table() -> str:
                  "episodes' origin already starts every agent on the better one, which leaves a second option little to "
                  "add.", "", *comparison_table(by_algo)]
     if rows_by["origin"]:
-        by_algo = {"moc": rows_by["origin"], **{a: [r for r in opts if r["algo"] == a] for a in ("moc_1opt", "ppo")}}
-        by_algo = {**{a: rs for a, rs in by_algo.items() if rs}, **bc}
+        by_algo = {"moc": rows_by["origin"], **per_algo(opts, ("moc_1opt", "ppo")), **bc}
         text += ["", "## The options question, and BC, on the default (design datasets, tuning seeds)", "",
                  "What each algorithm's default returns (model-env agents: last + guard; BC: its last policy, 81,920 updates on "
                  "the same 100k transitions), IQM [95% CI] (runs) and per seed, and the paired differences with MOC's run of "
@@ -391,8 +395,7 @@ def table() -> str:
                  "guard recomputed on each run's last policy and on model_gain_lcb's pick. Right when fired: the guarded policy "
                  "scored no better than the start in the real env (checked after the fact, never used to choose); right when "
                  "passed: it scored better.", "", *guard_table(every)]
-    moc = lambda rs: [r for r in rs if r["algo"] == "moc"]  # noqa: E731
-    stop_groups = {"best episodes' origin (design + held-out)": moc(rows_by["best"] + rows_by["best_heldout"]),
+    stop_groups = {"best episodes' origin (design + held-out)": [r for r in rows_by["best"] + rows_by["best_heldout"] if r["algo"] == "moc"],
                    "behaviour origin (design + held-out)": rows_by["origin"] + rows_by["origin_heldout"],
                    "origin 0 (design + held-out)": rows_by["design"] + rows_by["heldout"]}
     if any(stop_groups.values()):
