@@ -95,6 +95,36 @@ def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
     DynamicsEnsemble.load(e_path)
 
 
+def test_a_model_fit_killed_midway_resumes_from_its_cache_folder(tmp_path, monkeypatch):
+    from torchrl_offhrl.models import trainer
+
+    monkeypatch.setattr(trainer, "CHECKPOINT_EVERY_S", 0.0)  # a checkpoint after every epoch (two minutes apart by default)
+    data, cfg = _tiny_models(tmp_path / "whole", monkeypatch)
+    cfg["ensemble"]["fit"] = {"lr": 1e-3, "batch_size": 32, "max_epochs": 4, "patience": 10}  # 2 steps per epoch on 80 transitions
+    whole = fit_or_load_models(cfg, data, progress=False, with_cvae=False)[0]
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "killed"))
+    loss, calls = DynamicsEnsemble.loss, [0]
+
+    def killed_in_epoch_3(self, batch):
+        calls[0] += 1
+        if calls[0] > 7:  # 3 calls an epoch (2 steps, 1 validation): the first step of epoch 3
+            raise KeyboardInterrupt
+        return loss(self, batch)
+
+    monkeypatch.setattr(DynamicsEnsemble, "loss", killed_in_epoch_3)
+    with pytest.raises(KeyboardInterrupt):
+        fit_or_load_models(cfg, data, progress=False, with_cvae=False)
+    [state] = (tmp_path / "killed" / "models").glob("*/ensemble.fit-state.pt")
+    assert not state.with_name("ensemble.pt").exists()
+    calls[0] = -(10**9)  # no kill this time; counts the steps from -1e9
+    resumed, _, info = fit_or_load_models(cfg, data, progress=False, with_cvae=False)
+    assert calls[0] + 10**9 == 6  # epochs 3 and 4 only (12 calls from scratch): epochs 1 and 2 came from the fit state
+    assert info["ensemble"] == "fitted" and len(info["ensemble_history"]) == 4 and not state.exists()
+    for a, b in zip(whole.state_dict().values(), resumed.state_dict().values()):
+        assert torch.equal(a, b)
+
+
 def test_a_model_is_reused_when_only_the_other_models_settings_change(tmp_path, monkeypatch):
     data, cfg = _tiny_models(tmp_path, monkeypatch)
     ens, _, first = fit_or_load_models(cfg, data, progress=False)

@@ -129,6 +129,60 @@ def test_early_stopping_with_patience():
     assert len(hist) == 4  # epoch 0 sets the best, then 3 epochs without improvement
 
 
+def _gaussian_ensemble(toy_data, seed):
+    torch.manual_seed(seed)
+    return DynamicsEnsemble.for_dataset(toy_data, num_models=3, hidden_sizes=(32,), loss="nll")
+
+
+def test_a_killed_fit_resumes_from_its_checkpoint_to_the_weights_of_an_uninterrupted_fit(toy_data, tmp_path):
+    train, val = toy_data.split(0.1, seed=0)
+    settings = dict(lr=1e-3, batch_size=32, max_epochs=6, steps_per_epoch=10, patience=100, seed=3, progress=False)
+    whole = _gaussian_ensemble(toy_data, 0)
+    history = SupervisedTrainer(**settings).fit(whole, train.data, val.data)
+
+    ckpt = tmp_path / "ensemble.fit.pt"
+    with pytest.raises(KeyboardInterrupt):  # killed 35 steps in (in epoch 4), after the checkpoint of epoch 3 was written
+        SupervisedTrainer(**settings, checkpoint=ckpt, checkpoint_every_s=0).fit(_dies_after(_gaussian_ensemble(toy_data, 0), 35),
+                                                                                   train.data, val.data)
+    assert ckpt.is_file()
+    restarted = _dies_after(_gaussian_ensemble(toy_data, 1), 10**9)  # a new process: other initial weights, the checkpoint's win
+    resumed = SupervisedTrainer(**settings, checkpoint=ckpt, checkpoint_every_s=0).fit(restarted, train.data, val.data)
+    assert restarted.calls == 30  # epochs 4-6 only
+    assert [h["epoch"] for h in resumed] == list(range(6)) and resumed == history
+    for (name, a), b in zip(whole.state_dict().items(), restarted.state_dict().values()):
+        assert torch.equal(a, b), name
+    assert not ckpt.exists() and not ckpt.with_name(ckpt.name + ".sha256").exists()  # the fit is over: no state left behind
+
+
+def _dies_after(model, steps):
+    """``model``, whose loss raises KeyboardInterrupt (a kill) once it has been called ``steps`` times; counts the calls."""
+    loss, model.calls = model.loss, 0
+
+    def counted(batch):
+        model.calls += 1
+        if model.calls > steps:
+            raise KeyboardInterrupt
+        return loss(batch)
+
+    model.loss = counted
+    return model
+
+
+def test_a_checkpoint_of_another_fit_is_set_aside_not_resumed(toy_data, tmp_path):
+    train, val = toy_data.split(0.1, seed=0)
+    settings = dict(lr=1e-3, batch_size=32, max_epochs=2, steps_per_epoch=5, patience=100, progress=False)
+    ckpt = tmp_path / "ensemble.fit.pt"
+    with pytest.raises(KeyboardInterrupt):  # a fit on half the data, killed in its second epoch: its checkpoint stays
+        SupervisedTrainer(**settings, checkpoint=ckpt, checkpoint_every_s=0).fit(
+            _dies_after(_gaussian_ensemble(toy_data, 0), 7), train.data[: len(train.data) // 2], val.data)
+    assert ckpt.is_file()
+    fresh = _dies_after(_gaussian_ensemble(toy_data, 0), 10**9)
+    with pytest.warns(UserWarning, match="written by another fit"):
+        history = SupervisedTrainer(**settings, checkpoint=ckpt).fit(fresh, train.data, val.data)
+    assert len(history) == 2 and fresh.calls == 10  # both epochs run: from scratch
+    assert ckpt.with_name(ckpt.name + ".stale").is_file() and not ckpt.exists()
+
+
 @pytest.mark.parametrize("loss", ["mse", "nll"])
 def test_other_losses_train(toy_data, loss):
     torch.manual_seed(0)

@@ -3,12 +3,21 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import time
+import warnings
+from pathlib import Path
 from typing import Protocol, Sequence
 
 import torch
 from tensordict import TensorDictBase
 
+from ..utils import CorruptFileError, checksum_path, load_torch_file, save_torch_file
+
 __all__ = ["SupervisedTrainer", "TrainableModel", "make_adam"]
+
+#: seconds between two writes of a fit's checkpoint when :class:`SupervisedTrainer` is not given ``checkpoint_every_s``
+CHECKPOINT_EVERY_S = 120.0
 
 
 def make_adam(params, **kwargs) -> torch.optim.Adam:
@@ -71,6 +80,18 @@ class SupervisedTrainer:
         seed: seeds the minibatch sampling.
         progress: show a tqdm bar with the losses.
         desc: label of the progress bar.
+        checkpoint: a file where the fit keeps its whole state while it runs
+            (weights, Adam's moments, the best weights so far, the sampler's
+            random state, the history), written atomically at most every
+            ``checkpoint_every_s`` seconds at the end of an epoch and deleted
+            when the fit ends. A fit started again with the same checkpoint
+            (after a kill, a crash or the end of a session) goes on from the
+            last epoch written and ends with the weights an uninterrupted fit
+            would have had; a checkpoint left by another fit (other data
+            size, settings or shapes) is set aside with a warning. None: no
+            checkpoint (a fit of hours that is killed starts again).
+        checkpoint_every_s: seconds between two checkpoint writes (0: every
+            epoch; None: :data:`CHECKPOINT_EVERY_S`, two minutes).
     """
 
     lr: float = 1e-4
@@ -86,6 +107,36 @@ class SupervisedTrainer:
     seed: int = 0
     progress: bool = True
     desc: str = "fit"
+    checkpoint: str | os.PathLike | None = None
+    checkpoint_every_s: float | None = None
+
+    def _fingerprint(self, train: TensorDictBase, n_val: int, k: int, params) -> dict:
+        """What a checkpoint must match to be resumed: the data (its sizes and each key's sum), the members, the step
+        settings, the shapes. The stopping rules (patience, rel_tol, max_epochs) may change between the two runs."""
+        sums = [float(value.double().sum()) for _, value in sorted(train.items(True, True), key=lambda kv: str(kv[0]))]
+        return {"n": train.shape[0], "n_val": n_val, "data_sums": sums, "k": k, "lr": self.lr, "batch_size": self.batch_size,
+                "steps_per_epoch": self.steps_per_epoch, "max_steps": self.max_steps, "weight_decay": self.weight_decay,
+                "seed": self.seed, "shapes": [list(p.shape) for p in params]}
+
+    def _resume(self, fingerprint: dict) -> dict | None:
+        """The state in :attr:`checkpoint` when it belongs to this fit, else None (a foreign or damaged one is renamed
+        ``<name>.stale`` with a warning, never deleted: it may be another run's)."""
+        path = Path(self.checkpoint)
+        if not path.is_file():
+            return None
+        try:
+            state = load_torch_file(path, "fit checkpoint", "it is set aside and the fit starts again")
+            found = state.get("fingerprint") if isinstance(state, dict) else None
+            reason = None if found == fingerprint else f"it was written by another fit ({_difference(found, fingerprint)})"
+        except CorruptFileError as err:
+            state, reason = None, str(err)
+        if reason is None:
+            return state
+        stale = path.with_name(path.name + ".stale")
+        os.replace(path, stale)
+        checksum_path(path).unlink(missing_ok=True)
+        warnings.warn(f"{path}: not resumed, {reason}; moved to {stale.name}, the fit starts from scratch", stacklevel=3)
+        return None
 
     def fit(self, model: TrainableModel, train: TensorDictBase, val: TensorDictBase | None = None) -> list[dict]:
         """Train ``model`` in place; returns the per-epoch history."""
@@ -124,8 +175,26 @@ class SupervisedTrainer:
         bad_epochs = 0
         history: list[dict] = []
         total_steps = 0
-        bar = tqdm(range(max_epochs), desc=self.desc, disable=not self.progress, leave=False)
-        for epoch in bar:
+        start_epoch = 0
+        fingerprint = self._fingerprint(train, 0 if val is None else val.shape[0], k, params)
+        state = self._resume(fingerprint) if self.checkpoint is not None else None
+        if state is not None:
+            with torch.no_grad():
+                model.load_state_dict(state["model"])
+                for b, saved in zip(best_params, state["best_params"]):
+                    b.copy_(saved)
+            opt.load_state_dict(state["optimizer"])
+            best = state["best"].to(device)
+            bad_epochs, total_steps, history = state["bad_epochs"], state["total_steps"], state["history"]
+            gen.set_state(state["generator"])
+            start_epoch = len(history)
+            if self.progress:
+                print(f"{self.desc}: resuming from {self.checkpoint} after epoch {start_epoch} ({total_steps} steps)")
+        last_write = time.monotonic()
+        bar = tqdm(range(start_epoch, max_epochs), desc=self.desc, disable=not self.progress, leave=False,
+                   initial=start_epoch, total=max_epochs)
+        done = start_epoch >= max_epochs or bad_epochs >= self.patience or (self.max_steps is not None and total_steps >= self.max_steps)
+        for epoch in ([] if done else bar):
             model.train()
             running = torch.zeros(k, device=device)
             steps = steps_per_epoch
@@ -168,12 +237,25 @@ class SupervisedTrainer:
                 break
             if self.max_steps is not None and total_steps >= self.max_steps:
                 break
+            every = CHECKPOINT_EVERY_S if self.checkpoint_every_s is None else self.checkpoint_every_s
+            if self.checkpoint is not None and time.monotonic() - last_write >= every:
+                self._write(model, opt, best, best_params, bad_epochs, total_steps, history, gen, fingerprint)
+                last_write = time.monotonic()
         bar.close()
+        if self.checkpoint is not None:  # the fit is over: its state is in the model now
+            Path(self.checkpoint).unlink(missing_ok=True)
+            checksum_path(self.checkpoint).unlink(missing_ok=True)
         with torch.no_grad():
             for p, b in zip(params, best_params):
                 p.copy_(b)
         model.eval()
         return history
+
+    def _write(self, model, opt, best, best_params, bad_epochs, total_steps, history, gen, fingerprint) -> None:
+        Path(self.checkpoint).parent.mkdir(parents=True, exist_ok=True)
+        save_torch_file({"fingerprint": fingerprint, "model": model.state_dict(), "optimizer": opt.state_dict(),
+                         "best": best.cpu(), "best_params": [b.cpu() for b in best_params], "bad_epochs": bad_epochs,
+                         "total_steps": total_steps, "history": history, "generator": gen.get_state()}, self.checkpoint)
 
     @torch.no_grad()
     def evaluate(self, model: TrainableModel, data: TensorDictBase, chunk: int = 8192) -> torch.Tensor:
@@ -189,3 +271,11 @@ class SupervisedTrainer:
             total = loss if total is None else total + loss
         model.train(was_training)
         return total / n
+
+
+def _difference(found, expected: dict) -> str:
+    """The first settings in which a checkpoint's fingerprint ``found`` differs from ``expected``, for a warning."""
+    if not isinstance(found, dict):
+        return "no fingerprint"
+    keys = [key for key in expected if found.get(key) != expected[key]]
+    return ", ".join(f"{key} {found.get(key)!r} there, {expected[key]!r} here" for key in keys[:3]) or "another format"

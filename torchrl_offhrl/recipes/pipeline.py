@@ -114,6 +114,10 @@ def _load_cached(cls, path):
         return None
 
 
+#: a fit's state while it runs, in its cache folder (models.SupervisedTrainer's ``checkpoint``): a killed fit resumes from it
+FIT_STATE = "{part}.fit-state.pt"
+
+
 def fit_or_load_models(
     cfg: Mapping, data: OfflineDataset, progress: bool = True, with_cvae: bool = True
 ) -> tuple[DynamicsEnsemble, ConditionalVAE | None, dict]:
@@ -122,7 +126,10 @@ def fit_or_load_models(
     Checkpoints live in ``cache_dir()/models/<key>/`` where the key hashes the
     dataset's content (:meth:`~torchrl_offhrl.data.OfflineDataset.content_hash`)
     and the model and fit configs: change either and the models are fitted
-    again (a file replaced by other data at the same path is reported). Returns ``(ensemble, cvae, info)``;
+    again (a file replaced by other data at the same path is reported). While
+    a model is fitted its state is kept there too (:data:`FIT_STATE`, every two
+    minutes): the same call after a kill or a lost session resumes the fit
+    where it was, to the weights it would have had. Returns ``(ensemble, cvae, info)``;
     ``with_cvae=False`` fits (or loads) the ensemble alone and returns ``None`` for the CVAE (a later call fits
     it into the same folder). ``cfg["fit_threads"]`` (optional; None: torch's count) is the torch thread count while
     they are fitted, restored afterwards.
@@ -168,7 +175,8 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
             data, num_models=ecfg["num_models"], hidden_sizes=ecfg["hidden_sizes"], loss=ecfg["loss"], learn_reward=ecfg.get("learn_reward", True),
             reward_hidden_sizes=ecfg.get("reward_hidden_sizes"), num_elites=ecfg.get("num_elites"),
         ).to(device)
-        ensemble.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ecfg["fit"])
+        ensemble.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ecfg["fit"],
+                     checkpoint=folder / FIT_STATE.format(part="ensemble"))
         ensemble.save(e_path)
         info["ensemble"] = "fitted"
         info["ensemble_history"] = ensemble.training_history
@@ -182,7 +190,8 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
         info["cvae"] = f"loaded from {shared.parent.name} (fitted with other ensemble settings)"
     else:
         cvae = ConditionalVAE.for_dataset(data, goal_key=ccfg.get("goal_key"), hidden_sizes=ccfg["hidden_sizes"], kl_weight=ccfg["kl_weight"]).to(device)
-        cvae.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ccfg["fit"])
+        cvae.fit(data, val_ratio=val_ratio, split_seed=cfg["seed"], progress=progress, seed=cfg["seed"], **ccfg["fit"],
+                 checkpoint=folder / FIT_STATE.format(part="cvae"))
         cvae.save(c_path)
         info["cvae"] = "fitted"
         info["cvae_history"] = cvae.training_history
