@@ -69,14 +69,15 @@ def cache(tmp_path_factory):
 
 
 def load_script(name: str):
-    """``scripts/<name>.py`` (or ``scripts/diagnostics/<name>.py``) as a fresh module (the scripts are no package): ``load_script("results").main([...])``."""
+    """``scripts/<name>.py`` (or ``experiments/diagnostics/<name>.py``) as a fresh module (the scripts are no package):
+    ``load_script("action_pack").main([...])``."""
     import importlib.util
     from pathlib import Path
 
-    scripts = Path(__file__).resolve().parents[1] / "scripts"
-    path = scripts / f"{name}.py"
+    root = Path(__file__).resolve().parents[1]
+    path = root / "scripts" / f"{name}.py"
     if not path.is_file():
-        path = scripts / "diagnostics" / f"{name}.py"
+        path = root / "experiments" / "diagnostics" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(f"{name}_script", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

@@ -321,3 +321,26 @@ def test_chunked_prediction_is_the_same_step(make_env, fitted_ensemble):
     out_a, out_b = a.step(a.reset().set("action", act))["next"], b.step(b.reset().set("action", act))["next"]
     for k in ("observation", "reward", "discrepancy"):
         torch.testing.assert_close(out_b[k], out_a[k])
+
+
+class _ZeroAgent:
+    """An agent whose deterministic policy always acts 0 (what Evaluator.model_metrics rolls out)."""
+
+    @staticmethod
+    def eval_policy(td):
+        return td.set("action", torch.zeros(*td.batch_size, 2))
+
+
+@pytest.mark.parametrize("case, length, penalized, terminated", [
+    ("pessimism", 1.0, 1.0, 0.0),  # threshold below every discrepancy: the first step ends every episode with the penalty
+    ("fall", 1.0, 0.0, 1.0),  # the task's terminal states everywhere: the first step ends it, not the pessimism
+    ("horizon", 6.0, 0.0, 0.0),  # neither: the model env's horizon ends it
+])
+def test_the_evaluation_says_where_model_episodes_end(make_env, case, length, penalized, terminated):
+    from torchrl_offhrl.recipes.evaluation import Evaluator
+
+    kw = {"pessimism": dict(threshold=-1.0), "fall": dict(threshold=float("inf"), termination_fn=lambda obs: torch.ones(obs.shape[:-1], dtype=torch.bool)),
+          "horizon": dict(threshold=float("inf"), termination_fn=None, horizon=6)}[case]
+    env = make_env(batch_size=[8], **kw)
+    out = Evaluator(None, "toy", episodes=8, max_steps=20, seed=0, model_env=env).model_metrics(_ZeroAgent(), real_mean=0.0)
+    assert (out["model_episode_length_mean"], out["model_penalized"], out["model_terminated"]) == (length, penalized, terminated)

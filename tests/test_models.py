@@ -369,3 +369,59 @@ def test_mopos_penalty_is_the_largest_norm_of_the_members_predicted_std(toy_data
 
     with pytest.raises(ValueError, match="predicts none"):
         PessimisticModelEnv(l1, toy_data, discrepancy="aleatoric", threshold=1.0)
+
+
+class _KnownEnsemble(torch.nn.Module):
+    """Two members predicting the true next state shifted by +1 and +3 state-change stds, the reward by +0 and +2."""
+
+    def __init__(self, data):
+        super().__init__()
+        self.data, self.w = data, torch.nn.Parameter(torch.zeros(1))
+        self.delta_std = (data.data["next", "observation"] - data.data["observation"]).std(0)
+
+    def predict(self, obs, act):
+        rows = (obs[:, None, :] == self.data.data["observation"][None]).all(-1).float().argmax(-1)  # the pairs' own rows
+        nxt, rew = self.data.data["next", "observation"][rows], self.data.data["next", "reward"][rows].reshape(-1)
+        shifts = torch.tensor([1.0, 3.0])[:, None, None] * self.delta_std
+        return {"next_observation": nxt + shifts, "reward": rew + torch.tensor([0.0, 2.0])[:, None]}
+
+
+def test_ensemble_quality_on_members_wrong_by_known_amounts(toy_data):
+    from torchrl_offhrl.models import ensemble_quality
+
+    q = ensemble_quality(_KnownEnsemble(toy_data), toy_data, chunk=97)  # chunks that do not divide the data
+    # the mean is wrong by 2 stds in every dimension, the members spread by 1 (population std of 1 and 3)
+    assert q["state_error"] == pytest.approx(2.0) and q["state_spread"] == pytest.approx(1.0)
+    assert q["error_over_spread"] == pytest.approx(2.0)
+    assert q["reward_error"] == pytest.approx(1.0) and q["reward_spread"] == pytest.approx(1.0)
+    assert q["pairs"] == toy_data.data.shape[0]
+
+
+class _Decoder(torch.nn.Module):
+    def __init__(self, uses_latent):
+        super().__init__()
+        self.uses_latent = uses_latent
+
+    def forward(self, obs, z, goal=None):
+        return z[..., :2] if self.uses_latent else obs[..., :2] * 0.5
+
+
+class _CVAE(torch.nn.Module):
+    latent_dim, goal_key = 3, None
+
+    def __init__(self, uses_latent):
+        super().__init__()
+        self.decoder, self.w = _Decoder(uses_latent), torch.nn.Parameter(torch.zeros(1))
+
+
+def test_decoder_sensitivity_is_zero_for_a_collapsed_decoder_and_the_box_for_an_identity_one(toy_data):
+    from torchrl_offhrl.models import decoder_sensitivity
+
+    collapsed = decoder_sensitivity(_CVAE(False), toy_data, bound=2.0)
+    assert collapsed["corner_share"] == 0.0 and collapsed["prior_share"] == 0.0
+    identity = decoder_sensitivity(_CVAE(True), toy_data, bound=2.0, num_latents=400)
+    data_std = toy_data.data["action"].double().std(0, unbiased=False)
+    # the action is the latent: at random corners of [-2, 2] its std is ~2 (random signs), from N(0, I) ~1
+    assert identity["corner_std"] == pytest.approx([2.0, 2.0], rel=0.02)
+    assert identity["prior_std"] == pytest.approx([1.0, 1.0], rel=0.03)
+    assert identity["corner_share"] == pytest.approx(float((2.0 / data_std).mean()), rel=0.02)

@@ -862,7 +862,7 @@ def test_transfer_page_lists_the_rows_short_of_three_seeds():
 
 
 def test_dataset_agent_probe_rolls_out_what_the_evaluation_scores(hopper_file, cache, tmp_path, capsys):
-    """scripts/diagnostics/dataset_agent_probe.py: the same episodes as `offhrl evaluate` (returns equal), one line each, the critic's Q where there is one."""
+    """experiments/diagnostics/dataset_agent_probe.py: the same episodes as `offhrl evaluate` (returns equal), one line each, the critic's Q where there is one."""
     mod = load_script("dataset_agent_probe")
     for algo in ("td3bc", "bc"):
         run = train(_cfg(algo, hopper_file, tmp_path / algo, "train.total_updates=4", "eval.every_updates=4"), progress=False)["run_dir"]

@@ -69,10 +69,10 @@ def test_docs_site_builds_strict(tmp_path):
 
 
 def test_every_diagnostic_script_is_in_the_index():
-    """scripts/diagnostics/README.md lists every script of the folder, with the question its docstring asks."""
+    """experiments/diagnostics/README.md lists every script of the folder, with the question its docstring asks."""
     import ast
 
-    folder = ROOT / "scripts" / "diagnostics"
+    folder = ROOT / "experiments" / "diagnostics"
     index = (folder / "README.md").read_text()
     for f in sorted(folder.glob("*.py")):
         first = ast.get_docstring(ast.parse(f.read_text())).splitlines()[0]

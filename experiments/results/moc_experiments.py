@@ -35,7 +35,7 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "ppo_rs": ("PPO, rewards x 0.1 for learning", ["algo=ppo", "model_env.reward_scale=0.1"]),
 }
 # the same variants on better-fitted models (20k fitting steps instead of the demo's 3k: the model then
-# ends the decoder policy's episodes where the real env does; see scripts/diagnostics/model_episode_ends.py)
+# ends the decoder policy's episodes where the real env does; see experiments/diagnostics/model_episode_ends.py)
 FIT20K = ["ensemble.fit.max_steps=20000", "cvae.fit.max_steps=20000"]
 for _name in ("joint", "official", "official_std_rs", "ppo"):
     VARIANTS[f"{_name}_fit20k"] = (VARIANTS[_name][0] + "; models fitted 20k steps", VARIANTS[_name][1] + FIT20K)

@@ -276,7 +276,7 @@ _OFF_POLICY_ME = ("SAC and MOPO: SAC ~1.8 h of one core for the five seeds batch
 _HALFCHEETAH_ME = ("The model-env agents run on the models fitted and cached on 2026-12-04 (MOC: seeds 4-8; MOReL and PPO: seeds "
                    "4-8, five batched, PPO's ~38 min beside other jobs). PPO, like MOReL, exploits the model: its model return rises "
                    "5.0k -> 6.1k while the real one falls on 3 of 5 seeds, and the pessimism (0.0101 x max, above 99.91% of the data's "
-                   "pairs) ends 4 of 50 model episodes. Seed 6's final policy (`scripts/diagnostics/model_episode_ends.py --run=...`): "
+                   "pairs) ends 4 of 50 model episodes. Seed 6's final policy (`experiments/diagnostics/model_episode_ends.py --run=...`): "
                    "model return 5,544, real 1,554; the pairs it visits in the model sit at the data's median discrepancy, those it "
                    "visits in the real env at the data's 99.9th percentile: the members agree along the model's rollouts, which stay "
                    "data-like where the real states do not, so no threshold on their disagreement ends these episodes. BC: seeds 4-8 "

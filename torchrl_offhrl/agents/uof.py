@@ -126,7 +126,7 @@ class UOFPolicy(TensorDictModuleBase):
     under ``DETERMINISTIC`` too, every episode follows the goal's abstract
     demonstration instead of DIOL's greedy picks, so an evaluation measures
     what the low level achieves when it is handed the right sub-goals in the
-    right order (``scripts/diagnostics/uof_oracle_options.py``).
+    right order (``experiments/diagnostics/uof_oracle_options.py``).
     """
 
     def __init__(self, diol: DIOLLoss, actor, low: torch.Tensor, high: torch.Tensor, num_options: int, action_key: str,

@@ -22,6 +22,12 @@ The rules (each function's docstring gives its reasoning):
 * the reward scale is :func:`~torchrl_offhrl.recipes.config.auto_reward_scale`
   (1 / std of the returns-to-go), resolved with the other recipe settings.
 
+Beside the settings, the report shows the models' held-out quality
+(:func:`~torchrl_offhrl.models.ensemble_quality`: the ensemble mean's error
+next to the members' spread) and whether the decoder uses its latent
+(:func:`~torchrl_offhrl.models.decoder_sensitivity`), the two things that
+make a P-MDP useless whatever its settings.
+
 :func:`offline_rules` runs them all and returns an :class:`OfflineRules`,
 whose :meth:`~OfflineRules.summary` and :meth:`~OfflineRules.plot` are the
 run's calibration report.
@@ -36,6 +42,7 @@ from pathlib import Path
 import torch
 
 from ..models.cvae import encode_in_chunks
+from ..models.quality import decoder_sensitivity, ensemble_quality
 from .calibration import dataset_discrepancy
 
 __all__ = ["OfflineRules", "horizon_rule", "latent_bound_rule", "offline_rules", "open_loop_errors", "penalty_rule", "threshold_rule"]
@@ -45,6 +52,9 @@ __all__ = ["OfflineRules", "horizon_rule", "latent_bound_rule", "offline_rules",
 HORIZON_TOLERANCE = 0.5
 #: shortest and longest model episodes the horizon rule returns
 MIN_HORIZON, MAX_HORIZON = 5, 1000
+#: a decoder whose action moves by less than this share of the data's action spread over the latent box is reported as
+#: collapsed (see :func:`~torchrl_offhrl.models.decoder_sensitivity`)
+COLLAPSED_DECODER_SHARE = 0.1
 
 
 @torch.no_grad()
@@ -286,6 +296,18 @@ class OfflineRules:
             f"(median error at 1/10/50/100 steps: {', '.join(str(h['error_at'].get(str(s))) for s in (1, 10, 50, 100))}; data episodes' "
             f"median length {h['episode_length_median']:.0f})",
         ]
+        q = self.info.get("models")
+        if q is not None:
+            reward = "" if q["reward_error"] is None else f"; reward error {q['reward_error']:.3g} (spread {q['reward_spread']:.3g})"
+            lines.append(f"  models on {q['pairs']} held-out pairs: the ensemble mean's one-step error {q['state_error']:.3g} state-change stds, "
+                         f"the members' spread {q['state_spread']:.3g} (error / spread {q['error_over_spread']:.2f}){reward}")
+        d = self.info.get("decoder")
+        if d is not None:
+            collapsed = d["corner_share"] < COLLAPSED_DECODER_SHARE
+            lines.append(f"  decoder: over the latent box its action moves by {100 * d['corner_share']:.0f}% of the data's action spread "
+                         f"({100 * d['prior_share']:.0f}% over N(0, I))"
+                         + (f"; below {100 * COLLAPSED_DECODER_SHARE:.0f}%, the decoder ignores its latent (posterior collapse: lower "
+                            "cvae.kl_weight) and no latent policy can act differently from its mean action" if collapsed else ""))
         if self.latent_bound is not None:
             lb = self.info["latent_bound"]
             lines.append(f"  latent box +-{self.latent_bound:.3g}: {100 * lb['quantile']:.0f}% of the decoder's posterior draws on held-out pairs "
@@ -375,10 +397,11 @@ def offline_rules(ensemble, data, cvae=None, val_ratio: float = 0.1, split_seed:
     threshold, t_info = threshold_rule(ensemble, held_out, discrepancy, disc=held_disc)
     penalty, p_info = penalty_rule(data, gamma)
     horizon, reset_states, h_info = horizon_rule(ensemble, held_out, median_episode_length(data), tolerance=tolerance, seed=split_seed)
-    info = {"threshold": t_info, "penalty": p_info, "horizon": h_info}
+    info = {"threshold": t_info, "penalty": p_info, "horizon": h_info, "models": ensemble_quality(ensemble, held_out)}
     bound = None
     if cvae is not None:
         bound, info["latent_bound"] = latent_bound_rule(cvae, held_out, seed=split_seed)
+        info["decoder"] = decoder_sensitivity(cvae, held_out, bound, seed=split_seed)
     return OfflineRules(threshold=threshold, penalty=penalty, horizon=horizon, reset_states=reset_states, latent_bound=bound,
                         discrepancy=discrepancy, info=info, held_out_discrepancy=held_disc,
                         train_discrepancy=dataset_discrepancy(ensemble, train, discrepancy))

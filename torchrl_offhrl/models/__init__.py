@@ -1,8 +1,9 @@
-"""Learned models: vectorised ensembles, the dynamics ensemble, the CVAE and their trainer."""
+"""Learned models: vectorised ensembles, the dynamics ensemble, the CVAE, their trainer and their held-out quality."""
 from ._common import atomic_torch_save
 from .cvae import ConditionalVAE, CVAEDecoder, LatentOrigin
 from .dynamics import DISCREPANCIES, DynamicsEnsemble
 from .ensemble import EnsembleLinear, EnsembleMLP
+from .quality import decoder_sensitivity, ensemble_quality
 from .trainer import SupervisedTrainer
 
 __all__ = [
@@ -15,4 +16,6 @@ __all__ = [
     "LatentOrigin",
     "SupervisedTrainer",
     "atomic_torch_save",
+    "decoder_sensitivity",
+    "ensemble_quality",
 ]

@@ -252,7 +252,7 @@ def auto_reward_scale(data: OfflineDataset, gamma: float = 0.99) -> float:
     Unscaled MuJoCo returns-to-go are in the hundreds (Hopper medium: 194 +- 76
     at gamma 0.99); a 64x64 critic stepped by Adam at the paper's lr 1e-4 then
     explains ~0% of their variance after 3,000 steps, against ~45% for the same
-    targets divided by 100 (``scripts/diagnostics/critic_probe.py``), so advantages are
+    targets divided by 100 (``experiments/diagnostics/critic_probe.py``), so advantages are
     noise and PPO/MOC drift instead of improving. The paper's PPO values come
     from rl-zoo, which divides rewards by a running return std (SB3's
     ``VecNormalize``); this is the same scale, fixed from the data so that a

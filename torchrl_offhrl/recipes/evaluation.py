@@ -109,8 +109,13 @@ class Evaluator:
         env every member gets the same episodes' start states);
         ``model_discounted_mean`` / ``model_discounted_min_member``, the same
         for the return discounted with ``gamma`` (the agent's own objective);
-        ``model_penalized``, the share of model episodes ended by the
-        pessimism; and ``model_episode_returns`` / ``model_episode_members``,
+        where model episodes end: ``model_episode_length_mean`` (steps),
+        ``model_penalized``, the share ended by the pessimism, and
+        ``model_terminated``, the share ended by the task's own terminal states
+        (a fall; the rest ran to the model env's horizon or ``max_steps``): a
+        model whose episodes end much earlier than the data's trains the agent
+        on another problem than the one it is evaluated on;
+        and ``model_episode_returns`` / ``model_episode_members``,
         every episode's return and member (the guard pairs them with the
         start policy's). Offline policy selection
         (:class:`~torchrl_offhrl.recipes.selection.PolicySelector`) reads them.
@@ -139,8 +144,13 @@ class Evaluator:
             # per episode, to pair two policies' evaluations episode by episode (the guard: selection.paired_gain_lcb)
             out["model_episode_returns"] = [round(float(x), 4) for x in model_rets.double()]
             out["model_episode_members"] = [int(x) for x in member]
-        if ("next", "penalized") in td.keys(True):
-            out["model_penalized"] = float((td["next", "penalized"].reshape(n, -1) & alive).any(1).float().mean())
+        out["model_episode_length_mean"] = float(alive.sum(1).double().mean())
+        penalized = td["next", "penalized"].reshape(n, -1) & alive if ("next", "penalized") in td.keys(True) else None
+        if penalized is not None:
+            out["model_penalized"] = float(penalized.any(1).float().mean())
+        if ("next", "terminated") in td.keys(True):
+            task_end = td["next", "terminated"].reshape(n, -1) & alive & (~penalized if penalized is not None else True)
+            out["model_terminated"] = float(task_end.any(1).float().mean())
         return out
 
 

@@ -29,7 +29,7 @@ is capped by the horizon, and every criterion preferred the policy closest
 to the data, a near-behaviour-cloning one (real score 29-33), over the
 running ones (64-93) the same runs reached, with 250 model episodes per
 policy as with 50 (``docs/results/demo_robustness_notes.md``,
-``scripts/diagnostics/selection_probe.py``). Evaluations therefore roll
+``experiments/diagnostics/selection_probe.py``). Evaluations therefore roll
 their model episodes for a whole real-episode length (``eval.max_steps``)
 from the data's start states, whatever the training horizon. With the
 paper's 1,000-step episodes (the full scale), ``model_lcb`` picked a policy

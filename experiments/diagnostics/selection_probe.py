@@ -1,6 +1,6 @@
 """Which offline signal ranks a run's intermediate policies as the real env does?
 
-    python scripts/diagnostics/selection_probe.py RUN_DIR [RUN_DIR ...] [--out FILE.json]
+    python experiments/diagnostics/selection_probe.py RUN_DIR [RUN_DIR ...] [--out FILE.json]
 
 For every ``snapshot-<frames>.pt`` of a run (``train.snapshot_frames``; the
 runs of ``experiments/results/robustness.py`` keep one per evaluation), the policy is

@@ -1,7 +1,7 @@
 """Can an on-policy critic fit the model env's value targets? (why PPO and MOC did not improve)
 
-    python scripts/diagnostics/critic_probe.py [hydra overrides of configs/demo.yaml ...]
-    python scripts/diagnostics/critic_probe.py cvae.kl_weight=0.05 ensemble.fit.max_steps=20000 cvae.fit.max_steps=20000
+    python experiments/diagnostics/critic_probe.py [hydra overrides of configs/demo.yaml ...]
+    python experiments/diagnostics/critic_probe.py cvae.kl_weight=0.05 ensemble.fit.max_steps=20000 cvae.fit.max_steps=20000
 
 Rolls the untrained PPO policy (stochastic) out for 64 x 1000 steps in the
 model env built exactly as `offhrl train` builds it (cached dataset and

@@ -1,7 +1,7 @@
 """Where does a dataset agent's final policy take the real env, and what does its critic think of it?
 
-    python scripts/diagnostics/dataset_agent_probe.py RUN_DIR [--episodes 5] [--seed 12345] [--data-states 5000]
-    python scripts/diagnostics/dataset_agent_probe.py outputs/results/full/td3bc-halfcheetah-medium-expert-seed4
+    python experiments/diagnostics/dataset_agent_probe.py RUN_DIR [--episodes 5] [--seed 12345] [--data-states 5000]
+    python experiments/diagnostics/dataset_agent_probe.py outputs/results/full/td3bc-halfcheetah-medium-expert-seed4
 
 For a run of IQL, CQL, TD3+BC or BC (`offhrl train algo=iql|cql|td3bc|bc`):
 rolls its checkpointed policy out deterministically (as the evaluations do)

@@ -1,6 +1,6 @@
 """Is UOF's shortfall on the last goal the high level's choice of options, or the low level's execution of them?
 
-    python scripts/diagnostics/uof_oracle_options.py RUN_DIR [RUN_DIR ...] [--episodes 30] [--out FILE.json]
+    python experiments/diagnostics/uof_oracle_options.py RUN_DIR [RUN_DIR ...] [--episodes 30] [--out FILE.json]
 
 Each run directory is a finished UOF run of `offhrl train` / `offhrl results blockstack run` (its `checkpoint.pt`
 and `config.json`; the CVAE from the model cache). Its last policy is evaluated twice in the real env, as the

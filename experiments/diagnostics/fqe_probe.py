@@ -1,6 +1,6 @@
 """Does fitted Q evaluation rank a run's intermediate policies as the real env does?
 
-    python scripts/diagnostics/fqe_probe.py RUN_DIR [RUN_DIR ...] [--steps 5000] [--out FILE.json]
+    python experiments/diagnostics/fqe_probe.py RUN_DIR [RUN_DIR ...] [--steps 5000] [--out FILE.json]
 
 For every ``snapshot-<frames>.pt`` of a run (the runs of
 ``experiments/results/robustness.py`` keep one per evaluation after step 0), the policy's

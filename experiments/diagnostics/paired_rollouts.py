@@ -1,6 +1,6 @@
 """Where do a policy's real and model episodes part? Each kept policy rolled out in the real env and in each member alone.
 
-    python scripts/diagnostics/paired_rollouts.py RUN_DIR [--steps 1000] [--episodes 5]
+    python experiments/diagnostics/paired_rollouts.py RUN_DIR [--steps 1000] [--episodes 5]
 
 For every ``snapshot-<frames>.pt`` of a run, ``--episodes`` real ``Hopper-v5``
 episodes (start-state seeds 100, 101, ...) are run with the deterministic

@@ -1,9 +1,9 @@
 """How long do episodes last in the pessimistic model, and what ends them, next to the real env?
 
-    python scripts/diagnostics/model_episode_ends.py [hydra overrides of configs/demo.yaml ...]
-    python scripts/diagnostics/model_episode_ends.py model_env.member_mode=mean ensemble.fit.max_steps=20000
-    python scripts/diagnostics/model_episode_ends.py --config=offline_train ensemble.fit.lr=1e-3   # full scale (first argument)
-    python scripts/diagnostics/model_episode_ends.py --run=outputs/results/full/ppo-halfcheetah-medium-expert-seed6
+    python experiments/diagnostics/model_episode_ends.py [hydra overrides of configs/demo.yaml ...]
+    python experiments/diagnostics/model_episode_ends.py model_env.member_mode=mean ensemble.fit.max_steps=20000
+    python experiments/diagnostics/model_episode_ends.py --config=offline_train ensemble.fit.lr=1e-3   # full scale (first argument)
+    python experiments/diagnostics/model_episode_ends.py --run=outputs/results/full/ppo-halfcheetah-medium-expert-seed6
 
 Rolls the untrained MOC agent's deterministic policy (the CVAE decoder's mean
 action) out for 50 episodes in the model env built exactly as `offhrl train`

@@ -1,6 +1,6 @@
 """Can an offline signal choose between two agents' final policies trained on the same dataset?
 
-    python scripts/diagnostics/agent_pick.py [VARIANT ...] [--seeds tuning|evaluation|all]   # default: shipped std037, tuning
+    python experiments/diagnostics/agent_pick.py [VARIANT ...] [--seeds tuning|evaluation|all]   # default: shipped std037, tuning
 
 Reads the archived robustness runs (``docs/results/demo_robustness_runs/<variant>/d<seed>[a<agent>]``, the
 records of ``offhrl results robustness run``). For every dataset seed with two or more agent seeds, each

@@ -1,7 +1,7 @@
 """Does a change to the training loop keep its behaviour? Ten tiny runs, one per setting, recorded for comparison.
 
-    python scripts/diagnostics/loop_equivalence.py record NAME [CASE ...]    # -> /tmp/loop_equivalence/NAME.json
-    python scripts/diagnostics/loop_equivalence.py compare BEFORE AFTER
+    python experiments/diagnostics/loop_equivalence.py record NAME [CASE ...]    # -> /tmp/loop_equivalence/NAME.json
+    python experiments/diagnostics/loop_equivalence.py compare BEFORE AFTER
 
 Each case is a tiny config of one setting of ``offhrl train`` (MOC, MOC with
 model-LCB selection, PPO without the CVAE, SAC, IQL, MOC transfer, PPO from

@@ -1,6 +1,6 @@
 """Is a model fit a function of its data and seed alone? The same CVAE fit repeated, and at another thread count.
 
-    python scripts/diagnostics/fit_determinism.py DATASET.hdf5 [--steps 300] [--threads 2 1]
+    python experiments/diagnostics/fit_determinism.py DATASET.hdf5 [--steps 300] [--threads 2 1]
 
 Fits the demo's CVAE (MLP(256, 256), lr 1e-3, batch 256) for ``--steps`` steps on the same data with the same seed,
 twice at the first thread count and once at each other one, and prints the largest weight difference of each fit
