@@ -12,7 +12,7 @@ PY := $(VENV)/bin/python
 # pytest-xdist workers for `make test`, one torch thread each (tests/conftest.py); TEST_WORKERS=0 runs one process
 TEST_WORKERS ?= 2
 
-.PHONY: install demo test docs bench clean
+.PHONY: install demo test probes docs bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,10 @@ demo: install
 
 test: install
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
+
+# issue 73's probe suite (also part of `make test`): each fault class's tests, counted per class at the end
+probes: install
+	$(PY) -m pytest -m fault -p no:cacheprovider -q
 
 docs: install
 	$(PY) -m pip install --quiet -e ".[docs]"

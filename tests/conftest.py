@@ -5,6 +5,50 @@ import torch
 
 torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else min(2, torch.get_num_threads()))  # xdist: one thread per worker
 
+#: the classes of faults the probe suite covers (``@pytest.mark.fault(kind)``; ``make probes`` runs them and counts per class)
+FAULT_CLASSES = {
+    "data": "implausible or unreadable data: refused with the file, key and index, nothing left behind",
+    "artefact": "damaged or malicious files the library reads: caught by their checksums or a safe loader, rebuilt or fallen back",
+    "config": "bad config values: named before any data, fit or training work",
+    "disk": "a full, read-only or forbidden disk: one line naming the folder, nothing half-written",
+    "paths": "names from the config or a checkpoint never lead outside out_root and the cache",
+    "resume": "a killed fit or run resumes to what an uninterrupted one gives",
+}
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "fault(kind): a probe of issue 73's fault classes (tests/conftest.py FAULT_CLASSES)")
+
+
+def pytest_collection_modifyitems(config, items):
+    kinds = {}
+    for item in items:
+        marker = item.get_closest_marker("fault")
+        if marker is not None:
+            kind = marker.args[0]
+            if kind not in FAULT_CLASSES:
+                raise pytest.UsageError(f"{item.nodeid}: fault class {kind!r} is not one of {sorted(FAULT_CLASSES)}")
+            kinds[item.nodeid] = kind
+    config.stash[_FAULT_KINDS] = kinds
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """With ``-m fault`` (``make probes``): how many probes of each class held and failed."""
+    if "fault" not in (config.option.markexpr or ""):
+        return
+    kinds = config.stash.get(_FAULT_KINDS, {})
+    counts = {kind: [0, 0] for kind in FAULT_CLASSES}
+    for outcome, column in (("passed", 0), ("failed", 1), ("error", 1)):
+        for report in terminalreporter.stats.get(outcome, []):
+            if report.when in ("call", "setup") and report.nodeid in kinds and (outcome != "passed" or report.when == "call"):
+                counts[kinds[report.nodeid]][column] += 1
+    terminalreporter.write_sep("=", "fault probes (issue 73): held / failed per class")
+    for kind, (held, failed) in counts.items():
+        terminalreporter.write_line(f"{kind:9s} {held:3d} held {failed:3d} failed   {FAULT_CLASSES[kind]}")
+
+
+_FAULT_KINDS = pytest.StashKey[dict]()
+
 
 @pytest.fixture(scope="session")
 def toy_data():

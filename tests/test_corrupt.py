@@ -41,6 +41,7 @@ class _Agent:
         self.w = state["w"].clone()
 
 
+@pytest.mark.fault("artefact")
 def test_a_damaged_run_checkpoint_falls_back_to_the_one_before(tmp_path):
     run = RunDirectory(tmp_path / "run", "fp")
     for frames, value in ((100, 1.0), (200, 2.0)):
@@ -58,6 +59,7 @@ def test_a_damaged_run_checkpoint_falls_back_to_the_one_before(tmp_path):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.fault("data")
 def test_a_damaged_hdf5_file_names_the_file(tmp_path):
     from torchrl_offhrl.data.io import save_dataset
 
@@ -68,6 +70,7 @@ def test_a_damaged_hdf5_file_names_the_file(tmp_path):
         load_dataset(path)
 
 
+@pytest.mark.fault("artefact")
 def test_a_damaged_cached_dataset_is_generated_again(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path))
     # the reference returns (10 expert episodes of 1000 steps per generation, ~15 s each) play no part in recovering the file
@@ -82,6 +85,7 @@ def test_a_damaged_cached_dataset_is_generated_again(tmp_path, monkeypatch):
     load_dataset(path)  # the file is whole again
 
 
+@pytest.mark.fault("artefact")
 def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
     data, cfg = _tiny_models(tmp_path, monkeypatch)
     _, _, info = fit_or_load_models(cfg, data, progress=False)
@@ -95,6 +99,7 @@ def test_a_damaged_cached_model_is_fitted_again(tmp_path, monkeypatch):
     DynamicsEnsemble.load(e_path)
 
 
+@pytest.mark.fault("resume")
 def test_a_model_fit_killed_midway_resumes_from_its_cache_folder(tmp_path, monkeypatch):
     from torchrl_offhrl.models import trainer
 
@@ -140,6 +145,7 @@ def test_a_model_is_reused_when_only_the_other_models_settings_change(tmp_path, 
     assert info3["ensemble"] == "fitted" and info3["cvae"].startswith("loaded from")
 
 
+@pytest.mark.fault("artefact")
 def test_stale_tmp_files_are_removed_and_fresh_ones_kept(tmp_path):
     import os
     import time
@@ -156,6 +162,7 @@ def test_stale_tmp_files_are_removed_and_fresh_ones_kept(tmp_path):
     assert not old.exists() and fresh.exists() and keep.exists()
 
 
+@pytest.mark.fault("data")
 def test_a_failed_dataset_load_leaves_no_run_directory(tmp_path, capsys):
     from torchrl_offhrl.cli import main
 
@@ -166,6 +173,7 @@ def test_a_failed_dataset_load_leaves_no_run_directory(tmp_path, capsys):
     assert not any((tmp_path / "runs").glob("*"))
 
 
+@pytest.mark.fault("artefact")
 def test_aggregate_names_an_empty_or_damaged_evals_file(tmp_path):
     from torchrl_offhrl.recipes.report import load_run
 
@@ -179,6 +187,7 @@ def test_aggregate_names_an_empty_or_damaged_evals_file(tmp_path):
         load_run(run)
 
 
+@pytest.mark.fault("artefact")
 def test_a_run_record_changed_after_it_was_written_is_refused_by_its_checksum(tmp_path):
     """A record the run wrote (evals.json) with one number changed is still valid JSON, which json.loads would read as
     it is: its checksum refuses it, naming the file and both ways out; without the .sha256 (an archived copy) it reads."""
@@ -204,6 +213,7 @@ def _flip_byte(path, at=0.6):
     path.write_bytes(bytes(data))
 
 
+@pytest.mark.fault("artefact")
 def test_a_flipped_byte_or_junk_in_a_checkpoint_is_caught_by_its_checksum_and_the_run_falls_back(tmp_path):
     """torch.load would read a checkpoint with one flipped byte without complaint (a weight of 1e37): the checksum written
     beside it refuses it, and junk bytes (struct.error inside torch.load) take the same path: resume from the one before."""
@@ -223,6 +233,7 @@ def test_a_flipped_byte_or_junk_in_a_checkpoint_is_caught_by_its_checksum_and_th
     assert RunDirectory(tmp_path / "run", "fp").resume(_Agent())  # restored: its checksum matches again
 
 
+@pytest.mark.fault("artefact")
 def test_a_flipped_byte_in_a_cached_model_is_fitted_again(tmp_path, monkeypatch):
     data, cfg = _tiny_models(tmp_path, monkeypatch)
     _, _, info = fit_or_load_models(cfg, data, progress=False)
@@ -237,6 +248,7 @@ def test_a_flipped_byte_in_a_cached_model_is_fitted_again(tmp_path, monkeypatch)
     assert info["cvae"] == "fitted" and info["ensemble"] == "loaded"
 
 
+@pytest.mark.fault("disk")
 def test_disk_faults_end_in_one_line_naming_the_folder_with_nothing_half_written(tmp_path, monkeypatch, capsys):
     """A full disk (dataset: checked before h5py writes; torch.save's writer failing), a read-only folder (every atomic
     write, and the CLI for the run folder itself): DiskWriteError naming the folder and the fix, no file left behind."""
@@ -284,6 +296,7 @@ def test_disk_faults_end_in_one_line_naming_the_folder_with_nothing_half_written
     assert "Read-only file system" in err and str(tmp_path / "ro") in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.fault("artefact")
 def test_a_flipped_byte_in_a_saved_dataset_is_caught_by_its_checksum(tmp_path):
     """A byte of the data itself (not the HDF5 structure) flipped after saving: h5py would read it without complaint."""
     from torchrl_offhrl.data.io import save_dataset

@@ -458,6 +458,7 @@ def test_returns_to_go_matches_the_backward_recursion():
         make_toy_dataset(num_episodes=1, episode_length=1100).returns_to_go(0.5)
 
 
+@pytest.mark.fault("data")
 def test_implausible_values_are_refused_with_the_key_and_index_and_an_opt_out(tmp_path, monkeypatch):
     """A few rewards at 1e30 (a glitch) are named on load; heavy-tailed and rare-event columns load; the opt-out loads anything."""
     from torchrl_offhrl.data import DatasetError, load_dataset, make_toy_dataset, save_dataset

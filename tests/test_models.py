@@ -134,6 +134,7 @@ def _gaussian_ensemble(toy_data, seed):
     return DynamicsEnsemble.for_dataset(toy_data, num_models=3, hidden_sizes=(32,), loss="nll")
 
 
+@pytest.mark.fault("resume")
 def test_a_killed_fit_resumes_from_its_checkpoint_to_the_weights_of_an_uninterrupted_fit(toy_data, tmp_path):
     train, val = toy_data.split(0.1, seed=0)
     settings = dict(lr=1e-3, batch_size=32, max_epochs=6, steps_per_epoch=10, patience=100, seed=3, progress=False)
@@ -168,6 +169,7 @@ def _dies_after(model, steps):
     return model
 
 
+@pytest.mark.fault("resume")
 def test_a_checkpoint_of_another_fit_is_set_aside_not_resumed(toy_data, tmp_path):
     train, val = toy_data.split(0.1, seed=0)
     settings = dict(lr=1e-3, batch_size=32, max_epochs=2, steps_per_epoch=5, patience=100, progress=False)

@@ -61,6 +61,7 @@ def test_dataset_agent_trains_end_to_end_without_models(algo, hopper_file, cache
     assert moved
 
 
+@pytest.mark.fault("resume")
 @pytest.mark.parametrize("algo", ["iql", "td3bc"])
 def test_an_interrupted_dataset_run_resumes_to_the_same_agent(algo, hopper_file, cache, tmp_path):
     """40 updates then 20 more from the checkpoint give the same networks as 60 in one go (targets, delay counter and sampling RNG restored)."""

@@ -97,6 +97,7 @@ def test_recipe_end_to_end(algo, hopper_file, cache, tmp_path):
         assert sum(final["option_usage_mean"]) == pytest.approx(1.0)
 
 
+@pytest.mark.fault("resume")
 def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, monkeypatch):
     cfg = _cfg("moc", hopper_file, tmp_path)
     _interrupt_at_update(cfg, 4, monkeypatch)  # after the checkpoint at 128 frames and the logged update at 192
@@ -281,6 +282,7 @@ def test_resume_refuses_another_configuration(hopper_file, cache, tmp_path):
     assert summary["frames"] == 384
 
 
+@pytest.mark.fault("resume")
 def test_sac_resumes_with_its_replay_buffer(hopper_file, cache, tmp_path):
     train(_cfg("sac", hopper_file, tmp_path, ["algo.buffer_size=1000"]), progress=False)
     (run,) = tmp_path.glob("sac-*")
@@ -373,6 +375,7 @@ def test_logged_tail_mean_reads_the_csv_logs(tmp_path):
     assert list(read_scalar_logs(tmp_path / "logs")) == ["train/termination_rate"]
 
 
+@pytest.mark.fault("paths")
 @pytest.mark.parametrize("name", ["../../outside", "/tmp", "replay-12/../..", 7])
 def test_resume_refuses_a_replay_name_outside_the_run(tmp_path, name):
     """A checkpoint's replay folder is later removed with rmtree: a crafted name must not reach outside the run."""
@@ -726,6 +729,7 @@ def test_mopo_trains_end_to_end_with_the_dataset_in_its_minibatches(hopper_file,
     assert summary["updates"] > 0 and summary["final"]["return_mean"] > 0
 
 
+@pytest.mark.fault("resume")
 @pytest.mark.parametrize("algo", ["moc", "ppo", "sac"])
 def test_a_killed_and_resumed_run_gives_the_records_of_an_uninterrupted_one(algo, hopper_file, cache, tmp_path, monkeypatch):
     """Interrupted after its checkpoint at 128 frames and resumed, a run's later evaluations equal, bit for bit, those of the

@@ -150,6 +150,7 @@ def test_guard_returns_the_start_when_no_member_shows_a_gain():
     assert not v["fired"] and v["gain_lcb"] == pytest.approx(2.0) and sel.selected["agent"] == {"w": 3}
 
 
+@pytest.mark.fault("resume")
 def test_guard_on_the_last_policy_and_across_a_resume():
     sel = PolicySelector("last", guard=True)
     sel.consider(_rec([10, 10, 10, 10]), _Agent(0), step=0)

@@ -6,6 +6,8 @@ from torchrl_offhrl.recipes.config import compose
 from torchrl_offhrl.recipes.schema import validate_config
 from torchrl_offhrl.utils import to_plain
 
+pytestmark = pytest.mark.fault("config")  # issue 73's probe suite: `make probes`
+
 # the values of issue 14's probe: each used to start generating a 1M-transition dataset first
 BAD = {
     "train.total_frames=-5": "train.total_frames: expected an integer >= 1, got -5",

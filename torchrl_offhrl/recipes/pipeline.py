@@ -273,6 +273,10 @@ def apply_latent_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE
     return origin, info
 
 
+#: the ``cfg["env"]`` keys :func:`make_model_env` hands to the model env's constructor when they are set
+MODEL_ENV_KEYS = ("penalty", "reward_penalty", "discrepancy", "quantile", "fraction", "horizon", "member_mode", "reset_states")
+
+
 def make_model_env(
     cfg: Mapping,
     ensemble: DynamicsEnsemble,
@@ -300,22 +304,14 @@ def make_model_env(
     if threshold is None:
         threshold = env_cfg.get("threshold")
     stacking = task_of(data.env_id).goal_conditioned  # goal-conditioned: the tasks' goals and rewards on the predicted states
+    # the keys the config gives; the rest keep PessimisticModelEnv's own defaults (declared there, once)
+    given = {key: env_cfg[key] for key in MODEL_ENV_KEYS if key in env_cfg}
+    given.update({key: value for key, value in (("horizon", horizon), ("reset_states", reset_states)) if value})
+    if "horizon" in given:
+        given["horizon"] = int(given["horizon"])
     base = (BlockStackModelEnv if stacking else PessimisticModelEnv)(
-        ensemble,
-        data,
-        threshold=threshold,
-        penalty=env_cfg.get("penalty", 20.0),
-        reward_penalty=env_cfg.get("reward_penalty", 0.0),
-        discrepancy=env_cfg.get("discrepancy", "variance"),
-        quantile=env_cfg.get("quantile", 0.99),
-        fraction=env_cfg.get("fraction"),
-        horizon=int(horizon or env_cfg.get("horizon", 1000)),
-        member_mode=env_cfg.get("member_mode", "episode"),
-        reset_states=reset_states or env_cfg.get("reset_states", "initial"),
-        member_draw=member_draw,
-        batch_size=[] if batch_size is None else [batch_size],
-        device=cfg.get("device", "cpu"),
-        seed=cfg.get("seed"),
+        ensemble, data, threshold=threshold, member_draw=member_draw, batch_size=[] if batch_size is None else [batch_size],
+        device=cfg.get("device", "cpu"), seed=cfg.get("seed"), **given,
     )
     if not latent:
         return TransformedEnv(base, SubGoalTracker()) if stacking else TransformedEnv(base)
