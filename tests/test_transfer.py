@@ -207,6 +207,46 @@ def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, mo
     assert state["new_task"] == 2  # the interrupted switch, then the resumed one; never again once the online phase had begun
 
 
+@pytest.mark.fault("resume")
+def test_a_run_killed_in_its_online_phase_resumes_to_the_records_of_an_uninterrupted_one(hopper_file, cache, tmp_path, monkeypatch):
+    """The online phase's checkpoint keeps the real envs where they stood (each simulator's MuJoCo state, its time limit's
+    step count and its reset RNG, beside the collector's carrier): killed after the evaluation at 384 frames and resumed,
+    the run's later records equal those of the run made in one go, bit for bit (before, the real envs restarted their
+    episodes on resume)."""
+    straight = train(_cfg("moc", hopper_file, tmp_path / "a", TRANSFER), progress=False)
+    cfg = _cfg("moc", hopper_file, tmp_path / "b", TRANSFER)
+    real_make_agent, count = setting_mod.make_agent, {"online": 0, "switched": False}
+
+    def crashing_agent(*a, **k):
+        agent = real_make_agent(*a, **k)
+        real_update, real_new_task = agent.update, agent.new_task
+
+        def new_task():
+            count["switched"] = True
+            real_new_task()
+
+        def update(batch):
+            if count["switched"]:
+                count["online"] += 1
+                if count["online"] == 3:  # the third online batch of 64 frames: after the checkpoint at 384
+                    raise KeyboardInterrupt
+            return real_update(batch)
+
+        agent.update, agent.new_task = update, new_task
+        return agent
+
+    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, progress=False)
+    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
+    resumed = train(cfg, progress=False)
+    a = json.loads((Path(straight["run_dir"]) / "evals.json").read_text())
+    b = json.loads((Path(resumed["run_dir"]) / "evals.json").read_text())
+    assert [(e["frames"], e["phase"]) for e in b] == [(128, "offline"), (256, "offline"), (256, "online"), (384, "online"), (512, "online")]
+    for x, y in zip(a, b, strict=True):
+        assert {k: v for k, v in x.items() if k != "wall_s"} == {k: v for k, v in y.items() if k != "wall_s"}
+
+
 def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path, monkeypatch):
     seen = {}
     real_make_agent = setting_mod.make_agent

@@ -68,30 +68,84 @@ def dataset_batches(data, agent, updates: int, device="cpu"):
 
 
 def _model_env(source):
-    """The model env a collector steps, or None: a model env keeps its whole state in the tensordict it steps (plus its
-    RNG), where a real env's simulator holds its own, which a restored carrier would contradict."""
+    """The model env a collector steps, or None (a real env's collector)."""
     from ..envs import PessimisticModelEnv  # BlockStackModelEnv is one
 
     env = getattr(getattr(source, "env", None), "base_env", None)
     return env if isinstance(env, PessimisticModelEnv) else None
 
 
+def _simulators(source) -> list | None:
+    """The MuJoCo envs behind a real env's collector, in batch order (Gymnasium's synchronous vector env, which
+    :func:`~torchrl_offhrl.data.make_gym_env` builds), or None when there are none to reach."""
+    venv = getattr(getattr(getattr(source, "env", None), "base_env", None), "_env", None)
+    envs = getattr(venv, "envs", None)
+    if not envs or not all(hasattr(getattr(e, "unwrapped", None), "data") and hasattr(e.unwrapped, "model") for e in envs):
+        return None
+    return list(envs)
+
+
+def _time_limit(env):
+    """The TimeLimit wrapper in ``env``'s chain, or None."""
+    from gymnasium.wrappers import TimeLimit
+
+    while env is not None:
+        if isinstance(env, TimeLimit):
+            return env
+        env = getattr(env, "env", None)
+    return None
+
+
+def _simulator_state(env) -> dict:
+    """One Gymnasium MuJoCo env's whole state: the physics (MuJoCo's integration state: time, positions, velocities,
+    actuator activations, controls and the solver's warm start), the steps its time limit has counted, its reset RNG."""
+    import mujoco
+    import numpy as np
+    import torch
+
+    sim = env.unwrapped
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    physics = np.empty(mujoco.mj_stateSize(sim.model, spec))
+    mujoco.mj_getState(sim.model, sim.data, physics, spec)
+    limit = _time_limit(env)
+    return {"physics": torch.from_numpy(physics), "elapsed_steps": None if limit is None else int(limit._elapsed_steps),
+            "np_random": sim.np_random.bit_generator.state}
+
+
+def _set_simulator_state(env, state: dict) -> None:
+    import mujoco
+
+    sim = env.unwrapped
+    mujoco.mj_setState(sim.model, sim.data, state["physics"].numpy(), mujoco.mjtState.mjSTATE_INTEGRATION)
+    limit = _time_limit(env)
+    if limit is not None and state["elapsed_steps"] is not None:
+        limit._elapsed_steps = state["elapsed_steps"]
+    sim.np_random.bit_generator.state = state["np_random"]
+
+
 def source_state(source) -> dict | None:
     """What a batch source carries from one batch to the next, for a checkpoint: a collector's carrier (the envs' current
-    states, e.g. the model env's observation, member and step) and its model env's RNG; None for other sources (the
-    dataset's minibatches draw from torch's global RNG only, which the checkpoint keeps; a real env's collector)."""
-    carrier, env = getattr(source, "_carrier", None), _model_env(source)  # TorchRL's Collector: its carrier is not
-    if carrier is None or env is None:                                    # serialisable in general, a model env's is
+    states as the agent sees them, e.g. the model env's observation, member and step) and, behind it, the model env's RNG
+    or the real envs' simulators (:func:`_simulator_state`); None for other sources (the dataset's minibatches draw from
+    torch's global RNG only, which the checkpoint keeps)."""
+    carrier, env, sims = getattr(source, "_carrier", None), _model_env(source), _simulators(source)  # TorchRL's Collector
+    if carrier is None or (env is None and sims is None):
         return None
-    return {"carrier": carrier.cpu().to_dict(),  # plain nested tensors: what torch.load(weights_only=True) reads back
-            "env_rng": env._rng.get_state()}
+    state = {"carrier": carrier.cpu().to_dict()}  # plain nested tensors: what torch.load(weights_only=True) reads back
+    if env is not None:
+        state["env_rng"] = env._rng.get_state()
+    else:
+        state["simulators"] = [_simulator_state(e) for e in sims]
+    return state
 
 
 def restore_source(source, state: dict | None) -> bool:
     """Put a new source where a checkpointed one stood (:func:`source_state`); False when it cannot (another kind of source,
     or a carrier of other keys or shape: the source then starts from fresh resets, as TorchRL's own collectors do)."""
-    carrier, env = getattr(source, "_carrier", None), _model_env(source)
-    if not state or carrier is None or env is None or "carrier" not in state:
+    carrier, env, sims = getattr(source, "_carrier", None), _model_env(source), _simulators(source)
+    if not state or carrier is None or "carrier" not in state:
+        return False
+    if (env is None or "env_rng" not in state) and (sims is None or len(state.get("simulators") or []) != len(sims)):
         return False
     from tensordict import TensorDict
 
@@ -101,6 +155,9 @@ def restore_source(source, state: dict | None) -> bool:
         return False
     saved = saved.select(*keys)
     carrier.update_(saved.to(carrier.device) if carrier.device is not None else saved)
-    if "env_rng" in state:
+    if env is not None:
         env._rng.set_state(state["env_rng"])
+    else:
+        for sim, sim_state in zip(sims, state["simulators"]):
+            _set_simulator_state(sim, sim_state)
     return True
