@@ -327,7 +327,7 @@ def test_config_fits_goal_conditioned_models_and_builds_the_composed_envs(tmp_pa
     assert cfg["model_env"]["horizon"] == 25 and cfg["cvae"]["goal_key"] == "sub_goal" and cfg["cvae"]["fit"]["batch_size"] == 128
     assert cfg["ensemble"]["learn_reward"] is False and cfg["env"]["pessimism"]["default"] == {"quantile": 0.99, "penalty": 50.0}
     hopper = to_plain(compose("offline_train", ["env=hopper"]))  # the locomotion settings are untouched
-    assert hopper["model_env"]["horizon"] == "auto" and "goal_key" not in hopper["cvae"] and "learn_reward" not in hopper["ensemble"]
+    assert hopper["model_env"]["horizon"] == "auto" and hopper["cvae"]["goal_key"] is None and hopper["ensemble"]["learn_reward"] is True
     data = resolve_dataset(cfg)
     ens, cvae, _ = fit_or_load_models(model_config(cfg), data, progress=False)
     assert ens.reward_net is None and cvae.goal_key == "sub_goal" and cvae.decoder.goal_dim == G.sub_goal_dim(2)

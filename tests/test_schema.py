@@ -136,3 +136,21 @@ def test_good_pessimism_values_and_the_demo_with_sac_pass():
     demo = to_plain(compose("demo", ["algo=sac", "env=hopper"]))  # the demo's on-policy minibatch is not handed to SAC
     assert "minibatch_size" not in demo["algo"] and to_plain(compose("demo", ["algo=moc"]))["algo"]["minibatch_size"] == 256
     validate_config(demo)
+
+
+def test_every_section_is_typed_and_refuses_a_key_it_lacks():
+    """The models' and the P-MDP's sections are dataclasses like the loop's: a typo there (model_env.horizn, a fit's lrr)
+    used to pass, the run taking the default; the typed view holds the nested fit as its own dataclass."""
+    from torchrl_offhrl.recipes.schema import EnsembleConfig, FitConfig, parse_section
+
+    cfg = to_plain(compose("offline_train", ["+model_env.horizn=5", "+ensemble.fit.lrr=0.1", "+ablation.no_cvea=true"]))
+    with pytest.raises(ValueError) as err:
+        validate_config(cfg)
+    msg = str(err.value)
+    assert "model_env.horizn: unknown key; model_env takes horizon, member_mode" in msg
+    assert "ensemble.fit.lrr: unknown key; ensemble.fit takes lr, batch_size, max_epochs, max_steps, patience, rel_tol" in msg
+    assert "ablation.no_cvea: unknown key; ablation takes no_cvae, no_pessimism" in msg
+    ens = parse_section("ensemble", {"hidden_sizes": [64, 64], "fit": {"lr": 3e-4}})
+    assert ens == EnsembleConfig(hidden_sizes=(64, 64), fit=FitConfig(lr=3e-4)) and ens.fit.patience == 5
+    with pytest.raises(ValueError, match="ensemble.fit.patience: expected an integer >= 0, got -1"):
+        validate_config({"ensemble": {"fit": {"patience": -1}}})

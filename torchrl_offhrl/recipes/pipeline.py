@@ -141,9 +141,10 @@ def fit_or_load_models(
 def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with_cvae: bool) -> tuple:
     device = torch.device(cfg.get("device", "cpu"))
     ecfg, ccfg = fit_as_before(to_plain(cfg["ensemble"])), fit_as_before(to_plain(cfg["cvae"]))  # rel_tol 0: the cache entries as before
-    for key in ("reward_hidden_sizes", "num_elites"):  # their defaults (the transition widths; every member kept): the cache key as before
-        if ecfg.get(key, "absent") is None:
-            ecfg.pop(key)
+    for cfg_, key, default in (*((ecfg, k, None) for k in ("reward_hidden_sizes", "num_elites")), (ecfg, "learn_reward", True),
+                               (ccfg, "goal_key", None)):
+        if key in cfg_ and cfg_[key] is default:  # a default of a key added later (the transition widths, every member kept, a
+            cfg_.pop(key)                         # learned reward, no goal): the cache key as before the key existed
     ident = {
         "data": data.content_hash(),  # the content, not the path: a file replaced by other data gets new models
         "ensemble": ecfg,

@@ -1,31 +1,32 @@
-"""The recipe config's schema: typed sections with their defaults, and up-front validation of a resolved config.
+"""The recipe config's schema: every section typed, with its defaults and allowed values, and up-front validation.
 
-The sections the training loop reads (``train``, ``eval``, ``selection``,
-``collector``, ``transfer``, ``logger``) are dataclasses here:
-:class:`TrainConfig`, :class:`EvalConfig`, :class:`SelectionConfig`,
-:class:`CollectorConfig`, :class:`TransferConfig`, :class:`LoggerConfig`,
-gathered in :class:`RunConfig` (:meth:`RunConfig.parse`). Each field holds
-its type, its default (the one place it is defined: the shipped
-``offline_train.yaml`` is checked against it by the tests) and its allowed
-values. The algorithm's section is typed by its agent's signature
-(``agent_defaults``: unknown keys are refused when the agent is built),
-the models' sections by the rules below.
+Every section of ``configs/offline_train.yaml`` is a dataclass here, each
+field holding its type, its default and its allowed values (``_setting``):
+the loop's (:class:`TrainConfig`, :class:`EvalConfig`,
+:class:`SelectionConfig`, :class:`CollectorConfig`, :class:`TransferConfig`,
+:class:`LoggerConfig`, gathered in :class:`RunConfig` by
+:meth:`RunConfig.parse`) and the models' and the P-MDP's
+(:class:`EnsembleConfig` and :class:`CVAEConfig` with their
+:class:`FitConfig`, :class:`ModelEnvConfig`, :class:`AblationConfig`); the
+top level's own keys are :data:`TOP_LEVEL`. The shipped YAML is checked
+against these defaults key for key by the tests, so a default has one value
+in two readable places (the YAML carries each key's reasons). The
+algorithm's section is typed by its agent's signature (``agent_defaults``:
+unknown keys are refused), its values checked by name (:data:`ALGO_RULES`).
 
 A wrong value should cost a second, not the nine minutes of generating a
 dataset before the first use of the value fails (or, for a negative frame
-budget, silently trains nothing). :func:`validate_config` checks the keys
-every command reads against their allowed values, refuses keys a typed
-section does not have (a typo such as ``train.total_frame`` would otherwise
-be ignored), and raises one ``ValueError`` that lists each problem as
-``key: expected ..., got ...``. Keys of an algorithm's config are checked by
-their name (``lr`` and ``*_lr`` positive, ``gamma`` in (0, 1], ...); the
-agent's constructor still rejects keys it does not know.
+budget, silently trains nothing). :func:`validate_config` checks every key
+against its field's allowed values (:data:`RULES` is read off the fields),
+refuses keys a typed section does not have (a typo such as
+``train.total_frame`` would otherwise be ignored), and raises one
+``ValueError`` that lists each problem as ``key: expected ..., got ...``.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from typing import Any
 
 import torch
@@ -34,8 +35,9 @@ from ..envs import TASKS
 from ..models import DISCREPANCIES
 from .selection import CRITERIA
 
-__all__ = ["CollectorConfig", "EvalConfig", "LoggerConfig", "RunConfig", "SECTIONS", "parse_section", "SelectionConfig", "TrainConfig", "TransferConfig",
-           "UNITS", "section_defaults", "validate_config"]
+__all__ = ["AblationConfig", "CVAEConfig", "CollectorConfig", "EnsembleConfig", "EvalConfig", "FitConfig", "LoggerConfig", "ModelEnvConfig",
+           "RunConfig", "SECTIONS", "parse_section", "SelectionConfig", "TrainConfig", "TransferConfig", "UNITS", "section_defaults",
+           "validate_config"]
 
 _MISSING = object()
 
@@ -177,17 +179,95 @@ class LoggerConfig:
     kwargs: dict = _setting(("a mapping", lambda v: isinstance(v, Mapping)), default_factory=dict)
 
 
+def _optional(rule: tuple[str, Callable[[Any], bool]]) -> tuple[str, Callable[[Any], bool]]:
+    return "null or " + rule[0], lambda v: v is None or rule[1](v)
+
+
+def _auto(rule: tuple[str, Callable[[Any], bool]]) -> tuple[str, Callable[[Any], bool]]:
+    return rule[0] + " or 'auto'", lambda v: v == "auto" or rule[1](v)
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """``ensemble.fit`` / ``cvae.fit``: :class:`~torchrl_offhrl.models.SupervisedTrainer`'s settings (a fit runs to convergence on
+    the held-out episodes: it stops once no member improved by more than ``rel_tol`` for ``patience`` epochs)."""
+
+    lr: float = _setting(_num(0, lo_open=True), 1e-3)
+    batch_size: int = _setting(_int(1), 256)
+    max_epochs: int = _setting(_int(1), 200)  # bounds a fit that never settles
+    max_steps: int | None = _setting(_int(1, optional=True), None)  # a fixed step budget instead (null: none)
+    patience: int = _setting(_int(0), 5)
+    rel_tol: float = _setting(_num(0, 1, hi_open=True), 0.005)
+
+
+@dataclass(frozen=True)
+class EnsembleConfig:
+    """``ensemble``: the dynamics (and reward) ensemble (:class:`~torchrl_offhrl.models.DynamicsEnsemble`)."""
+
+    num_models: int = _setting(_int(1), 5)
+    hidden_sizes: tuple[int, ...] = _setting(_sizes(), (512, 512))
+    reward_hidden_sizes: tuple[int, ...] | None = _setting(_optional(_sizes()), None)  # null: hidden_sizes
+    loss: str = _setting(_choice("l1", "mse", "nll"), "l1")
+    num_elites: int | None = _setting(_int(1, optional=True), None)  # keep this many members after the fit (null: all)
+    learn_reward: bool = _setting(_bool(), True)  # false: the task's own reward function (block stacking)
+    fit: FitConfig = _setting(("a mapping of " + ", ".join(f.name for f in fields(FitConfig)), lambda v: isinstance(v, Mapping)),
+                              default_factory=FitConfig)
+
+
+@dataclass(frozen=True)
+class CVAEConfig:
+    """``cvae``: the latent action space (:class:`~torchrl_offhrl.models.ConditionalVAE`)."""
+
+    hidden_sizes: tuple[int, ...] = _setting(_sizes(), (720, 720))
+    kl_weight: float = _setting(_num(0), 0.05)
+    goal_key: str | None = _setting(("null or a dataset key", lambda v: v is None or isinstance(v, str)), None)  # goal-conditioned
+    fit: FitConfig = _setting(("a mapping of " + ", ".join(f.name for f in fields(FitConfig)), lambda v: isinstance(v, Mapping)),
+                              default_factory=FitConfig)
+
+
+@dataclass(frozen=True)
+class ModelEnvConfig:
+    """``model_env``: the P-MDP's settings; ``auto`` computes one from the data and the fitted models (:mod:`~torchrl_offhrl.envs.rules`)."""
+
+    horizon: int | str = _setting(_auto(_int(1)), "auto")
+    member_mode: str = _setting(_choice("episode", "step", "mean"), "episode")
+    reset_states: str = _setting(_choice("initial", "any", "auto"), "auto")
+    discrepancy: str = _setting(_choice(*DISCREPANCIES), "variance")
+    latent_bound: float | str = _setting(_auto(_num(0, lo_open=True)), "auto")
+    latent_origin: str = _setting(_choice("best", "behaviour", "zero"), "best")
+    origin_share: float = _setting(_num(0, 1, lo_open=True), 0.1)
+    reward_scale: float | str = _setting(("a positive number or 'auto'", lambda v: v == "auto" or (_is_num(v) and v > 0)), "auto")
+    reward_penalty: float = _setting(_num(0), 0.0)
+    pessimism: dict | None = _setting(("null or a mapping of threshold (> 0), fraction (> 0) or quantile (in (0, 1)), and penalty (>= 0), "
+                                       "finite numbers", lambda v: _pessimism_ok(v)), None)
+
+
+@dataclass(frozen=True)
+class AblationConfig:
+    """``ablation``: the paper's ablations."""
+
+    no_cvae: bool = _setting(_bool(), False)  # the agent acts in real actions
+    no_pessimism: bool = _setting(_bool(), False)  # no discrepancy termination, no penalty
+
+
 #: the typed sections by their key in the config
 SECTIONS: dict[str, type] = {"train": TrainConfig, "eval": EvalConfig, "selection": SelectionConfig, "collector": CollectorConfig,
-                             "transfer": TransferConfig, "logger": LoggerConfig}
+                             "transfer": TransferConfig, "logger": LoggerConfig, "ensemble": EnsembleConfig, "cvae": CVAEConfig,
+                             "model_env": ModelEnvConfig, "ablation": AblationConfig}
+#: typed sections inside a section: ``(section, field) -> dataclass``
+NESTED: dict[tuple[str, str], type] = {("ensemble", "fit"): FitConfig, ("cvae", "fit"): FitConfig}
 
 
 def section_defaults(key: str) -> dict:
     """The defaults of typed section ``key`` as plain values (lists for tuples), e.g. ``section_defaults("transfer")``."""
+    return _plain_defaults(SECTIONS[key])
+
+
+def _plain_defaults(cls: type) -> dict:
     out = {}
-    for f in fields(SECTIONS[key]):
+    for f in fields(cls):
         v = f.default_factory() if f.default is MISSING else f.default
-        out[f.name] = list(v) if isinstance(v, tuple) else v
+        out[f.name] = _plain_defaults(type(v)) if is_dataclass(v) else list(v) if isinstance(v, tuple) else v
     return out
 
 
@@ -202,12 +282,19 @@ def parse_section(key: str, values: Mapping | None):
 
 
 def _section(cls: type, values: Mapping | None):
-    """A section's dataclass from its mapping (absent keys: the defaults); lists become tuples where the field is one."""
+    """A section's dataclass from its mapping (absent keys: the defaults); lists become tuples where the field is one, a
+    nested section's mapping its dataclass."""
     kwargs = {}
     for f in fields(cls):
         if values is not None and f.name in values:
             v = values[f.name]
-            kwargs[f.name] = tuple(v) if isinstance(f.default, tuple) else (dict(v) if isinstance(v, Mapping) else v)
+            default = f.default_factory() if f.default is MISSING else f.default
+            if is_dataclass(default):
+                kwargs[f.name] = _section(type(default), v)
+            elif isinstance(default, tuple) or (f.name.endswith("sizes") and isinstance(v, (list, tuple))):
+                kwargs[f.name] = tuple(v)
+            else:
+                kwargs[f.name] = dict(v) if isinstance(v, Mapping) else v
     return cls(**kwargs)
 
 
@@ -244,44 +331,38 @@ class RunConfig:
     def parse(cls, cfg: Mapping) -> RunConfig:
         """Validate ``cfg`` (:func:`validate_config`) and return its typed sections."""
         validate_config(cfg)
-        sections = {k: _section(c, cfg.get(k)) for k, c in SECTIONS.items()}
+        own = {f.name for f in fields(cls)}
+        sections = {k: _section(c, cfg.get(k)) for k, c in SECTIONS.items() if k in own}
         if sections["transfer"].task is None:
             sections["transfer"] = None
         return cls(seed=int(cfg.get("seed", 0)), **sections)
 
 
-_FIT = {"lr": _num(0, lo_open=True), "batch_size": _int(1), "max_epochs": _int(1), "max_steps": _int(1, optional=True), "patience": _int(0),
-        "rel_tol": _num(0, 1, hi_open=True)}
-
-#: key path -> (what is allowed, check); absent keys are left to their defaults
-RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
+#: the top level's own keys (the sections aside): key -> (what is allowed, check)
+TOP_LEVEL: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "seed": _int(0),
     "dataset_seed": _int(0),
     "num_transitions": _int(1, optional=True),
     "dataset_num_envs": _int(1),
     "val_ratio": _num(0, 1, lo_open=True, hi_open=True),
-    "ensemble.num_models": _int(1),
-    "ensemble.hidden_sizes": _sizes(),
-    "ensemble.reward_hidden_sizes": ("null or " + _sizes()[0], lambda v: v is None or _sizes()[1](v)),
-    "cvae.hidden_sizes": _sizes(),
-    "cvae.kl_weight": _num(0),
-    **{f"{m}.fit.{k}": rule for m in ("ensemble", "cvae") for k, rule in _FIT.items()},
-    "model_env.horizon": ("an integer >= 1 or 'auto'", lambda v: v == "auto" or _int(1)[1](v)),
-    "model_env.member_mode": _choice("episode", "step", "mean"),
-    "model_env.reset_states": _choice("initial", "any", "auto"),
-    "model_env.latent_bound": ("a number > 0 or 'auto'", lambda v: v == "auto" or _num(0, lo_open=True)[1](v)),
-    "model_env.discrepancy": _choice(*DISCREPANCIES),
-    "model_env.pessimism": ("null or a mapping of threshold (> 0), fraction (> 0) or quantile (in (0, 1)), and penalty (>= 0), "
-                            "finite numbers", lambda v: _pessimism_ok(v)),
-    "model_env.latent_origin": _choice("best", "behaviour", "zero"),
-    "model_env.origin_share": _num(0, 1, lo_open=True),
-    "model_env.reward_penalty": _num(0),
-    "model_env.reward_scale": ("a positive number or 'auto'", lambda v: v == "auto" or (_is_num(v) and v > 0)),
     "torch_threads": _int(1, optional=True),
     "fit_threads": _int(1, optional=True),
-    # the typed sections' fields: their rules are held by the dataclasses
-    **{f"{key}.{f.name}": f.metadata["rule"] for key, section in SECTIONS.items() for f in fields(section)},
 }
+
+
+def _section_rules(prefix: str, cls: type) -> dict:
+    rules = {}
+    for f in fields(cls):
+        rules[f"{prefix}.{f.name}"] = f.metadata["rule"]
+        nested = NESTED.get((prefix, f.name))
+        if nested is not None:
+            rules.update(_section_rules(f"{prefix}.{f.name}", nested))
+    return rules
+
+
+#: key path -> (what is allowed, check), every one held by a field above (absent keys are left to their defaults)
+RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    **TOP_LEVEL, **{k: v for key, section in SECTIONS.items() for k, v in _section_rules(key, section).items()}}
 
 #: rules for an algorithm's keys, by name (whatever the algorithm)
 ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
@@ -378,12 +459,13 @@ def validate_config(cfg: Mapping) -> None:
         value = _get(cfg, key)
         if value is not _MISSING and not ok(value):
             problems.append(f"{key}: expected {what}, got {value!r}")
-    for key, section in SECTIONS.items():
-        given = cfg.get(key)
+    typed = [*SECTIONS.items(), *((f"{key}.{name}", cls) for (key, name), cls in NESTED.items())]
+    for key, section in typed:
+        given = _get(cfg, key)
         if isinstance(given, Mapping):
             names = [f.name for f in fields(section)]
             problems += [f"{key}.{k}: unknown key; {key} takes {', '.join(names)}" for k in given if k not in names]
-        elif given is not None:
+        elif given is not None and given is not _MISSING and "." not in key:
             problems.append(f"{key}: expected a mapping of {', '.join(f.name for f in fields(section))}, got {given!r}")
     if "device" in cfg:
         what = _device_problem(cfg["device"])

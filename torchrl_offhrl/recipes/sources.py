@@ -78,8 +78,12 @@ def _model_env(source):
 def _simulators(source) -> list | None:
     """The MuJoCo envs behind a real env's collector, in batch order (Gymnasium's synchronous vector env, which
     :func:`~torchrl_offhrl.data.make_gym_env` builds), or None when there are none to reach."""
-    venv = getattr(getattr(getattr(source, "env", None), "base_env", None), "_env", None)
-    envs = getattr(venv, "envs", None)
+    from torchrl.envs import GymWrapper
+
+    base = getattr(getattr(source, "env", None), "base_env", None)
+    if not isinstance(base, GymWrapper):  # a model env, or envs batched by TorchRL (block stacking): nothing to reach
+        return None
+    envs = getattr(base._env, "envs", None)
     if not envs or not all(hasattr(getattr(e, "unwrapped", None), "data") and hasattr(e.unwrapped, "model") for e in envs):
         return None
     return list(envs)
