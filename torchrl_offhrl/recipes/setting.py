@@ -35,6 +35,7 @@ from .pipeline import apply_latent_origin, fit_or_load_models, make_model_env, m
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
 from .schema import RunConfig, TransferConfig
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
+from .summary import data_label
 
 __all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "setting_of"]
 
@@ -220,12 +221,17 @@ class Parts:
         return Evaluator(eval_env, self.env_id, self.episodes, ev.max_steps, seed=self.eval_seed, ref=self.ref, model_env=model_eval_env,
                          task=task, gamma=float((algo or self.cfg["algo"]).get("gamma", 0.99)), sampled=ev.sampled)
 
+    def data_name(self) -> str:
+        """The data by name for a progress bar: a file's (or Minari id's) own name, else the generated level (``hopper-medium``)."""
+        label = data_label({"dataset": self.cfg["dataset"], "level": self.level, "env_id": self.env_id})
+        return Path(label).name if "/" in label else label
+
     def offline_phase(self, evaluator, batches, unit: str, batch_metrics, seed_env, online: bool = False, transfer: bool = False) -> OfflinePhase:
         """The phase from step 0 (the run's only one, or a transfer run's offline phase, ``"offline"``)."""
         cfg, rc = self.cfg, self.rc
         return OfflinePhase(
             name="offline" if transfer else None, evaluator=evaluator, total=rc.train.total(unit), every=rc.eval.every(unit), batches=batches,
-            desc=f"{cfg['algo']['name']} on {cfg['env']['name']}" + (" (online)" if online else f"-{self.level}"),
+            desc=f"{cfg['algo']['name']} on " + (f"{cfg['env']['name']} (online)" if online else self.data_name()),
             final_dir=Path(self.run_path) / "offline" if transfer else Path(self.run_path),  # a transfer run's last files are its online phase's
             batch_metrics=batch_metrics, seed_env=seed_env, seed=rc.seed, at_start=rc.eval.at_start,
             done_when="online" if transfer else None,
