@@ -107,19 +107,20 @@ def test_the_guides_summary_is_the_pages_table(tmp_path):
     the committed csvs."""
     from experiments.results.table1 import GUIDE_BEGIN, GUIDE_END, guide_summary, write_guide_summary
 
-    head = "env,dataset,algo,seeds,score_iqm,score_ci,behaviour_score\n"
-    for scale, rows in {"demo": ["Hopper-v5,medium,moc,5,55.14,\"(28.41, 84.56)\",35.89"],
-                        "full": ["Hopper-v5,medium-expert,td3bc,5,91.3,\"(57.8, 102.04)\",53.17",
-                                 "Hopper-v5,medium-expert,bc,5,57.0,\"(33.4, 93.1)\",53.08",
-                                 "HalfCheetah-v5,medium,cql,3,38.77,\"(24.59, 46.17)\",38.04",
-                                 "HalfCheetah-v5,medium,iql,1,44.93,\"(44.93, 44.93)\",38.04"]}.items():
+    head = "env,dataset,algo,seeds,score_iqm,score_ci,selected_iqm,selected_ci,behaviour_score\n"
+    for scale, rows in {"demo": ["Hopper-v5,medium,moc,5,55.14,\"(28.41, 84.56)\",34.46,\"(34.36, 34.57)\",35.89"],
+                        "full": ["Hopper-v5,medium-expert,td3bc,5,91.3,\"(57.8, 102.04)\",,,53.17",
+                                 "Hopper-v5,medium-expert,bc,5,57.0,\"(33.4, 93.1)\",,,53.08",
+                                 "HalfCheetah-v5,medium,cql,3,38.77,\"(24.59, 46.17)\",,,38.04",
+                                 "HalfCheetah-v5,medium,iql,1,44.93,\"(44.93, 44.93)\",,,38.04"]}.items():
         (tmp_path / "docs" / "results" / scale).mkdir(parents=True)
         (tmp_path / "docs" / "results" / scale / "table.csv").write_text(head + "\n".join(rows) + "\n")
     lines = guide_summary(tmp_path).splitlines()
     assert lines[0] == GUIDE_BEGIN and lines[-1] == GUIDE_END
     assert lines[2] == ("| final evaluation, IQM [95% CI] (seeds) | hopper-medium, demo | hopper-medium, full | hopper-medium-expert, full "
                         "| halfcheetah-medium, demo | halfcheetah-medium, full | halfcheetah-medium-expert, full |")
-    assert lines[4:-2] == ["| MOC (the default) | 55.1 [28.4, 84.6] (5) |  |  |  |  |  |",
+    assert lines[4:-2] == ["| MOC (the default): the policy it returns | 34.5 [34.4, 34.6] (5) |  |  |  |  |  |",  # the guard's choice
+                           "| MOC (the default): its last policy | 55.1 [28.4, 84.6] (5) |  |  |  |  |  |",
                            "| IQL |  |  |  |  | 44.9 (1) |  |",  # one seed: no interval, as on the table page
                            "| CQL |  |  |  |  | 38.8 [24.6, 46.2] (3) |  |",
                            "| TD3+BC |  |  | 91.3 [57.8, 102.0] (5) |  |  |  |",

@@ -443,20 +443,24 @@ def report(scale: str, tuning: bool = False) -> str:
 GUIDE_BEGIN = "<!-- table1 summary: written by `offhrl results table1 report` from docs/results/{demo,full}/table.csv; edits here are overwritten -->"
 GUIDE_END = "<!-- end of the table1 summary -->"
 #: the summary's rows: Table I's columns, then the variants the guide discusses (run label -> title)
-SUMMARY_ROWS = {"moc": "MOC (the default)", "moc_paper": "MOC, paper preset",
+SUMMARY_ROWS = {"moc:selected": "MOC (the default): the policy it returns", "moc": "MOC (the default): its last policy", "moc_paper": "MOC, paper preset",
                 "moc_fit60k_g998_paper": "MOC, paper preset + recipe (60k fit, gamma 0.998)",
                 "moc_pf108_paper": "MOC, paper preset, threshold 1.08 x max",
-                "ppo": "PPO (the default)", "ppo_paper": "PPO, paper preset",
+                "ppo:selected": "PPO (the default): the policy it returns", "ppo": "PPO (the default): its last policy", "ppo_paper": "PPO, paper preset",
                 "ppo_fit60k_g998_paper": "PPO, paper preset + recipe (60k fit, gamma 0.998)",
                 "ppo_pf108_paper": "PPO, paper preset, threshold 1.08 x max",
-                "sac": "SAC (the default)", "sac_paper": "SAC, paper preset", "morel": "MOReL (the default)", "morel_paper": "MOReL, paper preset",
-                "mopo": "MOPO (the default)", "mopo_paper": "MOPO, paper preset", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC"}
+                "sac:selected": "SAC (the default): the policy it returns", "sac": "SAC (the default): its last policy", "sac_paper": "SAC, paper preset",
+                "morel:selected": "MOReL (the default): the policy it returns", "morel": "MOReL (the default): its last policy",
+                "morel_paper": "MOReL, paper preset",
+                "mopo:selected": "MOPO (the default): the policy it returns", "mopo": "MOPO (the default): its last policy", "mopo_paper": "MOPO, paper preset", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC"}
 _SUMMARY_COLS = [("demo", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium-expert"),
                  ("demo", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium-expert")]
 
 
 def guide_summary(root: Path = ROOT) -> str:
-    """The guide's table: final evaluation, IQM [95% CI] (seeds), one row per algorithm, one column per (scale, dataset).
+    """The guide's table: final evaluation, IQM [95% CI] (seeds), one row per algorithm, one column per (scale, dataset); the
+    shipped defaults of the model-env agents get two rows, the policy the run returns (the guard's choice, what a user gets)
+    and its last one.
 
     Read from the pages' ``table.csv`` (what ``report`` just wrote), so the guide and the pages cannot disagree.
     """
@@ -474,6 +478,9 @@ def guide_summary(root: Path = ROOT) -> str:
                 key = (scale, r["env"], r["dataset"])
                 ci = tuple(float(x) for x in r["score_ci"].strip("()").split(",")) if r["score_ci"] else None
                 cells[(r["algo"], *key)] = fmt_iqm(float(r["score_iqm"]), ci, int(r["seeds"]))  # as the table page writes a cell
+                if r.get("selected_iqm"):  # what the run returned (the guard's choice), for the default's rows
+                    sci = tuple(float(x) for x in r["selected_ci"].strip("()").split(",")) if r["selected_ci"] else None
+                    cells[(r["algo"] + ":selected", *key)] = fmt_iqm(float(r["selected_iqm"]), sci, int(r["seeds"]))
                 if r["behaviour_score"]:
                     behaviour.setdefault(key, f"{float(r['behaviour_score']):.1f}")
     head = [f"{env.split('-')[0].lower()}-{ds}, {scale}" for scale, env, ds in _SUMMARY_COLS]
