@@ -174,3 +174,20 @@ def test_offhrl_results_outside_a_checkout_says_where_the_experiments_are(tmp_pa
     with pytest.raises(SystemExit, match="not installed with the library.*run it from the repository root"):
         cli.cmd_results(type("Args", (), {"args": ["list"]})())
     assert cli.checkout_root() == tmp_path
+
+
+def test_the_guard_section_counts_right_and_wrong_decisions_by_hand():
+    """Four hand-made runs: fired and right, fired and wrong (cost 10), passed and right, passed and wrong (cost 5); a run
+    without a guard (a dataset agent) is left out."""
+    from experiments.results.table1 import _guard_section
+
+    def run(name, fired, start, last):
+        ev = [{"frames": 0, "normalized_d4rl": start}, {"frames": 100, "normalized_d4rl": last}]
+        guard = None if fired is None else {"fired": fired, "candidate_step": 100}
+        return {"name": name, "evals": ev, "summary": {"guard": guard}}
+
+    rows = _guard_section([run("moc-hopper-medium-seed4", True, 30.0, 25.0), run("moc-hopper-medium-seed5", True, 30.0, 40.0),
+                           run("moc-hopper-medium-seed6", False, 30.0, 50.0), run("moc-hopper-medium-seed7", False, 30.0, 25.0),
+                           run("iql-hopper-medium-seed4", None, 30.0, 60.0)])
+    assert rows[-1] == "| hopper-medium | moc | 4 | 2 | 1 | 10.0 | 2 | 1 | 5.0 |" and len(rows) == 8  # title, text, head, one row
+    assert _guard_section([run("iql-hopper-medium-seed4", None, 30.0, 60.0)]) == []

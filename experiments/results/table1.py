@@ -424,6 +424,7 @@ def report(scale: str, tuning: bool = False) -> str:
             src = ROOT / "outputs" / "results" / scale / r["name"] / "option_usage.png"
             if src.is_file():
                 shutil.copyfile(src, out / f"option_usage_{env}_{r['name'].rsplit('-', 1)[1]}.png")  # e.g. option_usage_hopper-medium_seed4.png
+    lines += _guard_section(runs)
     lines += ["", "Per seed (final / best D4RL score, and where the best was: model-env frames, or gradient steps for the dataset agents):", ""]
     for r in listed:
         ev, unit = r["evals"], (r["summary"] or {}).get("unit", "frames")
@@ -510,6 +511,36 @@ def write_guide_summary(root: Path = ROOT) -> bool:
     if new != text:
         path.write_text(new)
     return new != text
+
+
+def _guard_section(runs: list[dict]) -> list[str]:
+    """The guard on this page's runs that ran with it (the shipped default): how often it fired, whether it was right (the
+    real score of the policy it judged against its start's, after the fact) and what it cost when it was wrong."""
+    groups: dict[tuple, list] = defaultdict(list)
+    for r in runs:
+        guard = (r["summary"] or {}).get("guard")
+        if not guard or guard.get("fired") is None or r.get("partial"):
+            continue
+        ev = r["evals"]
+        judged = next((e for e in ev if e.get("step", e["frames"]) == guard.get("candidate_step")), ev[-1])
+        algo, _, row = r["name"].rsplit("-seed", 1)[0].partition("-")
+        groups[(row, algo)].append((bool(guard["fired"]), ev[0]["normalized_d4rl"], judged["normalized_d4rl"]))
+    if not groups:
+        return []
+    out = ["", "## The guard on the default's runs", "",
+           "Each run's guard compared the policy it judged (the last) with the start on the same model episodes; *right* is "
+           "decided afterwards in the real env (never used to choose): a fired guard is right when the judged policy is not "
+           "above the start, a passing one when it is not below. Costs are D4RL points: what the wrong decisions gave up "
+           "(fired: judged - start) or let through (passed: start - judged).", "",
+           "| dataset | algo | runs | fired | right when fired | cost when wrongly fired | passed | right when passed | cost when wrongly passed |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for (row, algo), g in sorted(groups.items()):
+        fired = [(s, j) for f, s, j in g if f]
+        passed = [(s, j) for f, s, j in g if not f]
+        out.append(f"| {row} | {algo} | {len(g)} | {len(fired)} | {sum(j <= s for s, j in fired)} | "
+                   f"{sum(j - s for s, j in fired if j > s):.1f} | {len(passed)} | {sum(j >= s for s, j in passed)} | "
+                   f"{sum(s - j for s, j in passed if j < s):.1f} |")
+    return out
 
 
 def _criteria_section(runs: list[dict]) -> list[str]:
