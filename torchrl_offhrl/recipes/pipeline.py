@@ -22,7 +22,7 @@ from ..registry import task_of
 from ..envs import DEFAULT_LATENT_BOUND, AffineActionMap, BlockStackModelEnv, LatentActionTransform, PessimisticModelEnv, SubGoalTracker, make_task_env
 from ..models import ConditionalVAE, DynamicsEnsemble, LatentOrigin
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, threads, to_plain
-from .config import fit_as_before
+from .config import LATER_DEFAULTS, fit_as_before
 
 __all__ = [
     "GaussianLatentPolicy",
@@ -138,13 +138,17 @@ def fit_or_load_models(
         return _fit_or_load_models(cfg, data, progress, with_cvae)
 
 
+def _as_before(cfg: Mapping, section: str) -> dict:
+    """A model's config as its cache key reads it: :func:`~torchrl_offhrl.recipes.config.fit_as_before` (``rel_tol`` 0 left out),
+    and each key added later left out while it holds the value that reproduces the entries made before it existed
+    (:data:`~torchrl_offhrl.recipes.config.LATER_DEFAULTS`, which the run fingerprint reads too)."""
+    model_cfg, later = fit_as_before(to_plain(cfg[section])), LATER_DEFAULTS.get(section, {})
+    return {k: v for k, v in model_cfg.items() if not (k in later and v == later[k])}
+
+
 def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with_cvae: bool) -> tuple:
     device = torch.device(cfg.get("device", "cpu"))
-    ecfg, ccfg = fit_as_before(to_plain(cfg["ensemble"])), fit_as_before(to_plain(cfg["cvae"]))  # rel_tol 0: the cache entries as before
-    for cfg_, key, default in (*((ecfg, k, None) for k in ("reward_hidden_sizes", "num_elites")), (ecfg, "learn_reward", True),
-                               (ccfg, "goal_key", None)):
-        if key in cfg_ and cfg_[key] is default:  # a default of a key added later (the transition widths, every member kept, a
-            cfg_.pop(key)                         # learned reward, no goal): the cache key as before the key existed
+    ecfg, ccfg = _as_before(cfg, "ensemble"), _as_before(cfg, "cvae")
     ident = {
         "data": data.content_hash(),  # the content, not the path: a file replaced by other data gets new models
         "ensemble": ecfg,
