@@ -187,6 +187,11 @@ def _auto(rule: tuple[str, Callable[[Any], bool]]) -> tuple[str, Callable[[Any],
     return rule[0] + " or 'auto'", lambda v: v == "auto" or rule[1](v)
 
 
+def _nested_setting(cls: type):
+    """A field holding a nested section (its default: ``cls()``; its value: a mapping of ``cls``'s fields)."""
+    return _setting(("a mapping of " + ", ".join(f.name for f in fields(cls)), lambda v: isinstance(v, Mapping)), default_factory=cls)
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """``ensemble.fit`` / ``cvae.fit``: :class:`~torchrl_offhrl.models.SupervisedTrainer`'s settings (a fit runs to convergence on
@@ -210,8 +215,7 @@ class EnsembleConfig:
     loss: str = _setting(_choice("l1", "mse", "nll"), "l1")
     num_elites: int | None = _setting(_int(1, optional=True), None)  # keep this many members after the fit (null: all)
     learn_reward: bool = _setting(_bool(), True)  # false: the task's own reward function (block stacking)
-    fit: FitConfig = _setting(("a mapping of " + ", ".join(f.name for f in fields(FitConfig)), lambda v: isinstance(v, Mapping)),
-                              default_factory=FitConfig)
+    fit: FitConfig = _nested_setting(FitConfig)
 
 
 @dataclass(frozen=True)
@@ -221,8 +225,7 @@ class CVAEConfig:
     hidden_sizes: tuple[int, ...] = _setting(_sizes(), (720, 720))
     kl_weight: float = _setting(_num(0), 0.05)
     goal_key: str | None = _setting(("null or a dataset key", lambda v: v is None or isinstance(v, str)), None)  # goal-conditioned
-    fit: FitConfig = _setting(("a mapping of " + ", ".join(f.name for f in fields(FitConfig)), lambda v: isinstance(v, Mapping)),
-                              default_factory=FitConfig)
+    fit: FitConfig = _nested_setting(FitConfig)
 
 
 @dataclass(frozen=True)
@@ -254,8 +257,14 @@ class AblationConfig:
 SECTIONS: dict[str, type] = {"train": TrainConfig, "eval": EvalConfig, "selection": SelectionConfig, "collector": CollectorConfig,
                              "transfer": TransferConfig, "logger": LoggerConfig, "ensemble": EnsembleConfig, "cvae": CVAEConfig,
                              "model_env": ModelEnvConfig, "ablation": AblationConfig}
-#: typed sections inside a section: ``(section, field) -> dataclass``
-NESTED: dict[tuple[str, str], type] = {("ensemble", "fit"): FitConfig, ("cvae", "fit"): FitConfig}
+
+
+def _typed(prefix: str, cls: type):
+    """``(key path, dataclass)`` of a section and of every section nested in it (``ensemble.fit``), read off its fields."""
+    yield prefix, cls
+    for f in fields(cls):
+        if f.default_factory is not MISSING and is_dataclass(nested := f.default_factory()):
+            yield from _typed(f"{prefix}.{f.name}", type(nested))
 
 
 def section_defaults(key: str) -> dict:
@@ -291,7 +300,7 @@ def _section(cls: type, values: Mapping | None):
             default = f.default_factory() if f.default is MISSING else f.default
             if is_dataclass(default):
                 kwargs[f.name] = _section(type(default), v)
-            elif isinstance(default, tuple) or (f.name.endswith("sizes") and isinstance(v, (list, tuple))):
+            elif str(f.type).startswith("tuple") and isinstance(v, (list, tuple)):  # tuple[...] (or | None): lists from the YAML
                 kwargs[f.name] = tuple(v)
             else:
                 kwargs[f.name] = dict(v) if isinstance(v, Mapping) else v
@@ -350,19 +359,10 @@ TOP_LEVEL: dict[str, tuple[str, Callable[[Any], bool]]] = {
 }
 
 
-def _section_rules(prefix: str, cls: type) -> dict:
-    rules = {}
-    for f in fields(cls):
-        rules[f"{prefix}.{f.name}"] = f.metadata["rule"]
-        nested = NESTED.get((prefix, f.name))
-        if nested is not None:
-            rules.update(_section_rules(f"{prefix}.{f.name}", nested))
-    return rules
-
-
 #: key path -> (what is allowed, check), every one held by a field above (absent keys are left to their defaults)
 RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
-    **TOP_LEVEL, **{k: v for key, section in SECTIONS.items() for k, v in _section_rules(key, section).items()}}
+    **TOP_LEVEL, **{f"{path}.{f.name}": f.metadata["rule"] for key, section in SECTIONS.items() for path, cls in _typed(key, section)
+                    for f in fields(cls)}}
 
 #: rules for an algorithm's keys, by name (whatever the algorithm)
 ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
@@ -459,8 +459,7 @@ def validate_config(cfg: Mapping) -> None:
         value = _get(cfg, key)
         if value is not _MISSING and not ok(value):
             problems.append(f"{key}: expected {what}, got {value!r}")
-    typed = [*SECTIONS.items(), *((f"{key}.{name}", cls) for (key, name), cls in NESTED.items())]
-    for key, section in typed:
+    for key, section in (typed for k, c in SECTIONS.items() for typed in _typed(k, c)):
         given = _get(cfg, key)
         if isinstance(given, Mapping):
             names = [f.name for f in fields(section)]
