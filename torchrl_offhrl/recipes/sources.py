@@ -89,17 +89,6 @@ def _simulators(source) -> list | None:
     return list(envs)
 
 
-def _time_limit(env):
-    """The TimeLimit wrapper in ``env``'s chain, or None."""
-    from gymnasium.wrappers import TimeLimit
-
-    while env is not None:
-        if isinstance(env, TimeLimit):
-            return env
-        env = getattr(env, "env", None)
-    return None
-
-
 def _simulator_state(env) -> dict:
     """One Gymnasium MuJoCo env's whole state: the physics (MuJoCo's integration state: time, positions, velocities,
     actuator activations, controls and the solver's warm start), the steps its time limit has counted, its reset RNG."""
@@ -111,9 +100,8 @@ def _simulator_state(env) -> dict:
     spec = mujoco.mjtState.mjSTATE_INTEGRATION
     physics = np.empty(mujoco.mj_stateSize(sim.model, spec))
     mujoco.mj_getState(sim.model, sim.data, physics, spec)
-    limit = _time_limit(env)
-    return {"physics": torch.from_numpy(physics), "elapsed_steps": None if limit is None else int(limit._elapsed_steps),
-            "np_random": sim.np_random.bit_generator.state}
+    elapsed = int(env.get_wrapper_attr("_elapsed_steps")) if env.has_wrapper_attr("_elapsed_steps") else None  # TimeLimit's count
+    return {"physics": torch.from_numpy(physics), "elapsed_steps": elapsed, "np_random": sim.np_random.bit_generator.state}
 
 
 def _set_simulator_state(env, state: dict) -> None:
@@ -121,9 +109,8 @@ def _set_simulator_state(env, state: dict) -> None:
 
     sim = env.unwrapped
     mujoco.mj_setState(sim.model, sim.data, state["physics"].numpy(), mujoco.mjtState.mjSTATE_INTEGRATION)
-    limit = _time_limit(env)
-    if limit is not None and state["elapsed_steps"] is not None:
-        limit._elapsed_steps = state["elapsed_steps"]
+    if state["elapsed_steps"] is not None:
+        env.set_wrapper_attr("_elapsed_steps", state["elapsed_steps"], force=False)
     sim.np_random.bit_generator.state = state["np_random"]
 
 
