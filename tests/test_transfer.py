@@ -163,34 +163,42 @@ def test_transfer_stats_hand_computed():
     assert st["area"][0] == pytest.approx((2.25 + 4.72) / 2)
 
 
-def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, monkeypatch):
-    cfg = _cfg("moc", hopper_file, tmp_path, TRANSFER)
+def _killing_agents(monkeypatch, kills) -> dict:
+    """Make the run's agents raise KeyboardInterrupt (a kill) at each of ``kills`` in turn: ``"switch"`` (at the task switch,
+    after the offline phase's last checkpoint, before the online one) and ``"online"`` (the third online batch of 64 frames,
+    after the online evaluation and checkpoint at 384). Returns the counts of switches and online updates."""
     real_make_agent = setting_mod.make_agent
-    state = {"new_task": 0, "online_updates": 0, "crash": "switch"}
+    state = {"new_task": 0, "online_updates": 0, "kills": list(kills)}
 
-    def crashing_agent(*a, **k):
+    def killing_agent(*a, **k):
         agent = real_make_agent(*a, **k)
         real_update, real_new_task = agent.update, agent.new_task
 
         def new_task():
             state["new_task"] += 1
-            if state["crash"] == "switch":  # killed at the switch: after the offline phase's last checkpoint, before the online one
-                state["crash"] = "online"
+            if state["kills"][:1] == ["switch"]:
+                state["kills"].pop(0)
                 raise KeyboardInterrupt
             real_new_task()
 
         def update(batch):
             if state["new_task"]:
                 state["online_updates"] += 1
-                if state["crash"] == "online" and state["online_updates"] == 3:  # killed in the online phase (64-frame batches), after its evaluation at 384
-                    state["crash"] = None
+                if state["kills"][:1] == ["online"] and state["online_updates"] == 3:
+                    state["kills"].pop(0)
                     raise KeyboardInterrupt
             return real_update(batch)
 
         agent.new_task, agent.update = new_task, update
         return agent
 
-    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
+    monkeypatch.setattr(setting_mod, "make_agent", killing_agent)
+    return state
+
+
+def test_resumes_across_the_switch_after_a_kill(hopper_file, cache, tmp_path, monkeypatch):
+    cfg = _cfg("moc", hopper_file, tmp_path, TRANSFER)
+    state = _killing_agents(monkeypatch, ["switch", "online"])
     with pytest.raises(KeyboardInterrupt):
         train(cfg, progress=False)
     run = next(tmp_path.glob("moc-*"))
@@ -215,30 +223,10 @@ def test_a_run_killed_in_its_online_phase_resumes_to_the_records_of_an_uninterru
     episodes on resume)."""
     straight = train(_cfg("moc", hopper_file, tmp_path / "a", TRANSFER), progress=False)
     cfg = _cfg("moc", hopper_file, tmp_path / "b", TRANSFER)
-    real_make_agent, count = setting_mod.make_agent, {"online": 0, "switched": False}
-
-    def crashing_agent(*a, **k):
-        agent = real_make_agent(*a, **k)
-        real_update, real_new_task = agent.update, agent.new_task
-
-        def new_task():
-            count["switched"] = True
-            real_new_task()
-
-        def update(batch):
-            if count["switched"]:
-                count["online"] += 1
-                if count["online"] == 3:  # the third online batch of 64 frames: after the checkpoint at 384
-                    raise KeyboardInterrupt
-            return real_update(batch)
-
-        agent.update, agent.new_task = update, new_task
-        return agent
-
-    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
+    state = _killing_agents(monkeypatch, ["online"])
     with pytest.raises(KeyboardInterrupt):
         train(cfg, progress=False)
-    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
+    assert state["kills"] == []  # killed once; the resumed run goes on unharmed
     resumed = train(cfg, progress=False)
     a = json.loads((Path(straight["run_dir"]) / "evals.json").read_text())
     b = json.loads((Path(resumed["run_dir"]) / "evals.json").read_text())
