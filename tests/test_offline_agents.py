@@ -284,13 +284,30 @@ def test_aggregate_counts_dataset_runs_in_gradient_steps(tmp_path):
                   "normalized_d4rl": v} for s, v in zip(steps, scores)]
         (d / "evals.json").write_text(json.dumps(evals))
         (d / "config.json").write_text(json.dumps({"algo": {"name": algo}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {},
-                                                   "unit": unit}))
+                                                   "unit": unit, "model_env": {"latent_origin": "best"}}))
     table = aggregate(sorted(tmp_path.glob("*-seed0")), tmp_path / "agg")
     # final, last-5 mean (after step 0), selected (none), best, untrained, change over the start
     assert "| iql | Hopper-v5 | medium | - | 1 | 100 updates | 70.0 ± 0.0 | 7.0 | 7.0 ± 0.0 | 8.0 | — | 9.0 | 1.0 | +6.0 [+6.0, +6.0] (1/1) | n/a | s?: 7.0 |" in table
     assert "| moc | Hopper-v5 | medium | - | 1 | 4096 frames | 40.0 ± 0.0 | 4.0 | 4.0 ± 0.0 | 4.5 | — | 5.0 | 3.0 | +1.0 [+1.0, +1.0] (1/1) | n/a | s?: 4.0 |" in table
     height, width = matplotlib.image.imread(tmp_path / "agg" / "curves.png").shape[:2]
     assert height > width  # one row of panels per unit (frames, gradient steps), one column per env
+
+
+def test_aggregate_keeps_paper_preset_runs_out_of_the_default_row(tmp_path):
+    """A model-env run made on the paper's per-dataset settings (latent origin zero, or none recorded: before the offline
+    rules) is its own row, ``<algo>_paper``, as in Table I's columns: it never pools with the default's runs of the same
+    algorithm. Dataset agents have no preset: their rows keep their label."""
+    from torchrl_offhrl.recipes.report import aggregate
+
+    _fake_run(tmp_path, "moc", 4, "Hopper-v5", "medium", "frames", (3.0, 5.0, 4.0))
+    paper = _fake_run(tmp_path / "p", "moc", 4, "Hopper-v5", "medium", "frames", (3.0, 5.0, 80.0))
+    cfg = json.loads((paper / "config.json").read_text())
+    (paper / "config.json").write_text(json.dumps({**cfg, "model_env": {"latent_origin": "zero"}}))
+    _fake_run(tmp_path, "iql", 4, "Hopper-v5", "medium", "updates", (1.0, 9.0, 7.0))
+    table = aggregate([*sorted(tmp_path.glob("*-seed4")), paper], tmp_path / "agg")
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines() if line.startswith("| ") and "Hopper" in line}
+    assert set(rows) == {"moc", "moc_paper", "iql"}
+    assert "| 1 |" in rows["moc"] and "s4: 4.0" in rows["moc"] and "s4: 80.0" in rows["moc_paper"]
 
 
 def _fake_run(base, algo, seed, env_id, dataset, unit, scores, behaviour=None, ablation=None, algo_cfg=None, timing=None, data_hash=None):

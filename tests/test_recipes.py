@@ -213,7 +213,8 @@ def test_aggregate_seeds(tmp_path):
         d.mkdir()
         evals = [{"frames": f, "return_mean": f / 10 + offset, "return_std": 1.0, "normalized_d4rl": f / 100 + offset} for f in (100, 200)]
         (d / "evals.json").write_text(json.dumps(evals))
-        (d / "config.json").write_text(json.dumps({"algo": {"name": "moc"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {}}))
+        (d / "config.json").write_text(json.dumps({"algo": {"name": "moc"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {},
+                                                   "model_env": {"latent_origin": "best"}}))  # the default, not the paper preset
     table = aggregate(sorted(tmp_path.glob("moc-*")), tmp_path / "agg")
     # final returns 20 and 30: mean 25, std 7.07; scores 2 and 12: mean 7
     # best per seed: 2 and 12 (the last evaluation here); no frame-0 evaluation: untrained n/a; no summary: behaviour n/a
@@ -344,7 +345,8 @@ def test_aggregate_reports_best_and_untrained_apart_from_final(tmp_path):
         d.mkdir()
         evals = [{"frames": f, "return_mean": 10 * s, "return_std": 0.0, "normalized_d4rl": s} for f, s in zip((0, 100, 200), scores)]
         (d / "evals.json").write_text(json.dumps(evals))
-        (d / "config.json").write_text(json.dumps({"algo": {"name": "ppo"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {}}))
+        (d / "config.json").write_text(json.dumps({"algo": {"name": "ppo"}, "env": {"env_id": "Hopper-v5"}, "dataset": "medium", "ablation": {},
+                                                   "model_env": {"latent_origin": "best"}}))  # the default, not the paper preset
     table = aggregate(sorted(tmp_path.glob("ppo-*")), tmp_path / "agg")
     # final 3, 6 -> 4.5 ± 2.1; best 9, 8 -> 8.5; untrained 5, 7 -> 6.0; change over the start: -2 and -1 -> -1.5, 0 of 2 up
     row = next(line for line in table.splitlines() if line.startswith("| ppo |")).split(" | ")

@@ -243,7 +243,10 @@ def aggregate(run_dirs: Sequence, out_dir, made_by: str | None = None) -> str:
     runs, out = _load_runs(run_dirs, out_dir, "aggregate")
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in runs:
-        groups[group_key(r)].append(r)
+        key = group_key(r)
+        if transfer_config(r["config"]) is None and made_with_paper_settings(r["config"]) and not key[0].endswith(PAPER_SUFFIX):
+            key = (key[0] + PAPER_SUFFIX, *key[1:])  # as Table I's columns: a paper-preset run is not the default's row
+        groups[key].append(r)
     standard = {k: rs for k, rs in groups.items() if _panel(rs) != "transfer"}
     transfer = {k: rs for k, rs in groups.items() if _panel(rs) == "transfer"}
     tables = []
