@@ -180,6 +180,39 @@ class PushUpLoss(OptionCriticLoss):
         return {"loss_termination": -td.get(self.tensor_keys.termination_probs).mean()}, {}
 
 
+class CostlyLoss(OptionCriticLoss):
+    """A loss with an argument of its own (a deliberation cost kept on the loss)."""
+
+    def __init__(self, *args, deliberation_cost: float = 0.0, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.deliberation_cost = deliberation_cost
+
+
+def test_moc_agent_takes_its_loss_arguments_from_the_loss():
+    """MOCAgent declares no argument of OptionCriticLoss: every loss argument (eta, gamma, the coefficients, ...) is
+    accepted from the config with the loss's own default (or the agent's deviation, xi and importance_correction) and
+    reaches the loss unchanged; a loss named by algo.loss brings its own arguments; a typo is still refused."""
+    import inspect
+
+    from torchrl_offhrl.agents import agent_defaults, make_agent
+    from torchrl_offhrl.agents.moc import MOCAgent
+
+    own = inspect.signature(MOCAgent.__init__).parameters
+    loss_args = {k for k, p in inspect.signature(OptionCriticLoss.__init__).parameters.items() if p.kind is p.KEYWORD_ONLY}
+    assert not (loss_args & set(own)) - {"num_options"}  # declared once: in the loss
+    defaults = agent_defaults("moc")
+    assert loss_args - {"num_options"} <= set(defaults)
+    assert (defaults["eta"], defaults["termination_coef"], defaults["xi"], defaults["importance_correction"]) == (0.7, 1.0, 0.01, "next_step")
+    env = _moc_env()
+    agent = make_agent("moc", env, {"eta": 0.3, "termination_coef": 0.5, "gamma": 0.9}, hidden_sizes=[8])
+    assert (agent.loss.eta, agent.loss.termination_coef, agent.loss.xi, agent.loss.importance_correction) == (0.3, 0.5, 0.01, "next_step")
+    assert agent.loss._gamma == 0.9  # what its value estimator is built with
+    custom = make_agent("moc", env, {"loss": f"{__name__}.CostlyLoss", "deliberation_cost": 0.25}, hidden_sizes=[8])
+    assert type(custom.loss) is CostlyLoss and custom.loss.deliberation_cost == 0.25
+    with pytest.raises(TypeError, match=r"unknown hyper-parameter\(s\) \['deliberation_cost'\]"):
+        make_agent("moc", env, {"deliberation_cost": 0.25}, hidden_sizes=[8])  # OptionCriticLoss has no such argument
+
+
 def test_subclassed_loss_trains_through_moc_agent():
     """A contributor's OptionCriticLoss subclass trains through MOCAgent with no library code touched (CONTRIBUTING.md):
     named in the config (algo.loss, a dotted path) or set by a registered subclass of the agent; its overridden term is

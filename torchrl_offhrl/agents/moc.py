@@ -91,9 +91,15 @@ class MOCAgent(OnPolicyAgent):
     What these settings give (option lengths, pi_O's entropy, scores) is
     measured in ``docs/results/moc_demo_experiments.md`` (row
     ``official_fast_xi``).
-    The network and loss arguments are documented in
-    :class:`~torchrl_offhrl.modules.OptionHeads` and
-    :class:`~torchrl_offhrl.objectives.OptionCriticLoss`.
+    The network arguments are documented in
+    :class:`~torchrl_offhrl.modules.OptionHeads`. The loss's (``eta``,
+    ``clip_epsilon``, ``gamma``, ``lmbda``, ``xi``, the coefficients,
+    ``importance_correction``, ...) are not arguments of the agent: every
+    keyword it does not take is passed on to the loss unchanged
+    (``**loss_kwargs``), so they are declared and documented once, in
+    :class:`~torchrl_offhrl.objectives.OptionCriticLoss`, and a loss named by
+    ``algo.loss`` brings its own; :attr:`loss_defaults` holds the two whose
+    default here is not the loss's.
 
     Switches between this project's first version
     (``configs/algo/moc_joint.yaml``) and the official continuous-control MOC
@@ -157,9 +163,14 @@ class MOCAgent(OnPolicyAgent):
     #: the loss the agent trains unless ``loss`` (``algo.loss``) names another: a subclass of
     #: :class:`~torchrl_offhrl.objectives.OptionCriticLoss` (a new option-critic variant) trains through this agent
     #: unchanged, from the config (``algo.loss=my_package.MyOptionLoss``, a dotted path) or from a registered subclass
-    #: of the agent that sets this attribute (CONTRIBUTING.md). It is built with the actor, the critic and the loss
-    #: arguments below; the optimisers group its parameters by name.
+    #: of the agent that sets this attribute (CONTRIBUTING.md). It is built with the actor, the critic, the option count
+    #: and every config key the agent does not take itself (its own arguments); the optimisers group its parameters by name.
     loss_class: type[OptionCriticLoss] = OptionCriticLoss
+    #: the loss arguments whose default here differs from the loss's own (the measured deviations above): xi 0.01 (the
+    #: loss: 0) and the official MOC's importance correction (the loss: this project's first version, ``assignment``)
+    loss_defaults: dict = {"xi": 0.01, "importance_correction": "next_step"}
+    #: the loss arguments the agent sets itself, not from its config
+    loss_set_by_agent: tuple = ("actor_network", "critic_network", "num_options")
 
     def __init__(
         self,
@@ -175,16 +186,6 @@ class MOCAgent(OnPolicyAgent):
         shared_trunk: bool = False,
         init_log_std: float = 0.0,
         lr: float = 1e-4,
-        eta: float = 0.7,
-        clip_epsilon: float = 0.2,
-        gamma: float = 0.99,
-        lmbda: float = 0.95,
-        xi: float = 0.01,
-        normalize_option_advantages: bool = False,
-        critic_coef: float = 0.5,
-        entropy_coef: float = 0.0,
-        option_entropy_coef: float = 0.01,
-        prior_coef: float = 0.0,
         frames_per_batch: int = 2048,
         epochs: int = 10,
         minibatch_size: int = 64,
@@ -192,7 +193,6 @@ class MOCAgent(OnPolicyAgent):
         update_schedule: str = "per_term",
         termination_lr: float | None = 1e-3,
         option_lr: float | None = 1e-3,
-        importance_correction: str = "next_step",
         adam_eps: float = 1e-5,
         obs_clip: float | None = 5.0,
         option_head_gain: float = 1.0,
@@ -205,6 +205,7 @@ class MOCAgent(OnPolicyAgent):
         policy_ema: float | None = None,
         log_std_lr: float | None = None,
         final_log_std: float | None = None,
+        **loss_kwargs,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         if update_schedule not in self.UPDATE_SCHEDULES:
@@ -226,22 +227,9 @@ class MOCAgent(OnPolicyAgent):
         self.policy = OptionCriticActor(heads, low=low, high=high, action_key=action_key)
         critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale, obs_clip=obs_clip)
         loss_class = self.loss_class if loss is None else import_class(loss, OptionCriticLoss, "algo.loss")
-        self.loss = loss_class(
-            self.policy,
-            critic,
-            num_options=n,
-            eta=eta,
-            clip_epsilon=clip_epsilon,
-            xi=xi,
-            normalize_option_advantages=normalize_option_advantages,
-            critic_coef=critic_coef,
-            entropy_coef=entropy_coef,
-            option_entropy_coef=option_entropy_coef,
-            **({"prior_coef": prior_coef} if prior_coef else {}),  # a loss class without the term still builds
-            gamma=gamma,
-            lmbda=lmbda,
-            importance_correction=importance_correction,
-        )
+        # the loss's hyper-parameters (eta, clip_epsilon, gamma, lmbda, xi, the coefficients, ...) go to it as they are: declared
+        # once, in its signature; the agent only fills in the ones it deviates on (loss_defaults) and the option count
+        self.loss = loss_class(self.policy, critic, num_options=n, **{**self.loss_defaults, **loss_kwargs})
         self.update_schedule = update_schedule
         self.action_key = action_key
         self.num_options = n

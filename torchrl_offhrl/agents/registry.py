@@ -5,7 +5,7 @@ import inspect
 
 from .base import Agent
 
-__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "register_agent", "requires_goal", "unknown_hyperparameters"]
+__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "loss_arguments", "register_agent", "requires_goal", "unknown_hyperparameters"]
 
 #: Registered agent classes by name.
 AGENTS: dict[str, type[Agent]] = {}
@@ -27,11 +27,18 @@ def register_agent(name: str):
     return deco
 
 
-def agent_defaults(name: str) -> dict:
+def agent_defaults(name: str, loss=None) -> dict:
     """The hyper-parameters agent ``name`` takes from its config, with their defaults (``inspect.Parameter.empty`` if required).
 
     A subclass whose ``__init__`` passes ``**kwargs`` on to its parent's (e.g.
-    MOPO's to SAC's) takes the parent's hyper-parameters too.
+    MOPO's to SAC's) takes the parent's hyper-parameters too. An agent whose
+    ``__init__`` passes ``**loss_kwargs`` on to its loss (``loss_class``, e.g.
+    MOC's :class:`~torchrl_offhrl.objectives.OptionCriticLoss`) takes the
+    loss's keyword arguments, with the loss's defaults unless the agent's
+    ``loss_defaults`` gives others, apart from the ones the agent sets itself
+    (``loss_set_by_agent``): the loss declares them once. ``loss``: the
+    loss class the config names instead (``algo.loss``, a class or a dotted
+    path), whose own arguments are taken too.
     """
     out: dict = {}
     for cls in agent_class(name).__mro__:
@@ -41,6 +48,32 @@ def agent_defaults(name: str) -> dict:
         for k, p in params.items():
             if k != "self" and k not in _CONTEXT and p.kind is p.KEYWORD_ONLY:
                 out.setdefault(k, p.default)
+        rest = [p for p in params.values() if p.kind is p.VAR_KEYWORD]
+        if rest and rest[0].name == "loss_kwargs":
+            for k, v in loss_arguments(cls, loss).items():
+                out.setdefault(k, v)
+            break
+        if not rest:
+            break
+    return out
+
+
+def loss_arguments(cls, loss=None) -> dict:
+    """The keyword arguments (with defaults) an agent class forwarding ``**loss_kwargs`` takes for its loss: ``loss`` (a
+    class, a dotted path, or None for ``cls.loss_class``), walking up the loss's own ``**kwargs`` chain."""
+    if isinstance(loss, str):
+        from ..utils import import_class
+
+        loss = import_class(loss, cls.loss_class, "algo.loss")
+    set_by_agent, deviations = getattr(cls, "loss_set_by_agent", ()), getattr(cls, "loss_defaults", {})
+    out: dict = {}
+    for lcls in (loss or cls.loss_class).__mro__:
+        if "__init__" not in vars(lcls):
+            continue
+        params = inspect.signature(lcls.__init__).parameters
+        for k, p in params.items():
+            if k != "self" and k not in set_by_agent and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
+                out.setdefault(k, deviations.get(k, p.default))
         if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
             break
     return out
@@ -48,7 +81,7 @@ def agent_defaults(name: str) -> dict:
 
 def unknown_hyperparameters(name: str, cfg) -> list[str]:
     """The keys of an algorithm config agent ``name`` does not take (``name`` and ``label``, a config's run name, aside), sorted."""
-    accepted = agent_defaults(name)
+    accepted = agent_defaults(name, loss=cfg.get("loss") if hasattr(cfg, "get") else None)
     return sorted(k for k in cfg if k not in ("name", "label") and k not in accepted)
 
 
