@@ -22,22 +22,17 @@ Criteria (``selection.criterion``):
 * ``model_lcb_undiscounted`` / ``model_mean_undiscounted``: the same on the
   undiscounted return.
 
-What was measured before ``model_gain_lcb`` (under ``last`` as the default).
-The model's verdict on a policy is only as long as its episodes. With the
-demo's 100-step episodes branched from any dataset state the model return
-is capped by the horizon, and every criterion preferred the policy closest
-to the data, a near-behaviour-cloning one (real score 29-33), over the
-running ones (64-93) the same runs reached, with 250 model episodes per
-policy as with 50 (``docs/results/demo_robustness_notes.md``,
+Why the model episodes are whole-length. The model's verdict on a policy
+is only as long as its episodes: with the demo's 100-step episodes branched
+from any dataset state the model return is capped by the horizon, and every
+criterion preferred the policy closest to the data over the running ones the
+same runs reached, however many model episodes it was given
+(``docs/results/demo_robustness_notes.md``,
 ``experiments/diagnostics/selection_probe.py``). Evaluations therefore roll
 their model episodes for a whole real-episode length (``eval.max_steps``)
-from the data's start states, whatever the training horizon. With the
-paper's 1,000-step episodes (the full scale), ``model_lcb`` picked a policy
-above the untrained start and the data in 6 of 6 hopper-medium tuning runs
-(the last policy: 4 of 6), then in 2 of 5 evaluation runs (the last policy:
-3 of 5; ``docs/results/full/experiments.md``): the worst member's return
-falls as soon as a policy leaves the data, so early, near-data policies
-often win.
+from the data's start states, whatever the training horizon. Even then the
+worst member's return falls as soon as a policy leaves the data, so early,
+near-data policies often win (``docs/results/full/experiments.md``).
 ``experiments/results/robustness.py`` and the tuning pages of
 ``experiments/results/table1.py`` score every criterion on every run they make.
 
@@ -58,7 +53,12 @@ criterion ``model_gain_lcb`` returns the evaluation where it is largest; the
 instead whenever the chosen policy's bound is not above 0: no member of the
 ensemble shows with confidence that the trained policy does better than
 where it started, so the run hands back its start rather than a policy that
-may be worse. The summary says whether the guard fired.
+may be worse. The summary says whether the guard fired. Why the worst
+member's bound on whole-length returns: pooled over the members it passes
+policies that lose 20-50 points in the real env, truncated returns trade
+one dataset's certified gains for another's, and no comparison of the model's
+episodes tried tells most better gaits from worse ones
+(``docs/results/offline_probes.md``).
 """
 from __future__ import annotations
 
