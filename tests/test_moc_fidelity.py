@@ -211,6 +211,24 @@ def test_moc_agent_takes_its_loss_arguments_from_the_loss():
     assert type(custom.loss) is CostlyLoss and custom.loss.deliberation_cost == 0.25
     with pytest.raises(TypeError, match=r"unknown hyper-parameter\(s\) \['deliberation_cost'\]"):
         make_agent("moc", env, {"deliberation_cost": 0.25}, hidden_sizes=[8])  # OptionCriticLoss has no such argument
+    # a registered subclass of the agent: its own loss class and defaults are the ones read, not MOCAgent's
+    from torchrl_offhrl.agents import AGENTS
+    from torchrl_offhrl.agents.registry import register_agent, unknown_hyperparameters
+
+    try:
+        register_agent("moc_costly")(type("CostlyAgent", (MOCAgent,), {"loss_class": CostlyLoss, "loss_defaults": {"xi": 0.0}}))
+        assert agent_defaults("moc_costly")["deliberation_cost"] == 0.0 and agent_defaults("moc_costly")["xi"] == 0.0
+        assert unknown_hyperparameters("moc_costly", {"deliberation_cost": 0.5}) == []
+        sub = make_agent("moc_costly", env, {"deliberation_cost": 0.5}, hidden_sizes=[8])
+        assert type(sub.loss) is CostlyLoss and sub.loss.deliberation_cost == 0.5 and sub.loss.xi == 0.0
+    finally:
+        AGENTS.pop("moc_costly", None)
+    # the run's config check names a loss it cannot import among its problems, before any work
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.schema import validate_config
+
+    with pytest.raises(ValueError, match=r"algo.loss='no_such_pkg.Loss': cannot import"):
+        validate_config(compose("offline_train", ["algo=moc", "algo.loss=no_such_pkg.Loss"]))
 
 
 def test_subclassed_loss_trains_through_moc_agent():

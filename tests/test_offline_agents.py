@@ -786,6 +786,11 @@ def test_fingerprint_of_a_setting_added_later_at_its_old_value():
     assert config_fingerprint(no_key) == config_fingerprint(now)
     sized = to_plain(compose("offline_train", ["algo=moc", "ensemble.reward_hidden_sizes=[64]"]))
     assert config_fingerprint(sized) != config_fingerprint(now)
+    # the loss arguments moc.yaml lists since MOCAgent stopped restating them: at the loss's defaults, a run from before
+    no_keys = {**now, "algo": {k: v for k, v in now["algo"].items() if k not in ("termination_coef", "option_coef", "normalize_advantage")}}
+    assert config_fingerprint(no_keys) == config_fingerprint(now)
+    weighted = to_plain(compose("offline_train", ["algo=moc", "algo.option_coef=0.5"]))
+    assert config_fingerprint(weighted) != config_fingerprint(now)
 
 
 def test_checkpoints_fingerprinted_under_older_rules_still_resume():

@@ -48,7 +48,8 @@ def make_agent(name: str, env, cfg: Mapping | None = None, *, obs_loc=None, obs_
     cfg = {k: v for k, v in {**to_plain(cfg or {}), **kwargs}.items() if k not in ("name", "label")}
     unknown = unknown_hyperparameters(name, cfg)
     if unknown:
-        raise TypeError(f"algo={name}: unknown hyper-parameter(s) {unknown}; {cls.__name__} accepts {sorted(agent_defaults(name))}")
+        raise TypeError(f"algo={name}: unknown hyper-parameter(s) {unknown}; {cls.__name__} accepts "
+                        f"{sorted(agent_defaults(name, loss=cfg.get('loss')))}")
     context = {"obs_loc": obs_loc, "obs_scale": obs_scale, "action_key": action_key, "device": device}
     if goal_key is not None:
         if not goal_conditioned(name):

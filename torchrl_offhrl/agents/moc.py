@@ -166,6 +166,8 @@ class MOCAgent(OnPolicyAgent):
     #: of the agent that sets this attribute (CONTRIBUTING.md). It is built with the actor, the critic, the option count
     #: and every config key the agent does not take itself (its own arguments); the optimisers group its parameters by name.
     loss_class: type[OptionCriticLoss] = OptionCriticLoss
+    #: what ``algo.loss`` must subclass (the agent's optimisers and schedule rely on its terms)
+    loss_base: type[OptionCriticLoss] = OptionCriticLoss
     #: the loss arguments whose default here differs from the loss's own (the measured deviations above): xi 0.01 (the
     #: loss: 0) and the official MOC's importance correction (the loss: this project's first version, ``assignment``)
     loss_defaults: dict = {"xi": 0.01, "importance_correction": "next_step"}
@@ -226,7 +228,7 @@ class MOCAgent(OnPolicyAgent):
             heads.log_std.requires_grad_(False)
         self.policy = OptionCriticActor(heads, low=low, high=high, action_key=action_key)
         critic = make_option_critic(obs_dim, n, hidden, activation, obs_loc, obs_scale, obs_clip=obs_clip)
-        loss_class = self.loss_class if loss is None else import_class(loss, OptionCriticLoss, "algo.loss")
+        loss_class = self.loss_class if loss is None else import_class(loss, self.loss_base, "algo.loss")
         # the loss's hyper-parameters (eta, clip_epsilon, gamma, lmbda, xi, the coefficients, ...) go to it as they are: declared
         # once, in its signature; the agent only fills in the ones it deviates on (loss_defaults) and the option count
         self.loss = loss_class(self.policy, critic, num_options=n, **{**self.loss_defaults, **loss_kwargs})

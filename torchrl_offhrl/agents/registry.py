@@ -41,7 +41,8 @@ def agent_defaults(name: str, loss=None) -> dict:
     path), whose own arguments are taken too.
     """
     out: dict = {}
-    for cls in agent_class(name).__mro__:
+    agent = agent_class(name)
+    for cls in agent.__mro__:
         if "__init__" not in vars(cls):
             continue
         params = inspect.signature(cls.__init__).parameters
@@ -50,7 +51,7 @@ def agent_defaults(name: str, loss=None) -> dict:
                 out.setdefault(k, p.default)
         rest = [p for p in params.values() if p.kind is p.VAR_KEYWORD]
         if rest and rest[0].name == "loss_kwargs":
-            for k, v in loss_arguments(cls, loss).items():
+            for k, v in loss_arguments(agent, loss).items():  # the registered class's loss, defaults and exclusions
                 out.setdefault(k, v)
             break
         if not rest:
@@ -60,11 +61,12 @@ def agent_defaults(name: str, loss=None) -> dict:
 
 def loss_arguments(cls, loss=None) -> dict:
     """The keyword arguments (with defaults) an agent class forwarding ``**loss_kwargs`` takes for its loss: ``loss`` (a
-    class, a dotted path, or None for ``cls.loss_class``), walking up the loss's own ``**kwargs`` chain."""
+    class, a dotted path, or None for ``cls.loss_class``), walking up the loss's own ``**kwargs`` chain. A dotted path
+    is imported and checked against ``cls.loss_base`` (the class every loss of the agent derives from) as the agent does."""
     if isinstance(loss, str):
         from ..utils import import_class
 
-        loss = import_class(loss, cls.loss_class, "algo.loss")
+        loss = import_class(loss, getattr(cls, "loss_base", cls.loss_class), "algo.loss")
     set_by_agent, deviations = getattr(cls, "loss_set_by_agent", ()), getattr(cls, "loss_defaults", {})
     out: dict = {}
     for lcls in (loss or cls.loss_class).__mro__:

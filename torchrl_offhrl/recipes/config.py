@@ -344,6 +344,7 @@ def algo_label(algo_cfg: Mapping) -> str:
 #: exactly that value fingerprints as one without the key, so older checkpoints still resume
 #: (``reward_hidden_sizes: null``: the reward model takes the transition model's widths)
 LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01, "loss": None, "policy_ema": None, "log_std_lr": None, "final_log_std": None, "prior_coef": 0.0,
+                                                          "termination_coef": 1.0, "option_coef": 1.0, "normalize_advantage": True,
                                                           "loss_type": "clip", "kl_target": 0.01, "bc_init_steps": 0, "bc_init_lr": 1e-3,
                                                           "bc_init_batch_size": 256, "head_gain": 1.0,
                                                           "terminal_on_success": True},

@@ -418,8 +418,11 @@ def _algo_problems(algo: Mapping) -> list[str]:
     name = algo.get("name")
     if name not in AGENTS:
         return [f"algo.name: expected one of {', '.join(sorted(AGENTS))}, got {name!r}"] if name is not None else []
-    takes = ", ".join(sorted(agent_defaults(name)))
-    return [f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown_hyperparameters(name, algo)]
+    try:  # a loss named by algo.loss brings its own arguments: importing it can fail, which is one more problem to name
+        unknown, takes = unknown_hyperparameters(name, algo), ", ".join(sorted(agent_defaults(name, loss=algo.get("loss"))))
+    except (ValueError, TypeError) as err:
+        return [str(err)]
+    return [f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown]
 
 
 def _get(cfg: Mapping, path: str):
