@@ -55,7 +55,7 @@ ensemble shows with confidence that the trained policy does better than
 where it started, so the run hands back its start rather than a policy that
 may be worse. The summary says whether the guard fired. Why the worst
 member's bound on whole-length returns: pooled over the members it passes
-policies that lose 20-50 points in the real env, truncated returns trade
+policies the real env scores well below their start, truncated returns trade
 one dataset's certified gains for another's, and no comparison of the model's
 episodes tried tells most better gaits from worse ones
 (``docs/results/offline_probes.md``).
