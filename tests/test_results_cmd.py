@@ -117,15 +117,16 @@ def test_the_guides_summary_is_the_pages_table(tmp_path):
         (tmp_path / "docs" / "results" / scale / "table.csv").write_text(head + "\n".join(rows) + "\n")
     lines = guide_summary(tmp_path).splitlines()
     assert lines[0] == GUIDE_BEGIN and lines[-1] == GUIDE_END
-    assert lines[2] == ("| final evaluation, IQM [95% CI] (seeds) | hopper-medium, demo | hopper-medium, full | hopper-medium-expert, full "
-                        "| halfcheetah-medium, demo | halfcheetah-medium, full | halfcheetah-medium-expert, full |")
-    assert lines[4:-2] == ["| MOC (the default): the policy it returns | 34.5 [34.4, 34.6] (5) |  |  |  |  |  |",  # the guard's choice
-                           "| MOC (the default): its last policy | 55.1 [28.4, 84.6] (5) |  |  |  |  |  |",
-                           "| IQL |  |  |  |  | 44.9 (1) |  |",  # one seed: no interval, as on the table page
-                           "| CQL |  |  |  |  | 38.8 [24.6, 46.2] (3) |  |",
-                           "| TD3+BC |  |  | 91.3 [57.8, 102.0] (5) |  |  |  |",
-                           "| BC |  |  | 57.0 [33.4, 93.1] (5) |  |  |  |",
-                           "| behaviour data | 35.9 |  | 53.2 |  | 38.0 |  |"]  # the first run's behaviour score of a column
+    assert lines[2] == ("| final evaluation, IQM [95% CI] (seeds) | hopper-medium, demo | hopper-medium, full | hopper-medium-expert, demo "
+                        "| hopper-medium-expert, full | halfcheetah-medium, demo | halfcheetah-medium, full | halfcheetah-medium-expert, demo "
+                        "| halfcheetah-medium-expert, full |")
+    assert lines[4:-2] == ["| MOC (the default): the policy it returns | 34.5 [34.4, 34.6] (5) |  |  |  |  |  |  |  |",  # the guard's choice
+                           "| MOC (the default): its last policy | 55.1 [28.4, 84.6] (5) |  |  |  |  |  |  |  |",
+                           "| IQL |  |  |  |  |  | 44.9 (1) |  |  |",  # one seed: no interval, as on the table page
+                           "| CQL |  |  |  |  |  | 38.8 [24.6, 46.2] (3) |  |  |",
+                           "| TD3+BC |  |  |  | 91.3 [57.8, 102.0] (5) |  |  |  |  |",
+                           "| BC |  |  |  | 57.0 [33.4, 93.1] (5) |  |  |  |  |",
+                           "| behaviour data | 35.9 |  |  | 53.2 |  | 38.0 |  |  |"]  # the first run's behaviour score of a column
     guide = tmp_path / "docs" / "guides" / "offline.md"
     assert write_guide_summary(tmp_path) is False  # no guide here: nothing to keep in step
     guide.parent.mkdir(parents=True)

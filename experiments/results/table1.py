@@ -95,12 +95,14 @@ NOTES = {"demo": ("MOC and PPO on seeds 4-8 were run on 2026-12-03 with the conf
                   "`configs/algo/morel.yaml` now follows MOReL's code) are listed at the end as rebuilt rows and counted in no "
                   "cell.")}
 _HEADLINE = ("Since 2026-12-06 the headline model-env columns (MOC, PPO, SAC, MOReL, MOPO) are the shipped default, {command} "
-             "(the offline rules, the best episodes' latent origin, the guard; 204,800 frames, minibatches of 256), and have not "
-             "run at this scale yet (the missing "
-             "cells say what they need). Every model-env run below was made before, on the paper's per-dataset settings, and sits "
+             "(the offline rules, the best episodes' latent origin, the guard; 204,800 frames, minibatches of 256); {ran} (the "
+             "missing cells say what they need). Every model-env run below was made before, on the paper's per-dataset settings, and sits "
              "in the '(paper preset)' columns (runs `<algo>_paper-...`; `offhrl results table1 run --paper` resumes them). ")
-NOTES["demo"] = _HEADLINE.format(command="`offhrl demo algo=<algo> env=<env> dataset=<level>` at that budget") + NOTES["demo"]
-NOTES["full"] = (_HEADLINE.format(command="`offhrl train algo=<algo> env=<env> dataset=<level>` exactly") + "Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
+NOTES["demo"] = _HEADLINE.format(command="`offhrl demo algo=<algo> env=<env> dataset=<level>` at that budget",
+                                 ran="MOC and PPO ran them on seeds 4-8 (dataset seed 0) on hopper- and halfcheetah-medium "
+                                     "(2026-12-06/07) and hopper-medium-expert (2026-12-07); halfcheetah-medium-expert and the "
+                                     "other algorithms have not run yet") + NOTES["demo"]
+NOTES["full"] = (_HEADLINE.format(command="`offhrl train algo=<algo> env=<env> dataset=<level>` exactly", ran="they have not run at this scale yet") + "Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
                  "seeds 4-8 on 2026-12-03 with `--batch-seeds` (each algorithm's five seeds as one computation on one model env "
                  "of 5 x 64 envs, each seed still its own run; the paper's 1000-step model episodes from the data's start states), "
                  "on data and models generated on this machine: they replace the rows rebuilt from an earlier page. The columns "
@@ -454,8 +456,9 @@ SUMMARY_ROWS = {"moc:selected": "MOC (the default): the policy it returns", "moc
                 "morel:selected": "MOReL (the default): the policy it returns", "morel": "MOReL (the default): its last policy",
                 "morel_paper": "MOReL, paper preset",
                 "mopo:selected": "MOPO (the default): the policy it returns", "mopo": "MOPO (the default): its last policy", "mopo_paper": "MOPO, paper preset", "iql": "IQL", "cql": "CQL", "td3bc": "TD3+BC", "bc": "BC"}
-_SUMMARY_COLS = [("demo", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium-expert"),
-                 ("demo", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium-expert")]
+_SUMMARY_COLS = [("demo", "Hopper-v5", "medium"), ("full", "Hopper-v5", "medium"), ("demo", "Hopper-v5", "medium-expert"),
+                 ("full", "Hopper-v5", "medium-expert"), ("demo", "HalfCheetah-v5", "medium"), ("full", "HalfCheetah-v5", "medium"),
+                 ("demo", "HalfCheetah-v5", "medium-expert"), ("full", "HalfCheetah-v5", "medium-expert")]
 
 
 def guide_summary(root: Path = ROOT) -> str:
