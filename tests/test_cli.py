@@ -230,7 +230,7 @@ def test_the_robustness_variants_rerun_what_their_archived_runs_ran():
     10k to 30k steps still fit 10k."""
     import json
 
-    from torchrl_offhrl.recipes.config import compose, pessimism_for, pessimism_table
+    from torchrl_offhrl.recipes.config import LATER_DEFAULTS, compose, pessimism_for, pessimism_table
     from experiments.results import robustness as mod
     from torchrl_offhrl.utils import to_plain
 
@@ -238,7 +238,8 @@ def test_the_robustness_variants_rerun_what_their_archived_runs_ran():
     again = to_plain(compose("demo", [*mod.overrides(mod.SHIPPED), "dataset_seed=4"]))
     for key in ("ensemble", "cvae", "selection", "algo", "train"):
         drop = {"selection": {"guard"}, "train": {"snapshot_frames"}, "ensemble": {"num_elites", "learn_reward"},
-                "cvae": {"goal_key"}}.get(key, set())  # added since (their defaults: as before)
+                "cvae": {"goal_key"}, "algo": {"termination_coef", "option_coef", "normalize_advantage"}}.get(key, set())  # added since
+        assert all(again[key][k] == LATER_DEFAULTS.get(key, {}).get(k, again[key][k]) for k in drop if k in again[key]), key  # as before
         strip = lambda d: {k: v for k, v in d.items() if k not in drop}  # noqa: E731
         fit = lambda d: {**d, "fit": {k: v for k, v in d["fit"].items() if k != "rel_tol"}} if "fit" in d else d  # noqa: E731
         assert fit(strip(again[key])) == strip(archived[key]), key

@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     for f in sorted(a.folder.glob("*.pt")):
         if a.match not in f.name:
             continue
-        run = torch.load(f, weights_only=False)
+        run = torch.load(f, weights_only=True)
         start, pols = run["policies"][0], run["policies"][1:]
         if a.last_only:
             pols = pols[-1:]
