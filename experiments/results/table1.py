@@ -100,8 +100,9 @@ _HEADLINE = ("Since 2026-12-06 the headline model-env columns (MOC, PPO, SAC, MO
              "in the '(paper preset)' columns (runs `<algo>_paper-...`; `offhrl results table1 run --paper` resumes them). ")
 NOTES["demo"] = _HEADLINE.format(command="`offhrl demo algo=<algo> env=<env> dataset=<level>` at that budget",
                                  ran="MOC and PPO ran them on seeds 4-8 (dataset seed 0) on hopper- and halfcheetah-medium "
-                                     "(2026-12-06/07) and hopper-medium-expert (2026-12-07); halfcheetah-medium-expert and the "
-                                     "other algorithms have not run yet") + NOTES["demo"]
+                                     "(2026-12-06/07) and hopper-medium-expert (2026-12-07), MOC on halfcheetah-medium-expert and 1-option "
+                                     "MOC (`algo=moc_1opt`: the exact ablation of the options) on both hopper datasets "
+                                     "(2026-12-07); the other cells have not run yet") + NOTES["demo"]
 NOTES["full"] = (_HEADLINE.format(command="`offhrl train algo=<algo> env=<env> dataset=<level>` exactly", ran="they have not run at this scale yet") + "Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
                  "seeds 4-8 on 2026-12-03 with `--batch-seeds` (each algorithm's five seeds as one computation on one model env "
                  "of 5 x 64 envs, each seed still its own run; the paper's 1000-step model episodes from the data's start states), "
@@ -449,6 +450,7 @@ GUIDE_END = "<!-- end of the table1 summary -->"
 SUMMARY_ROWS = {"moc:selected": "MOC (the default): the policy it returns", "moc": "MOC (the default): its last policy", "moc_paper": "MOC, paper preset",
                 "moc_fit60k_g998_paper": "MOC, paper preset + recipe (60k fit, gamma 0.998)",
                 "moc_pf108_paper": "MOC, paper preset, threshold 1.08 x max",
+                "moc_1opt:selected": "MOC, 1 option (the default): the policy it returns", "moc_1opt": "MOC, 1 option (the default): its last policy",
                 "ppo:selected": "PPO (the default): the policy it returns", "ppo": "PPO (the default): its last policy", "ppo_paper": "PPO, paper preset",
                 "ppo_fit60k_g998_paper": "PPO, paper preset + recipe (60k fit, gamma 0.998)",
                 "ppo_pf108_paper": "PPO, paper preset, threshold 1.08 x max",
