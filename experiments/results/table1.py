@@ -100,7 +100,7 @@ _HEADLINE = ("Since 2026-12-06 the headline model-env columns (MOC, PPO, SAC, MO
              "in the '(paper preset)' columns (runs `<algo>_paper-...`; `offhrl results table1 run --paper` resumes them). ")
 NOTES["demo"] = _HEADLINE.format(command="`offhrl demo algo=<algo> env=<env> dataset=<level>` at that budget",
                                  ran="MOC and PPO ran them on seeds 4-8 (dataset seed 0) on hopper- and halfcheetah-medium "
-                                     "(2026-12-06/07) and hopper-medium-expert (2026-12-07), MOC on halfcheetah-medium-expert and 1-option "
+                                     "(2026-12-06/07), hopper- and halfcheetah-medium-expert (2026-12-07), and 1-option "
                                      "MOC (`algo=moc_1opt`: the exact ablation of the options) on both hopper datasets "
                                      "(2026-12-07); the other cells have not run yet") + NOTES["demo"]
 NOTES["full"] = (_HEADLINE.format(command="`offhrl train algo=<algo> env=<env> dataset=<level>` exactly", ran="they have not run at this scale yet") + "Seeds 4-6, run once with the defaults; nothing was chosen by looking at them. MOC and PPO on medium data ran "
