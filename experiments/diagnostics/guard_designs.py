@@ -22,28 +22,22 @@ returns. The real scores are read to score a design, never inside one.
 from __future__ import annotations
 
 import argparse
-import math
 from collections import defaultdict
 from pathlib import Path
 
 import torch
 
-Z = 1.645
+from torchrl_offhrl.recipes.selection import GAIN_Z as Z, paired_gain_lcb
 
 
 def worst_member_lcb(diff: torch.Tensor, member: torch.Tensor, z: float = Z, pooled: bool | str = False) -> float:
-    if pooled == "agree":  # the pooled bound, and no member's mean gain below 0 (each member agrees on the sign)
+    """The shipped guard's bound (:func:`~torchrl_offhrl.recipes.selection.paired_gain_lcb`) on per-episode differences
+    ``diff``; ``pooled``: every episode as one sample; ``"agree"``: the pooled bound and no member's mean gain below 0."""
+    if pooled == "agree":
         return min(worst_member_lcb(diff, member, z, True), worst_member_lcb(diff, member, 0.0, False))
-    if pooled:  # every episode as one sample (the members' episodes together)
-        member = torch.zeros_like(member)
-    out = []
-    for k in member.unique():
-        d = diff[member == k].double()
-        m = float(d.mean())
-        if d.numel() > 1:
-            m -= z * float(d.std()) / math.sqrt(d.numel())
-        out.append(m)
-    return min(out)
+    members = [0] * len(member) if pooled else [int(k) for k in member]
+    return paired_gain_lcb({"model_episode_returns": diff.tolist(), "model_episode_members": members},
+                           {"model_episode_returns": [0.0] * len(members), "model_episode_members": members}, z=z)
 
 
 def per_episode(p: dict, h: int | None, penalty: bool) -> torch.Tensor:

@@ -42,21 +42,26 @@ def agent_defaults(name: str, loss=None) -> dict:
     """
     out: dict = {}
     agent = agent_class(name)
-    for cls in agent.__mro__:
-        if "__init__" not in vars(cls):
-            continue
-        params = inspect.signature(cls.__init__).parameters
+    for params in _init_chain(agent):
         for k, p in params.items():
             if k != "self" and k not in _CONTEXT and p.kind is p.KEYWORD_ONLY:
                 out.setdefault(k, p.default)
-        rest = [p for p in params.values() if p.kind is p.VAR_KEYWORD]
-        if rest and rest[0].name == "loss_kwargs":
+        if any(p.kind is p.VAR_KEYWORD and p.name == "loss_kwargs" for p in params.values()):
             for k, v in loss_arguments(agent, loss).items():  # the registered class's loss, defaults and exclusions
                 out.setdefault(k, v)
             break
-        if not rest:
-            break
     return out
+
+
+def _init_chain(cls):
+    """The parameters of each ``__init__`` along ``cls``'s MRO, as far as each passes ``**kwargs`` on to the next."""
+    for c in cls.__mro__:
+        if "__init__" not in vars(c):
+            continue
+        params = inspect.signature(c.__init__).parameters
+        yield params
+        if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+            return
 
 
 def loss_arguments(cls, loss=None) -> dict:
@@ -69,15 +74,10 @@ def loss_arguments(cls, loss=None) -> dict:
         loss = import_class(loss, getattr(cls, "loss_base", cls.loss_class), "algo.loss")
     set_by_agent, deviations = getattr(cls, "loss_set_by_agent", ()), getattr(cls, "loss_defaults", {})
     out: dict = {}
-    for lcls in (loss or cls.loss_class).__mro__:
-        if "__init__" not in vars(lcls):
-            continue
-        params = inspect.signature(lcls.__init__).parameters
+    for params in _init_chain(loss or cls.loss_class):
         for k, p in params.items():
             if k != "self" and k not in set_by_agent and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
                 out.setdefault(k, deviations.get(k, p.default))
-        if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
-            break
     return out
 
 

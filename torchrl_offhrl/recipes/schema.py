@@ -419,9 +419,12 @@ def _algo_problems(algo: Mapping) -> list[str]:
     if name not in AGENTS:
         return [f"algo.name: expected one of {', '.join(sorted(AGENTS))}, got {name!r}"] if name is not None else []
     try:  # a loss named by algo.loss brings its own arguments: importing it can fail, which is one more problem to name
-        unknown, takes = unknown_hyperparameters(name, algo), ", ".join(sorted(agent_defaults(name, loss=algo.get("loss"))))
+        unknown = unknown_hyperparameters(name, algo)
     except (ValueError, TypeError) as err:
         return [str(err)]
+    if not unknown:
+        return []
+    takes = ", ".join(sorted(agent_defaults(name, loss=algo.get("loss"))))  # the loss imported above: it cannot fail here
     return [f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown]
 
 
