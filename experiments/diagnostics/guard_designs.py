@@ -1,6 +1,6 @@
 """Guard designs scored on kept rollouts: which paired model comparison tells a better policy from a worse one?
 
-    python experiments/diagnostics/guard_designs.py FOLDER [--last-only]
+    python experiments/diagnostics/guard_designs.py FOLDER [--last-only] [--runs ROOT ...]
 
 Reads the ``<run>.pt`` files of ``guard_rollouts.py`` (every kept policy and
 the start of a run, each model episode step by step). For every design, the
@@ -11,7 +11,11 @@ guard passes a policy when that bound is above 0. Designs: the return
 truncated at ``h`` steps (``h`` = the run's training horizon from the offline
 rules, or a fixed count), with the pessimism's penalty (``-penalty`` on the
 step that ends an episode) or without it (the episode still ends there: what
-leaving the data costs is the reward it no longer collects).
+leaving the data costs is the reward it no longer collects). With
+``--runs ROOT [ROOT ...]`` (folders holding the runs, to read each one's
+dataset) the designs ``*_cap`` clip every episode's return, the start's and
+the policy's, at the best return of a complete episode in the run's data
+before pairing them: the model cannot vouch for a return the data never shows.
 
 Printed per design, over every (run, policy) pair, or only the last policy
 of each run (``--last-only``: what a run returns): passes and fires, how many
@@ -25,9 +29,27 @@ import argparse
 from collections import defaultdict
 from pathlib import Path
 
+import json
+
 import torch
 
 from torchrl_offhrl.recipes.selection import GAIN_Z as Z, paired_gain_lcb
+
+_BEST: dict = {}
+
+
+def data_best_return(run_name: str, roots: list[Path]) -> float:
+    """The best return of a complete episode in the data of the run ``run_name`` (its ``config.json`` under one of ``roots``)."""
+    from torchrl_offhrl.recipes.config import resolve_dataset
+
+    found = [r / run_name for r in roots if (r / run_name / "config.json").exists()]
+    if not found:
+        raise FileNotFoundError(f"no {run_name}/config.json under {', '.join(map(str, roots))}")
+    cfg = json.loads((found[0] / "config.json").read_text())
+    key = (cfg["env"]["name"], str(cfg["dataset"]), cfg.get("dataset_seed"), cfg.get("num_transitions"))
+    if key not in _BEST:
+        _BEST[key] = float(resolve_dataset(cfg).episode_returns(complete_only=True).max())
+    return _BEST[key]
 
 
 def worst_member_lcb(diff: torch.Tensor, member: torch.Tensor, z: float = Z, pooled: bool | str = False) -> float:
@@ -49,17 +71,21 @@ def per_episode(p: dict, h: int | None, penalty: bool) -> torch.Tensor:
     return r.sum(1)
 
 
-def designs(run: dict) -> dict:
+def designs(run: dict, cap: bool = False) -> dict:
     H = int(run["config"]["resolved_model_env"]["horizon"])
     out = {}
+    if cap:
+        out["whole_pen_cap"] = (None, True, False, True)
+        out["h50_pen_cap"] = (50, True, False, True)
+        out["whole_pool_pen_cap"] = (None, True, True, True)
     for pooled in (False, True, "agree"):
         for pen in (True, False):
             tag = ("agree_" if pooled == "agree" else "pool_" if pooled else "") + ("pen" if pen else "nopen")
-            out[f"whole_{tag}"] = (None, pen, pooled)
-            out[f"hrule_{tag}"] = (H, pen, pooled)
-            out[f"2hrule_{tag}"] = (2 * H, pen, pooled)
+            out[f"whole_{tag}"] = (None, pen, pooled, False)
+            out[f"hrule_{tag}"] = (H, pen, pooled, False)
+            out[f"2hrule_{tag}"] = (2 * H, pen, pooled, False)
             for h in (50, 100, 200, 300):
-                out[f"h{h}_{tag}"] = (h, pen, pooled)
+                out[f"h{h}_{tag}"] = (h, pen, pooled, False)
     return out
 
 
@@ -69,6 +95,7 @@ def main(argv=None) -> int:
     ap.add_argument("--last-only", action="store_true")
     ap.add_argument("--match", default="", help="only runs whose name contains this")
     ap.add_argument("--show", nargs="*", default=[], help="designs to break down per run group (algo-env-level)")
+    ap.add_argument("--runs", nargs="*", type=Path, default=[], help="folders holding the runs (for the *_cap designs)")
     a = ap.parse_args(argv)
     rows = defaultdict(list)  # design -> (group, gain_real, lcb, start_real, policy_real)
     groups = set()
@@ -81,10 +108,14 @@ def main(argv=None) -> int:
             pols = pols[-1:]
         group = f.stem.rsplit("-d", 1)[0]
         groups.add(group)
-        for name, (h, pen, pooled) in designs(run).items():
+        best = data_best_return(f.stem, a.runs) if a.runs else None
+        for name, (h, pen, pooled, cap) in designs(run, cap=best is not None).items():
             s0 = per_episode(start, h, pen)
+            if cap:
+                s0 = s0.clamp(max=best)
             for p in pols:
-                lcb = worst_member_lcb(per_episode(p, h, pen) - s0, p["member"], pooled=pooled)
+                r = per_episode(p, h, pen)
+                lcb = worst_member_lcb((r.clamp(max=best) if cap else r) - s0, p["member"], pooled=pooled)
                 rows[name].append((group, p["real"] - start["real"], lcb, start["real"], p["real"]))
     print(f"{'design':16s} {'n':>4s} {'pass':>5s} {'right':>6s} {'cost':>7s} {'fire':>5s} {'right':>6s} {'cost':>7s} {'returned':>9s} {'start':>6s} {'policy':>7s}")
     for name, rs in rows.items():
