@@ -539,10 +539,13 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
     guard, evals = summary["guard"], json.loads((run / "evals.json").read_text())
     assert summary["selected"]["criterion"] == "model_gain_lcb" and evals[0]["frames"] == 0
     assert all(len(e["model_episode_returns"]) == len(e["model_episode_members"]) > 0 for e in evals)
-    from torchrl_offhrl.recipes.selection import paired_gain_lcb
+    from torchrl_offhrl.data import load_dataset
+    from torchrl_offhrl.recipes.selection import data_return_cap, paired_gain_lcb
 
-    best = max((e for e in evals if e["frames"] > 0), key=lambda e: paired_gain_lcb(e, evals[0]))
-    assert guard["candidate_step"] == best["frames"] and guard["gain_lcb"] == pytest.approx(paired_gain_lcb(best, evals[0]))
+    cap = data_return_cap(load_dataset(hopper_file), 40)  # the default selection.return_cap=data; the tests' eval.max_steps=40
+    assert guard["return_cap"] == pytest.approx(cap) and "clipped at the data's best episode" in guard["reason"]
+    best = max((e for e in evals if e["frames"] > 0), key=lambda e: paired_gain_lcb(e, evals[0], cap=cap))
+    assert guard["candidate_step"] == best["frames"] and guard["gain_lcb"] == pytest.approx(paired_gain_lcb(best, evals[0], cap=cap))
     assert guard["fired"] == (not guard["gain_lcb"] > 0)
     saved = torch.load(run / "selected.pt", weights_only=True)
     assert saved["step"] == (0 if guard["fired"] else best["frames"]) == summary["selected"]["frames"]

@@ -204,3 +204,55 @@ def test_the_paper_preset_restores_the_per_dataset_table_and_the_default_has_non
     env, pess = model_env_config(cfg, "medium-expert", data)
     assert pess == {"fraction": 0.08, "penalty": 30.0} and env["horizon"] == 1000 and env["latent_bound"] == 2.0
     assert not needs_rules(cfg) and cfg["selection"] == {"criterion": "last", "include_start": False, "guard": False}
+
+
+# ------------------------------------------------------------------------------------------------ the guard's return cap
+def _data_with_returns(returns_per_step: list[list[float]], unfinished=()):
+    """A toy dataset whose episode ``i`` has the rewards ``returns_per_step[i]`` (lengths may differ)."""
+    lengths = [len(r) for r in returns_per_step]
+    ds = make_toy_dataset(num_episodes=1, episode_length=sum(lengths))
+    ds.data.set("episode", torch.cat([torch.full((n,), i, dtype=ds.data.get("episode").dtype) for i, n in enumerate(lengths)]))
+    ds.data.set(("next", "reward"), torch.tensor([x for r in returns_per_step for x in r]).reshape(ds.data.get(("next", "reward")).shape))
+    ds.metadata["unfinished_episodes"] = list(unfinished)
+    return ds
+
+
+def test_the_return_cap_is_the_best_complete_episode_and_the_best_rate_for_longer_episodes():
+    from torchrl_offhrl.recipes.selection import data_return_cap
+
+    ds = _data_with_returns([[1.0, 1.0, 1.0, 1.0], [3.0, 3.0], [9.0, 9.0, 9.0]], unfinished=[2])  # episode 2 was cut short
+    assert ds.episode_lengths().tolist() == [4, 2, 3] and ds.episode_lengths(complete_only=True).tolist() == [4, 2]
+    assert data_return_cap(ds, max_steps=4) == pytest.approx(6.0)  # the unfinished 27 does not count; 6 > 4
+    assert data_return_cap(ds, max_steps=3) == pytest.approx(6.0)  # shorter model episodes: the cap stays (a loose bound)
+    assert data_return_cap(ds, max_steps=10) == pytest.approx(30.0)  # longer than any episode: 3 per step x 10
+    all_cut = _data_with_returns([[1.0, 2.0]], unfinished=[0])  # nothing complete: every episode counts
+    assert data_return_cap(all_cut, max_steps=2) == pytest.approx(3.0)
+
+
+def test_the_capped_guard_counts_no_gain_above_the_datas_best():
+    start, policy = _rec([10, 10, 20, 20]), _rec([12, 11, 30, 30])
+    # capped at 15: member 0 gains 2 and 0, member 1 gains 1 and 0 (hand-computed means 1 and 0.5)
+    assert paired_gain_lcb(policy, start, z=0.0, cap=15.0) == pytest.approx(0.5)
+    assert paired_gain_lcb(policy, start, z=0.0) == pytest.approx(5.5)
+    # the model pays the policy more than the start, everywhere above the data's best: no evidence, the guard fires
+    hi_start, hi_policy = _rec([100, 100, 100, 100]), _rec([110, 112, 111, 113])
+    for cap, fired in ((90.0, True), (None, False)):
+        sel = PolicySelector("last", guard=True, return_cap=cap)
+        sel.consider(hi_start, _Agent(0), step=0)
+        sel.consider(hi_policy, _Agent(1), step=100)
+        v = sel.verdict()
+        assert v["fired"] is fired and v["return_cap"] == cap
+        assert ("clipped at the data's best episode" in v["reason"]) is (cap is not None)
+    # a gain below the cap still counts: the start's episode ended early (a penalty), the policy's did not
+    sel = PolicySelector("last", guard=True, return_cap=90.0)
+    sel.consider(_rec([-50, 80, -40, 85]), _Agent(0), step=0)
+    sel.consider(_rec([95, 95, 95, 95]), _Agent(1), step=100)
+    assert not sel.verdict()["fired"] and sel.verdict()["gain_lcb"] > 0
+
+
+def test_the_return_cap_does_not_change_a_runs_fingerprint():
+    from torchrl_offhrl.recipes.config import config_fingerprint
+
+    cfg = {"algo": {"name": "moc"}, "selection": {"criterion": "last", "guard": True, "return_cap": "data"}}
+    assert config_fingerprint(cfg) == config_fingerprint({**cfg, "selection": {**cfg["selection"], "return_cap": "none"}})
+    assert config_fingerprint(cfg) != config_fingerprint({**cfg, "selection": {**cfg["selection"], "guard": False}})

@@ -89,7 +89,7 @@ def test_the_typed_sections_hold_the_shipped_defaults():
     assert RunConfig.parse({}) == RunConfig.parse(shipped)
     rc = RunConfig.parse(to_plain(compose("demo", [])))
     assert (rc.train.total("frames"), rc.eval.every("frames"), rc.eval.episodes, rc.collector.num_envs) == (81920, 10240, 30, 64)
-    assert rc.transfer is None and asdict(rc.selection) == {"criterion": "last", "include_start": False, "guard": True}
+    assert rc.transfer is None and asdict(rc.selection) == {"criterion": "last", "include_start": False, "guard": True, "return_cap": "data"}
     t = RunConfig.parse(to_plain(compose("offline_train", ["transfer.task=backward", "transfer.online_frames=4096"]))).transfer
     assert (t.task, t.online_frames, t.num_envs, t.decoder) == ("backward", 4096, 16, "discard")
     with pytest.raises(ValueError, match="unit must be one of"):

@@ -255,6 +255,20 @@ class OfflineDataset:
             out = out[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
         return out
 
+    def episode_lengths(self, complete_only: bool = False) -> torch.Tensor:
+        """Number of transitions of every episode in the data, in order (``complete_only``: as :meth:`episode_returns`).
+
+        >>> from torchrl_offhrl.data import make_toy_dataset
+        >>> make_toy_dataset(num_episodes=2, episode_length=5).episode_lengths().tolist()
+        [5, 5]
+        """
+        ep = self.data.get("episode")
+        ids, counts = torch.unique_consecutive(ep, return_counts=True)
+        unfinished = self.metadata.get("unfinished_episodes") or []
+        if complete_only and unfinished:
+            counts = counts[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
+        return counts
+
     def top_return_episodes(self, share: float) -> tuple[torch.Tensor, dict]:
         """``(mask, info)``: the transitions of the highest-return episodes, as few as cover ``share`` of the data.
 

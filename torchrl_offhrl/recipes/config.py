@@ -385,6 +385,10 @@ def config_fingerprint(cfg: Mapping) -> str:
     if isinstance(kept.get("model_env"), Mapping) and kept["model_env"].get("pessimism") is None and "pessimism" in kept["model_env"]:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}
+    if isinstance(kept.get("selection"), Mapping):
+        # the guard's return cap changes nothing a run trains, only which kept policy its end returns (decided again from
+        # the evaluation records whenever a finished run is called): a run resumes, or is re-finished, under either value
+        kept["selection"] = {k: v for k, v in kept["selection"].items() if k != "return_cap"}
     for section, defaults in LATER_DEFAULTS.items():
         if isinstance(kept.get(section), Mapping):
             kept[section] = {k: v for k, v in kept[section].items() if not (k in defaults and v == defaults[k])}

@@ -59,13 +59,29 @@ policies the real env scores well below their start, truncated returns trade
 one dataset's certified gains for another's, and no comparison of the model's
 episodes tried tells most better gaits from worse ones
 (``docs/results/offline_probes.md``).
+
+The return cap (``selection.return_cap: data``, the default). Before pairing,
+every model episode's return, the start's and the policy's, is clipped at
+:func:`data_return_cap`: the best return of a complete episode in the data.
+A model that pays a policy more than any episode of the data ever earned is
+extrapolating, and a gain measured there is not evidence: on halfcheetah the
+model pays the start itself above the data's best (medium: 5,160 against
+4,654), and the guard without the cap passed policies the model paid 2-4%
+more while the real env scored them 25-50 points below their start (the
+cheetah stops; the members agree on the exploit). With the cap a gain counts
+only where it lifts episodes the start leaves below the data's best (an episode
+the pessimism ended early, a fall): on the design runs it removed every wrong
+pass and the small right ones of halfcheetah-medium, and on the held-out runs
+it decided as the uncapped guard (``docs/results/offline_probes.md``; it was
+looked for after evaluation-seed runs showed the wrong passes, and says so
+there). ``return_cap: none`` compares the returns as they are.
 """
 from __future__ import annotations
 
 import copy
 import math
 
-__all__ = ["CRITERIA", "GAIN_Z", "PolicySelector", "paired_gain_lcb"]
+__all__ = ["CRITERIA", "GAIN_Z", "PolicySelector", "data_return_cap", "paired_gain_lcb"]
 
 #: one-sided 95% normal quantile of :func:`paired_gain_lcb`
 GAIN_Z = 1.645
@@ -78,7 +94,35 @@ CRITERIA: dict[str, str | None] = {
 }
 
 
-def paired_gain_lcb(record: dict, start: dict, z: float = GAIN_Z) -> float | None:
+def data_return_cap(data, max_steps: int | None = None) -> float | None:
+    """The highest return the data vouches for in a model episode of ``max_steps`` steps: the guard's return cap.
+
+    The best undiscounted return of a complete episode in ``data`` (an
+    :class:`~torchrl_offhrl.data.OfflineDataset`; every episode when none is
+    marked complete). When the model episodes are longer than every episode
+    of the data (``max_steps`` above the longest), the best return per step
+    of a data episode times ``max_steps`` if that is higher: the data cannot
+    show what a longer episode earns, and the cap must not end a policy's
+    gain where the data merely stopped recording. None for data without
+    episodes.
+
+    >>> from torchrl_offhrl.data import make_toy_dataset
+    >>> ds = make_toy_dataset(num_episodes=3, episode_length=5)
+    >>> data_return_cap(ds, max_steps=5) == float(ds.episode_returns().max())
+    True
+    """
+    returns, lengths = data.episode_returns(complete_only=True), data.episode_lengths(complete_only=True)
+    if returns.numel() == 0:
+        returns, lengths = data.episode_returns(), data.episode_lengths()
+    if returns.numel() == 0:
+        return None
+    cap = float(returns.max())
+    if max_steps is not None and int(max_steps) > int(lengths.max()):
+        cap = max(cap, float((returns / lengths.clamp(min=1)).max()) * int(max_steps))
+    return cap
+
+
+def paired_gain_lcb(record: dict, start: dict, z: float = GAIN_Z, cap: float | None = None) -> float | None:
     """The worst member's lower confidence bound on a policy's gain over the start policy, on paired model episodes.
 
     ``record`` and ``start`` are evaluation records holding
@@ -87,6 +131,9 @@ def paired_gain_lcb(record: dict, start: dict, z: float = GAIN_Z) -> float | Non
     member in both). Per member ``k``: the mean of the paired differences
     ``d_i = R_i - R_start_i`` over its episodes minus ``z`` standard errors
     (a member with one episode: its difference); the smallest over members.
+    With ``cap`` (:func:`data_return_cap`) every return is first clipped at
+    it: ``d_i = min(R_i, cap) - min(R_start_i, cap)``, so a gain the model
+    pays above the data's best return counts as none.
     None when either record lacks the episodes or they do not pair up.
 
     >>> start = {"model_episode_returns": [10.0, 10.0, 20.0, 20.0], "model_episode_members": [0, 1, 0, 1]}
@@ -97,14 +144,17 @@ def paired_gain_lcb(record: dict, start: dict, z: float = GAIN_Z) -> float | Non
     False
     >>> paired_gain_lcb({"model_episode_returns": [12.0, 8.0, 22.0, 21.0], "model_episode_members": [0, 1, 0, 1]}, start, z=0.0)
     -0.5
+    >>> paired_gain_lcb(better, start, z=0.0, cap=15.0)   # the 20s and 21-22s clip to 15: only the first episodes' gains count
+    0.5
     """
     r, s = record.get("model_episode_returns"), start.get("model_episode_returns")
     m, ms = record.get("model_episode_members"), start.get("model_episode_members")
     if r is None or s is None or m is None or len(r) != len(s) or list(m) != list(ms or []):
         return None
+    clip = (lambda x: min(float(x), float(cap))) if cap is not None else float
     by_member: dict = {}
     for ri, si, k in zip(r, s, m):
-        by_member.setdefault(k, []).append(float(ri) - float(si))
+        by_member.setdefault(k, []).append(clip(ri) - clip(si))
     bounds = []
     for d in by_member.values():
         mean = sum(d) / len(d)
@@ -129,6 +179,8 @@ class PolicySelector:
         guard: keep the start policy (step 0) and return it instead of the
             selected one when :func:`paired_gain_lcb` of the selected
             evaluation against the start is not above 0 (:meth:`verdict`).
+        return_cap: the guard's (and ``model_gain_lcb``'s) cap on every model
+            episode's return (:func:`data_return_cap`; None: no cap).
 
     ``consider(record, agent, step)`` after each evaluation; ``selected``
     is ``{"index", "step", "score", "agent"}`` of the best so far (None
@@ -149,11 +201,12 @@ class PolicySelector:
         (200, {'w': 2})
     """
 
-    def __init__(self, criterion: str = "last", include_start: bool = False, guard: bool = False):
+    def __init__(self, criterion: str = "last", include_start: bool = False, guard: bool = False, return_cap: float | None = None):
         if criterion not in CRITERIA:
             raise ValueError(f"selection.criterion must be one of {sorted(CRITERIA)}, got {criterion!r}")
         self.criterion, self.key, self.include_start = criterion, CRITERIA[criterion], bool(include_start)
         self.guard = bool(guard)
+        self.return_cap = None if return_cap is None else float(return_cap)
         self.selected: dict | None = None
         self.start: dict | None = None  # the step-0 evaluation: its record's model episodes and (guard) its agent state
         self._count = 0
@@ -168,7 +221,7 @@ class PolicySelector:
         if self.key is None:
             return float(self._count)  # later is better: the last evaluation wins
         if self.criterion == "model_gain_lcb":
-            return None if self.start is None else paired_gain_lcb(record, self.start["record"])
+            return None if self.start is None else paired_gain_lcb(record, self.start["record"], cap=self.return_cap)
         v = record.get(self.key)
         return None if v is None else float(v)
 
@@ -211,14 +264,17 @@ class PolicySelector:
                                                                  "the selected policy is returned unguarded"}
         if self.selected is None:
             return {"fired": True, "gain_lcb": None, "reason": "no trained policy was evaluated"}
-        lcb = paired_gain_lcb(self.selected["episodes"], self.start["record"])
+        cap = self.return_cap
+        lcb = paired_gain_lcb(self.selected["episodes"], self.start["record"], cap=cap)
         if lcb is None:
-            return {"fired": True, "gain_lcb": None, "reason": "the evaluations lack paired model episodes (eval.model_env=false?)"}
+            return {"fired": True, "gain_lcb": None, "return_cap": cap,
+                    "reason": "the evaluations lack paired model episodes (eval.model_env=false?)"}
         fired = not lcb > 0
-        reason = (f"no ensemble member shows a gain over the start policy with 95% confidence (worst member's bound {lcb:.4g}): "
+        capped = "" if cap is None else f", returns clipped at the data's best episode, {cap:.4g}"
+        reason = (f"no ensemble member shows a gain over the start policy with 95% confidence (worst member's bound {lcb:.4g}{capped}): "
                   "the start policy is returned" if fired else
-                  f"every ensemble member shows a gain over the start policy (worst member's 95% lower bound {lcb:.4g})")
-        return {"fired": fired, "gain_lcb": float(lcb), "reason": reason}
+                  f"every ensemble member shows a gain over the start policy (worst member's 95% lower bound {lcb:.4g}{capped})")
+        return {"fired": fired, "gain_lcb": float(lcb), "return_cap": cap, "reason": reason}
 
     def state_dict(self) -> dict:
         return {"criterion": self.criterion, "include_start": self.include_start, "count": self._count, "selected": self.selected,

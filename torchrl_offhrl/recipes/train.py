@@ -47,7 +47,7 @@ from .summary import run_summary
 from .rundir import RunDirectory
 from .runs import read_json
 from .schema import RunConfig
-from .selection import PolicySelector
+from .selection import PolicySelector, data_return_cap
 from .setting import build_setting
 
 TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
@@ -115,7 +115,8 @@ class PreparedRun:
             warnings.warn(f"selection.criterion={criterion} / selection.guard={guard} compare the trained policies with the evaluation "
                           "at step 0, which eval.at_start=false skips: the last policy is returned, unguarded", stacklevel=2)
             criterion, guard = ("last" if criterion == "model_gain_lcb" else criterion), False
-        run.selector = PolicySelector(criterion, rc.selection.include_start, guard=guard)
+        cap = data_return_cap(s.data, rc.eval.max_steps) if rc.selection.return_cap == "data" else None
+        run.selector = PolicySelector(criterion, rc.selection.include_start, guard=guard, return_cap=cap)
         previous_summary = None
         resumed = run.resume(agent, s.device)
         if not resumed:  # a start from the dataset before training (e.g. MOReL's behaviour cloning); a resumed run has it in its weights
