@@ -545,10 +545,32 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
     cap = data_return_cap(load_dataset(hopper_file), 40)  # the default selection.return_cap=data; the tests' eval.max_steps=40
     assert guard["return_cap"] == pytest.approx(cap) and "clipped at the data's best episode" in guard["reason"]
     best = max((e for e in evals if e["frames"] > 0), key=lambda e: paired_gain_lcb(e, evals[0], cap=cap))
-    assert guard["candidate_step"] == best["frames"] and guard["gain_lcb"] == pytest.approx(paired_gain_lcb(best, evals[0], cap=cap))
+    assert guard["candidate_step"] == best["frames"]
+    # the fallback (selection.fallback=start_or_bc): the percentile BC, evaluated on the same model episodes as the start;
+    # the trained policy is judged against the BC unless the start shows a gain over it
+    fb = json.loads((run / "fallback.json").read_text())
+    assert fb["model_episode_members"] == evals[0]["model_episode_members"] and summary["fallback"]["normalized_d4rl"] == fb["normalized_d4rl"]
+    start_over_bc = paired_gain_lcb(evals[0], fb, cap=cap)  # the default selection.fallback=bc_unless_start
+    assert guard["start_over_bc_lcb"] == pytest.approx(start_over_bc) and guard["against"] == ("start" if start_over_bc > 0 else "bc")
+    assert guard["gain_lcb"] == pytest.approx(min(paired_gain_lcb(best, evals[0], cap=cap), paired_gain_lcb(best, fb, cap=cap)))
     assert guard["fired"] == (not guard["gain_lcb"] > 0)
+    assert guard["returned"] == ((guard["against"] if guard["fired"] else "trained"))
     saved = torch.load(run / "selected.pt", weights_only=True)
-    assert saved["step"] == (0 if guard["fired"] else best["frames"]) == summary["selected"]["frames"]
+    if guard["returned"] == "bc":
+        assert saved["policy"] == "percentile_bc" and summary["selected"]["policy"] == "percentile_bc"
+        assert summary["selected"]["normalized_d4rl"] == fb["normalized_d4rl"]
+    else:
+        assert saved["step"] == (0 if guard["fired"] else best["frames"]) == summary["selected"]["frames"]
+    # a returned percentile BC acts in real actions: `offhrl evaluate` rolls it out as it is
+    from torchrl_offhrl.recipes.evaluation import evaluate_run
+    from torchrl_offhrl.recipes.fallback import ClonedPolicy, fit_or_load_bc
+
+    bc = fit_or_load_bc(to_plain(_cfg("ppo", hopper_file, tmp_path / "g")), load_dataset(hopper_file), None, 0.1, progress=False)
+    from torchrl_offhrl.utils import save_torch_file
+
+    save_torch_file({"policy": "percentile_bc", "bc": ClonedPolicy(bc).state_dict(), "step": 0, "criterion": "last", "record": fb}, run / "selected.pt")
+    res = evaluate_run(run, episodes=2)
+    assert res["frames"] == 0 and len(res["returns"]) == 2
     with warnings.catch_warnings(record=True) as seen:  # without the start's evaluation there is nothing to guard against: it says so
         warnings.simplefilter("always")
         s2 = train(_cfg("ppo", hopper_file, tmp_path / "noguard", ["train.total_frames=128", *guarded]), progress=False)

@@ -203,7 +203,8 @@ def test_the_paper_preset_restores_the_per_dataset_table_and_the_default_has_non
     data = make_toy_dataset(num_episodes=4, episode_length=10)
     env, pess = model_env_config(cfg, "medium-expert", data)
     assert pess == {"fraction": 0.08, "penalty": 30.0} and env["horizon"] == 1000 and env["latent_bound"] == 2.0
-    assert not needs_rules(cfg) and cfg["selection"] == {"criterion": "last", "include_start": False, "guard": False}
+    assert not needs_rules(cfg) and cfg["selection"] == {"criterion": "last", "include_start": False, "guard": False, "return_cap": "none",
+                                                     "fallback": "start"}
 
 
 # ------------------------------------------------------------------------------------------------ the guard's return cap
@@ -256,3 +257,47 @@ def test_the_return_cap_does_not_change_a_runs_fingerprint():
     cfg = {"algo": {"name": "moc"}, "selection": {"criterion": "last", "guard": True, "return_cap": "data"}}
     assert config_fingerprint(cfg) == config_fingerprint({**cfg, "selection": {**cfg["selection"], "return_cap": "none"}})
     assert config_fingerprint(cfg) != config_fingerprint({**cfg, "selection": {**cfg["selection"], "guard": False}})
+
+
+def test_the_guard_judges_against_the_start_and_the_percentile_bc_and_falls_back_to_one_of_them():
+    start, bc = _rec([10, 10, 10, 10]), _rec([12, 13, 12, 13])  # the start shows no gain over the BC (it loses 2 and 3)
+    sel = PolicySelector("last", guard=True)
+    sel.consider(start, _Agent(0), step=0)
+    sel.consider(_rec([11, 11, 11, 11]), _Agent(1), step=100)  # beats the start by 1, loses to the BC by 1-2
+    v = sel.verdict(fallback=bc)
+    assert v["against"] == "bc" and v["fired"] and v["start_over_bc_lcb"] == pytest.approx(-3.0) and v["bc_over_start_lcb"] == pytest.approx(2.0)
+    assert v["gain_lcb_over_start"] == pytest.approx(1.0) and v["gain_lcb"] == pytest.approx(-2.0) and "percentile BC is returned" in v["reason"]
+    assert sel.verdict(fallback=bc, prefer="start")["against"] == "bc"  # the BC shows a gain over the start: either preference takes it
+    assert not sel.verdict()["fired"] and sel.verdict()["against"] == "start"  # without the BC: judged against the start, passes
+    # neither shows a gain over the other (member 0 prefers one, member 1 the other): the preference decides
+    tie = _rec([12, 8, 12, 8])
+    assert sel.verdict(fallback=tie)["against"] == "bc" and sel.verdict(fallback=tie, prefer="start")["against"] == "start"
+    # a start that beats the BC by 5 under every member: the fallback, and the policy must beat both
+    v = sel.verdict(fallback=_rec([5, 5, 5, 5]))
+    assert v["against"] == "start" and v["start_over_bc_lcb"] == pytest.approx(5.0) and not v["fired"] and v["gain_lcb"] == pytest.approx(1.0)
+    # episodes that do not pair up: the BC is left out, and the reason says why
+    v = sel.verdict(fallback=_rec([5, 5, 5], (0, 1, 0)))
+    assert v["against"] == "start" and v["start_over_bc_lcb"] is None and "do not pair" in v["reason"]
+
+
+def test_the_percentile_bc_fits_the_best_episodes_and_round_trips(tmp_path):
+    from torchrl_offhrl.models import PercentileBC
+    from torchrl_offhrl.recipes.fallback import ClonedPolicy
+
+    data = make_toy_dataset(num_episodes=8, episode_length=20)
+    obs = data.data["observation"]  # a behaviour that is a function of the state, for the cloner to learn
+    data.data.set("action", 0.5 * torch.tanh(10 * obs[:, :2] - 5 * obs[:, 1:3]))
+    bc = PercentileBC.for_dataset(data, hidden_sizes=(32,))
+    with torch.no_grad():
+        before = float(bc.loss(data.data))
+    bc.fit(data, max_steps=2000, progress=False, seed=0, patience=50)
+    with torch.no_grad():
+        after = float(bc.loss(data.data))
+        act = bc(data.data["observation"])
+    assert after < 0.5 * before and bool(((act >= data.action_low - 1e-6) & (act <= data.action_high + 1e-6)).all())
+    again = ClonedPolicy.from_state(ClonedPolicy(bc).state_dict())
+    with torch.no_grad():
+        assert torch.equal(again.bc(data.data["observation"]), act)
+    bc.save(tmp_path / "bc.pt")
+    with torch.no_grad():
+        assert torch.equal(PercentileBC.load(tmp_path / "bc.pt")(data.data["observation"]), act)

@@ -89,7 +89,8 @@ def test_the_typed_sections_hold_the_shipped_defaults():
     assert RunConfig.parse({}) == RunConfig.parse(shipped)
     rc = RunConfig.parse(to_plain(compose("demo", [])))
     assert (rc.train.total("frames"), rc.eval.every("frames"), rc.eval.episodes, rc.collector.num_envs) == (81920, 10240, 30, 64)
-    assert rc.transfer is None and asdict(rc.selection) == {"criterion": "last", "include_start": False, "guard": True, "return_cap": "data"}
+    assert rc.transfer is None and asdict(rc.selection) == {"criterion": "last", "include_start": False, "guard": True, "return_cap": "data",
+                                                           "fallback": "bc_unless_start"}
     t = RunConfig.parse(to_plain(compose("offline_train", ["transfer.task=backward", "transfer.online_frames=4096"]))).transfer
     assert (t.task, t.online_frames, t.num_envs, t.decoder) == ("backward", 4096, 16, "discard")
     with pytest.raises(ValueError, match="unit must be one of"):
@@ -103,7 +104,7 @@ def test_a_key_a_typed_section_lacks_is_refused_with_the_keys_it_takes():
     msg = str(err.value)
     assert "train.total_frame: unknown key; train takes total_frames, total_updates, online, snapshot_frames" in msg
     assert "eval.every_frame: unknown key; eval takes at_start, model_env, every_frames, every_updates, episodes" in msg
-    assert "selection: expected a mapping of criterion, include_start, guard, got 'last'" in msg
+    assert "selection: expected a mapping of criterion, include_start, guard, return_cap, fallback, got 'last'" in msg
 
 
 def test_cli_refuses_an_unknown_key_added_with_plus(tmp_path, monkeypatch, capsys):

@@ -529,14 +529,17 @@ def _guard_section(runs: list[dict]) -> list[str]:
         ev = r["evals"]
         judged = next((e for e in ev if e.get("step", e["frames"]) == guard.get("candidate_step")), ev[-1])
         algo, _, row = r["name"].rsplit("-seed", 1)[0].partition("-")
-        groups[(row, algo)].append((bool(guard["fired"]), ev[0]["normalized_d4rl"], judged["normalized_d4rl"]))
+        base = ((r["summary"].get("fallback") or {}).get("normalized_d4rl") if guard.get("against") == "bc" else None)
+        groups[(row, algo)].append((bool(guard["fired"]), ev[0]["normalized_d4rl"] if base is None else base, judged["normalized_d4rl"]))
     if not groups:
         return []
     out = ["", "## The guard on the default's runs", "",
-           "Each run's guard compared the policy it judged (the last) with the start on the same model episodes; *right* is "
+           "Each run's guard compared the policy it judged (the last) with its fallback on the same model episodes: the start, "
+           "or the percentile BC of the same episodes where the start showed no gain over it (`selection.fallback`, from "
+           "2026-12-07; runs finished before compared with the start); *right* is "
            "decided afterwards in the real env (never used to choose): a fired guard is right when the judged policy is not "
-           "above the start, a passing one when it is not below. Costs are D4RL points: what the wrong decisions gave up "
-           "(fired: judged - start) or let through (passed: start - judged).", "",
+           "above the fallback, a passing one when it is not below. Costs are D4RL points: what the wrong decisions gave up "
+           "(fired: judged - fallback) or let through (passed: fallback - judged).", "",
            "| dataset | algo | runs | fired | right when fired | cost when wrongly fired | passed | right when passed | cost when wrongly passed |",
            "|---|---|---|---|---|---|---|---|---|"]
     for (row, algo), g in sorted(groups.items()):

@@ -1,5 +1,6 @@
 """Learned models: vectorised ensembles, the dynamics ensemble, the CVAE, their trainer and their held-out quality."""
 from ._common import atomic_torch_save
+from .bc import PercentileBC
 from .cvae import ConditionalVAE, CVAEDecoder, LatentOrigin
 from .dynamics import DISCREPANCIES, DynamicsEnsemble
 from .ensemble import EnsembleLinear, EnsembleMLP
@@ -14,6 +15,7 @@ __all__ = [
     "EnsembleLinear",
     "EnsembleMLP",
     "LatentOrigin",
+    "PercentileBC",
     "SupervisedTrainer",
     "atomic_torch_save",
     "decoder_sensitivity",

@@ -386,9 +386,9 @@ def config_fingerprint(cfg: Mapping) -> str:
         # no overrides of the pessimism table: null (the config's default) and {} (its default before) are the same run
         kept["model_env"] = {**kept["model_env"], "pessimism": {}}
     if isinstance(kept.get("selection"), Mapping):
-        # the guard's return cap changes nothing a run trains, only which kept policy its end returns (decided again from
+        # the guard's return cap and fallback change nothing a run trains, only which kept policy its end returns (decided again from
         # the evaluation records whenever a finished run is called): a run resumes, or is re-finished, under either value
-        kept["selection"] = {k: v for k, v in kept["selection"].items() if k != "return_cap"}
+        kept["selection"] = {k: v for k, v in kept["selection"].items() if k not in ("return_cap", "fallback")}
     for section, defaults in LATER_DEFAULTS.items():
         if isinstance(kept.get(section), Mapping):
             kept[section] = {k: v for k, v in kept[section].items() if not (k in defaults and v == defaults[k])}

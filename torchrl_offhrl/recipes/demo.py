@@ -63,7 +63,8 @@ def start_lines(cfg: dict) -> list[str]:
     if mode == "best":
         share = float(menv.get("origin_share", DEFAULT_ORIGIN_SHARE))
         return [f"(before training the agent's latent 0 decodes to the action of the data's best episodes at each state, model_env.latent_origin=best:",
-                f" it starts as a behaviour cloner of the highest-return episodes holding {100 * share:g}% of the transitions, and the guard falls back to it)"]
+                f" it starts as a behaviour cloner of the highest-return episodes holding {100 * share:g}% of the transitions; the guard falls back to it"
+                " or to a plain percentile BC of the same episodes)"]
     if mode == "behaviour":
         return ["(before training the agent's latent 0 decodes to the data's action at each state, model_env.latent_origin=behaviour:",
                 " it starts as a behaviour cloner of the data, and the guard falls back to it)"]

@@ -284,7 +284,10 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
 
     ``policy="selected"`` loads the policy the run returned by offline policy
     selection (``selected.pt``, :mod:`~torchrl_offhrl.recipes.selection`)
-    instead of the last one, where the run has it (else the last one).
+    instead of the last one, where the run has it (else the last one). When
+    the guard returned the percentile BC (:mod:`~torchrl_offhrl.recipes.fallback`),
+    ``agent`` is that :class:`~torchrl_offhrl.recipes.fallback.ClonedPolicy`
+    and ``env`` the real env in real actions.
 
     The env (``num_envs`` side by side) decodes through the run's CVAE, loaded
     from the model cache (``cvae``, None for a run without it); ``state`` is
@@ -339,6 +342,11 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
         raise ValueError(f"policy must be 'last' or 'selected', got {policy!r}")
     if policy == "selected" and (run / "selected.pt").is_file():
         chosen = load_torch_file(run / "selected.pt", "selected policy", "rerun the training command to write it again")
+        if chosen.get("policy") == "percentile_bc":  # the guard returned the percentile BC: it acts in real actions, no decoder
+            from .fallback import ClonedPolicy
+
+            env.close()
+            return cfg, make_real_env(env_id, None, num_envs=num_envs, task=task), ClonedPolicy.from_state(chosen["bc"]), {**state, "frames": 0}, cvae
         agent.load_state_dict(chosen["agent"])
         state = {**state, "frames": int(chosen["record"]["frames"])}
     else:

@@ -150,6 +150,7 @@ class SelectionConfig:
     include_start: bool = _setting(_bool(), False)  # the untrained policy is a candidate too
     guard: bool = _setting(_bool(), True)  # return the start policy when no member shows a gain over it (selection.PolicySelector)
     return_cap: str = _setting(_choice("data", "none"), "data")  # the guard's returns clipped at the data's best episode (selection.data_return_cap)
+    fallback: str = _setting(_choice("bc_unless_start", "start_unless_bc", "start"), "bc_unless_start")  # what a fired guard returns (recipes.fallback)
 
 
 @dataclass(frozen=True)

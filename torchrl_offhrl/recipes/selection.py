@@ -250,31 +250,61 @@ class PolicySelector:
             self.selected["episodes"] = _episodes(record)
         return True
 
-    def verdict(self) -> dict | None:
-        """The guard's decision on the selected policy (None without a guard): ``{"fired", "gain_lcb", "reason"}``.
+    def verdict(self, fallback: dict | None = None, prefer: str = "bc") -> dict | None:
+        """The guard's decision on the selected policy (None without a guard): ``{"fired", "gain_lcb", "against", "reason", ...}``.
 
-        ``fired`` is True when the selected policy's paired gain bound over
-        the start is not above 0, or cannot be computed (then ``reason`` says
-        why); the run then returns :attr:`start`'s policy.
+        Without ``fallback`` the selected policy must show a gain over the
+        start (``gain_lcb``: the worst member's bound, :func:`paired_gain_lcb`),
+        else the start is returned. ``fallback`` is the evaluation record of
+        a percentile BC of the same episodes (:mod:`~torchrl_offhrl.recipes.fallback`;
+        its model episodes pair up with the start's): the selected policy must
+        then show a gain over both (``gain_lcb`` the smaller bound), and a
+        fired guard returns one of them (``against``): with ``prefer="bc"``
+        the BC unless the start shows a gain over it, with ``prefer="start"``
+        the start unless the BC shows a gain over it
+        (``start_over_bc_lcb`` / ``bc_over_start_lcb``). A BC whose episodes
+        do not pair up is left out (the reason says so).
         """
         if not self.guard:
             return None
         if self.start is None or self.start.get("agent") is None:
             return {"fired": False, "gain_lcb": None, "reason": "no evaluation at step 0 (eval.at_start=false): nothing to compare with; "
                                                                  "the selected policy is returned unguarded"}
+        if prefer not in ("bc", "start"):
+            raise ValueError(f"prefer must be 'bc' or 'start', got {prefer!r}")
+        cap, start = self.return_cap, self.start["record"]
+        bc = None if fallback is None else _episodes(fallback)
+        start_over_bc = None if bc is None else paired_gain_lcb(start, bc, cap=cap)
+        bc_over_start = None if bc is None else paired_gain_lcb(bc, start, cap=cap)
+        if start_over_bc is None:
+            bc, against = None, "start"
+        elif prefer == "bc":
+            against = "start" if start_over_bc > 0 else "bc"
+        else:
+            against = "bc" if bc_over_start > 0 else "start"
+        name = {"start": "the start policy", "bc": "the percentile BC"}[against]
+        why = ("" if fallback is None else
+               "; the percentile BC's model episodes do not pair with the start's, it is left out" if bc is None else
+               f"; of the two fallbacks the {'BC unless the start' if prefer == 'bc' else 'start unless the BC'} shows a gain over the other")
+        out = {"against": against, "return_cap": cap,
+               "start_over_bc_lcb": None if start_over_bc is None else float(start_over_bc),
+               "bc_over_start_lcb": None if bc_over_start is None else float(bc_over_start)}
         if self.selected is None:
-            return {"fired": True, "gain_lcb": None, "reason": "no trained policy was evaluated"}
-        cap = self.return_cap
-        lcb = paired_gain_lcb(self.selected["episodes"], self.start["record"], cap=cap)
-        if lcb is None:
-            return {"fired": True, "gain_lcb": None, "return_cap": cap,
-                    "reason": "the evaluations lack paired model episodes (eval.model_env=false?)"}
+            return {"fired": True, "gain_lcb": None, **out, "reason": f"no trained policy was evaluated: {name} is returned{why}"}
+        over_start = paired_gain_lcb(self.selected["episodes"], start, cap=cap)
+        over_bc = None if bc is None else paired_gain_lcb(self.selected["episodes"], bc, cap=cap)
+        out.update({"gain_lcb_over_start": over_start, "gain_lcb_over_bc": over_bc})
+        if over_start is None:
+            return {"fired": True, "gain_lcb": None, **out,
+                    "reason": f"the evaluations lack paired model episodes (eval.model_env=false?): {name} is returned"}
+        lcb = over_start if over_bc is None else min(over_start, over_bc)
         fired = not lcb > 0
+        over = "the start policy" if bc is None else "the start policy and the percentile BC"
         capped = "" if cap is None else f", returns clipped at the data's best episode, {cap:.4g}"
-        reason = (f"no ensemble member shows a gain over the start policy with 95% confidence (worst member's bound {lcb:.4g}{capped}): "
-                  "the start policy is returned" if fired else
-                  f"every ensemble member shows a gain over the start policy (worst member's 95% lower bound {lcb:.4g}{capped})")
-        return {"fired": fired, "gain_lcb": float(lcb), "return_cap": cap, "reason": reason}
+        reason = (f"no ensemble member shows a gain over {over} with 95% confidence (worst member's bound {lcb:.4g}{capped}): "
+                  f"{name} is returned{why}" if fired else
+                  f"every ensemble member shows a gain over {over} (worst member's 95% lower bound {lcb:.4g}{capped}){why if bc is None else ''}")
+        return {"fired": fired, "gain_lcb": float(lcb), **out, "reason": reason}
 
     def state_dict(self) -> dict:
         return {"criterion": self.criterion, "include_start": self.include_start, "count": self._count, "selected": self.selected,

@@ -31,7 +31,7 @@ from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_
                      resolve_reward_scale, transfer_config)
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
-from .pipeline import apply_latent_origin, fit_or_load_models, make_model_env, make_real_env
+from .pipeline import DEFAULT_ORIGIN_SHARE, apply_latent_origin, fit_or_load_models, make_model_env, make_real_env, origin_share
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
 from .schema import RunConfig, TransferConfig
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
@@ -72,6 +72,7 @@ class Setting:
     closers: list = field(default_factory=list)  # the real envs to close at the end
     parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
     eval_env_for: Callable | None = None  # copies -> one real env holding `copies` evaluations' envs, the agent's transforms appended
+    fallback: Callable | None = None  # () -> (ClonedPolicy, its evaluation record): the guard's percentile BC (recipes.fallback)
 
     @property
     def rules(self):
@@ -170,6 +171,7 @@ class Parts:
     snapshots: set[int]
     rules: object = None        # the OfflineRules of the model env, once a setting computed them
     progress: bool = True       # progress bars on long work (fits)
+    fallback: object = None     # the guard's percentile BC, fitted and evaluated on demand (Setting.fallback)
 
     @property
     def env_id(self) -> str:
@@ -245,8 +247,26 @@ class Parts:
             title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, transfer=self.rc.transfer, stacking=self.stacking,
             n_goals=self.n_goals, pessimism=pessimism, threshold=threshold, reward_scale=self.pcfg["env"].get("reward_scale", 1.0),
             model_info=self.model_info, ref=self.ref, t_data=self.t_data, t_models=self.t_models, device=self.device, closers=list(closers),
-            eval_env_for=eval_env_for,
+            eval_env_for=eval_env_for, fallback=self.fallback if selectable else None,
         )
+
+
+def _fallback(p: Parts, evaluator, threshold: float) -> Callable:
+    """``() -> (policy, record)``: the guard's percentile BC of the episodes the latent origin clones (all of them with
+    ``latent_origin: behaviour``, the default share otherwise), fitted or loaded and evaluated as ``evaluator`` evaluates the agent."""
+    from .fallback import ClonedPolicy, evaluate_fallback, fit_or_load_bc
+
+    share = origin_share(p.pcfg["env"]) or DEFAULT_ORIGIN_SHARE
+
+    def run():
+        bc = fit_or_load_bc(p.pcfg, p.data, p.model_info.get("model_dir"), share, progress=p.progress)
+        m = evaluator.model_env
+        record = evaluate_fallback(bc, evaluator.env_id, evaluator.episodes, evaluator.max_steps, evaluator.seed, p.pcfg, p.ensemble, p.data, threshold,
+                                   model_episodes=None if m is None else m.batch_size.numel(), ref=evaluator.ref, gamma=evaluator.gamma,
+                                   device=p.device)
+        return ClonedPolicy(bc), {**record, "share": share}
+
+    return run
 
 
 class ModelEnvSetting:
@@ -292,6 +312,8 @@ class ModelEnvSetting:
                                                          latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic",
                                                          horizon=p.rc.eval.max_steps))
         evaluator = p.evaluator(eval_env, model_eval_env, task="forward" if transfer else None)
+        if model_eval_env is not None and not p.stacking and not transfer and p.rc.selection.fallback != "start":
+            p.fallback = _fallback(p, evaluator, threshold)
         phase = p.offline_phase(evaluator, lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
                                 "frames", model_env_metrics, env, transfer=transfer)
         # offline policy selection needs the model env's evaluation; block stacking returns its last policy

@@ -38,10 +38,15 @@ def format_summary(summary) -> str:
     if guard is not None and guard.get("fired") is None:
         text += f"\nguard: off ({guard['reason']})"
     elif guard is not None:
-        text += (f"\nguard: {'FIRED, the start policy is returned' if guard['fired'] else 'passed, the trained policy is returned'} "
-                 f"({guard['reason']})")
+        fired = {"bc": "FIRED, the percentile BC is returned"}.get(guard.get("returned"), "FIRED, the start policy is returned")
+        text += f"\nguard: {fired if guard['fired'] else 'passed, the trained policy is returned'} ({guard['reason']})"
+    fb = summary.get("fallback")
+    if fb is not None:
+        text += (f"\npercentile BC of the data's best episodes (the guard's other fallback): real return {fb['return_mean']:.1f}, "
+                 f"D4RL-normalised {fmt_number(fb.get('normalized_d4rl'))}")
     if sel is not None and (sel.get("step", sel.get("frames")) != summary.get("step", summary["frames"]) or guard is not None):
-        text += (f"\nreturned policy: {sel.get('frames', sel.get('step'))} {summary.get('unit', 'frames')} (selection.criterion={sel['criterion']}), "
+        what = "the percentile BC" if sel.get("policy") == "percentile_bc" else f"{sel.get('frames', sel.get('step'))} {summary.get('unit', 'frames')}"
+        text += (f"\nreturned policy: {what} (selection.criterion={sel['criterion']}), "
                  f"real return {sel['return_mean']:.1f}, D4RL-normalised {fmt_number(sel.get('normalized_d4rl'))} "
                  "(the real-env score is reported, never used to choose)")
     return text

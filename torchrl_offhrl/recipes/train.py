@@ -150,13 +150,24 @@ class PreparedRun:
             run.records[-1] = rec
             run.checkpoint(agent)
         selected = run.selector.selected
-        verdict = run.selector.verdict()  # the guard: the start policy instead, when no member shows a gain over it
+        cloned, fallback = None, None
+        if run.selector.guard and s.fallback is not None and (run.selector.start or {}).get("agent") is not None:
+            cloned, fallback = s.fallback()  # the percentile BC of the start's episodes, evaluated as the agent is (recipes.fallback)
+            run.write_json("fallback.json", fallback)  # its whole record, model episodes included (what the guard paired)
+        prefer = "start" if RunConfig.parse(cfg).selection.fallback == "start_unless_bc" else "bc"
+        verdict = run.selector.verdict(fallback, prefer=prefer)  # the guard: the start (or the BC) instead, when no member shows a gain over them
         if verdict is not None and verdict["fired"]:
-            start = run.selector.start
-            selected = {"index": start["index"], "step": 0, "score": verdict["gain_lcb"], "agent": start["agent"]}
-        if selected is not None and selected["agent"] is None and verdict is not None:  # the last policy, kept whole beside the guard's choice
-            selected = {**selected, "agent": agent.state_dict()}
-        if selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
+            if verdict.get("against") == "bc":
+                selected = {"index": None, "step": 0, "score": verdict["gain_lcb"], "agent": None, "bc": cloned.state_dict(), "record": fallback}
+            else:
+                start = run.selector.start
+                selected = {"index": start["index"], "step": 0, "score": verdict["gain_lcb"], "agent": start["agent"]}
+        if selected is not None and selected["agent"] is None and "bc" not in selected and verdict is not None:
+            selected = {**selected, "agent": agent.state_dict()}  # the last policy, kept whole beside the guard's choice
+        if selected is not None and "bc" in selected:  # a policy in real actions, not the agent: evaluation.load_selected reads it
+            save_torch_file({"policy": "percentile_bc", "bc": selected["bc"], "step": 0, "criterion": run.selector.criterion,
+                             "record": selected["record"]}, run.path / "selected.pt")
+        elif selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
             save_torch_file({"agent": selected["agent"], "step": selected["step"], "criterion": run.selector.criterion,
                              "record": run.records[selected["index"]]}, run.path / "selected.pt")
         elapsed, train_time = time.time() - self.t_train, self.loop.timing["update_time_s"]
@@ -176,11 +187,15 @@ class PreparedRun:
             # timings stay those the run measured, instead of this call's few seconds of loading
             summary.update({k: self.previous_summary[k] for k in TIMING_KEYS if k in self.previous_summary})
         if selected is not None:
-            summary["selected"] = {**run.records[selected["index"]], "criterion": run.selector.criterion, "offline_score": selected["score"]}
+            chosen = selected["record"] if "bc" in selected else run.records[selected["index"]]
+            summary["selected"] = {**chosen, "criterion": run.selector.criterion, "offline_score": selected["score"],
+                                   **({"frames": 0, "policy": "percentile_bc"} if "bc" in selected else {})}
             for k in ("model_episode_returns", "model_episode_members"):
                 summary["selected"].pop(k, None)
+        if fallback is not None:  # what the percentile BC scored, whether or not it was returned
+            summary["fallback"] = {k: v for k, v in fallback.items() if k not in ("model_episode_returns", "model_episode_members")}
         if verdict is not None:
-            summary["guard"] = {**verdict, "returned": "start" if verdict["fired"] else "trained",
+            summary["guard"] = {**verdict, "returned": ("bc" if verdict.get("against") == "bc" else "start") if verdict["fired"] else "trained",
                                 "candidate_step": None if run.selector.selected is None else run.selector.selected["step"]}
         elif s.selectable:  # a model-env run with the guard off (selection.guard=false): say so, and what the user gets instead
             summary["guard"] = {"fired": None, "gain_lcb": None, "returned": "trained",

@@ -1,0 +1,102 @@
+"""The guard's second fallback: a percentile behaviour cloner of the run's best episodes, fitted and evaluated at the run's end.
+
+A run's start (``model_env.latent_origin=best``) clones the data's
+highest-return episodes through the CVAE decoder. A plain regression of the
+same episodes' actions (:class:`~torchrl_offhrl.models.PercentileBC`) is
+another cloner of them, and on half of the design datasets a much better one
+in the real env (``experiments/diagnostics/start_quality.py``). With
+``selection.fallback: start_or_bc`` (the default) the guard falls back to the
+better of the two by the model's own paired comparison
+(:meth:`~torchrl_offhrl.recipes.selection.PolicySelector.verdict`). This
+module fits the cloner (cached beside the CVAE: :func:`bc_path`) and
+evaluates it as the run evaluates its agent: the same real-env episodes and
+the same model episodes (the same start states under the same member, in
+real actions), so its model episodes pair up with the start's.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+import torch
+from tensordict.nn import TensorDictModule
+
+from ..data import OfflineDataset
+from ..models import PercentileBC
+from ..utils import threads
+from .pipeline import _load_cached, make_model_env, make_real_env
+
+__all__ = ["ClonedPolicy", "bc_path", "evaluate_fallback", "fit_or_load_bc"]
+
+
+def bc_path(model_dir, share: float) -> Path:
+    """Where the percentile BC of ``share`` of the data is cached: ``percentile_bc_top<share>.pt`` beside the CVAE."""
+    return Path(model_dir) / f"percentile_bc_top{share:g}.pt"
+
+
+def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, progress: bool = True) -> PercentileBC:
+    """The :class:`~torchrl_offhrl.models.PercentileBC` of the highest-return episodes covering ``share`` of ``data``.
+
+    Fitted when absent (its own fit settings, :attr:`~torchrl_offhrl.models.PercentileBC.default_fit`: to convergence on
+    the held-out episodes of the run's episode split) and cached in the CVAE's folder ``model_dir`` (:func:`bc_path`),
+    like the latent origin it sits beside.
+    """
+    path = bc_path(model_dir, share) if model_dir is not None else None
+    bc = _load_cached(PercentileBC, path) if path is not None else None
+    if bc is not None:
+        return bc
+    mask, _ = data.top_return_episodes(share)
+    best = OfflineDataset(data.data[mask], metadata=data.metadata, action_bounds=(data.action_low, data.action_high))
+    val_ratio = float((cfg.get("dataset") if isinstance(cfg.get("dataset"), Mapping) else {}).get("val_ratio", 0.1))
+    with threads(cfg.get("fit_threads")):
+        bc = PercentileBC.for_dataset(best).fit(best, val_ratio=val_ratio, split_seed=int(cfg["seed"]), progress=progress, seed=int(cfg["seed"]))
+    bc.eval()
+    if path is not None:
+        bc.save(path)
+    return bc
+
+
+class ClonedPolicy:
+    """A :class:`PercentileBC` as the evaluator sees an agent: ``eval_policy`` writes ``action`` from ``observation``."""
+
+    def __init__(self, bc: PercentileBC):
+        self.bc = bc.eval().requires_grad_(False)
+        self.eval_policy = TensorDictModule(self.bc, in_keys=["observation"], out_keys=["action"])
+        self.evaluation_files: tuple = ()
+
+    def evaluation_metrics(self, td, alive) -> dict:
+        return {}
+
+    def save_evaluation(self, td, alive, folder, title) -> None:
+        return None
+
+    def state_dict(self) -> dict:
+        return {"config": self.bc.config, "state_dict": {k: v.detach().cpu() for k, v in self.bc.state_dict().items()}}
+
+    @classmethod
+    def from_state(cls, state: Mapping) -> "ClonedPolicy":
+        bc = PercentileBC(**state["config"])
+        bc.load_state_dict(state["state_dict"])
+        return cls(bc)
+
+
+def evaluate_fallback(bc: PercentileBC, env_id: str, episodes: int, max_steps: int, seed: int, pcfg: Mapping, ensemble, data, threshold: float,
+                      model_episodes: int | None = None, ref=None, gamma: float = 0.99, device="cpu") -> dict:
+    """The evaluation record of ``bc`` as the run's :class:`~torchrl_offhrl.recipes.evaluation.Evaluator` records its agent's:
+    ``episodes`` real-env episodes from ``seed``, and ``model_episodes`` model episodes (None: none) of ``max_steps`` steps
+    from the same start states under the same members as the agent's (``reset_states="initial"``, ``member_draw="cyclic"``,
+    the same seed), in real actions: its ``model_episode_returns`` pair up with the start's."""
+    from .evaluation import Evaluator
+
+    policy = ClonedPolicy(bc.to(device))
+    real = make_real_env(env_id, None, num_envs=episodes, device=device)
+    model = None
+    if model_episodes:
+        model = make_model_env(pcfg, ensemble, None, data, batch_size=int(model_episodes), latent=False, threshold=threshold,
+                               reset_states="initial", member_draw="cyclic", horizon=max_steps)
+    ev = Evaluator(real, env_id, episodes, max_steps, seed=seed, ref=ref, model_env=model, gamma=gamma)
+    try:
+        with torch.no_grad():
+            return ev(policy)
+    finally:
+        real.close()
