@@ -295,6 +295,11 @@ def table() -> str:
         "returns-to-go, model episodes as long as the model tracks held-out trajectories, latent box = 99% of the posterior "
         "draws). Scores are D4RL-normalised; the real env scored every evaluation after the fact and chose nothing.",
         "",
+        "The guard here is the one these runs were made with (uncapped, falling back to the start). From 2026-12-07 the "
+        "shipped guard clips the model returns at the data's best episode and falls back to a percentile BC unless the "
+        "start shows a gain over it: its record on the same design and held-out runs is in "
+        "[`offline_probes.md`](offline_probes.md), sections 3 and 4.",
+        "",
         "Columns: *start* = the untrained agent (with the behaviour origin: the decoder at the data's latent at each state, a "
         "behaviour cloner; with origin 0: the decoder's prior-mean action); *last* = the last policy; *last + guard* = what the "
         "default returns: the start when the worst ensemble member's 95% lower bound on the paired model gain of the last "

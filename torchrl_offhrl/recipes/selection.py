@@ -75,6 +75,18 @@ pass and the small right ones of halfcheetah-medium, and on the held-out runs
 it decided as the uncapped guard (``docs/results/offline_probes.md``; it was
 looked for after evaluation-seed runs showed the wrong passes, and says so
 there). ``return_cap: none`` compares the returns as they are.
+
+The percentile BC (``selection.fallback``, :mod:`~torchrl_offhrl.recipes.fallback`).
+The start is one cloner of the data's best episodes; a plain regression of
+the same episodes' actions is another, evaluated at the run's end on the
+start's own model episodes. With ``bc_unless_start`` (the default) the
+trained policy must show a gain over both, and a fired guard returns the BC
+unless the start shows a gain over it; the model rarely tells the two apart,
+and on the design data the BC ran 3.7 points above the start on average
+(above it on hopper-medium and halfcheetah-medium-expert, below it on
+hopper-medium-expert: ``docs/results/offline_probes.md``, section 4).
+``start_unless_bc`` returns the start unless the BC shows a gain over it;
+``start`` fits no BC.
 """
 from __future__ import annotations
 

@@ -164,7 +164,7 @@ class PreparedRun:
                 selected = {"index": start["index"], "step": 0, "score": verdict["gain_lcb"], "agent": start["agent"]}
         if selected is not None and selected["agent"] is None and "bc" not in selected and verdict is not None:
             selected = {**selected, "agent": agent.state_dict()}  # the last policy, kept whole beside the guard's choice
-        if selected is not None and "bc" in selected:  # a policy in real actions, not the agent: evaluation.load_selected reads it
+        if selected is not None and "bc" in selected:  # a policy in real actions, not the agent: evaluation.load_run_agent reads it
             save_torch_file({"policy": "percentile_bc", "bc": selected["bc"], "step": 0, "criterion": run.selector.criterion,
                              "record": selected["record"]}, run.path / "selected.pt")
         elif selected is not None and selected["agent"] is not None:  # the returned policy, with the evaluation it had when it was chosen
