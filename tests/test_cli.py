@@ -69,12 +69,14 @@ def test_collect_fit_train_evaluate_aggregate(cache, tmp_path, capsys):
     assert main(["evaluate", str(run), "--episodes", "2", "--seed", "7"]) == 0
     printed = capsys.readouterr().out
     res = json.loads(printed[printed.index("{\n"):])
-    # the returned policy: the trained one at 128 frames, or the start (0) when the guard fired
+    # the returned policy: the trained one at 128 frames, or when the guard fired the start (0) or the percentile BC
     summary = json.loads((run / "summary.json").read_text())
     returned = 0 if summary["guard"]["fired"] else 128
     assert res["episodes"] == 2 and len(res["returns"]) == 2 and res["frames"] == returned
     evals = json.loads((run / "evals.json").read_text())
-    assert res["return_mean"] == pytest.approx(next(e for e in evals if e["frames"] == returned)["return_mean"], rel=1e-5)
+    record = (json.loads((run / "fallback.json").read_text()) if summary["guard"]["returned"] == "bc" else
+              next(e for e in evals if e["frames"] == returned))
+    assert res["return_mean"] == pytest.approx(record["return_mean"], rel=1e-5)
 
     assert main(["aggregate", str(run), "--out", str(tmp_path / "report")]) == 0
     assert "| moc | Hopper-v5 |" in capsys.readouterr().out
@@ -133,9 +135,12 @@ def test_demo_tiny(cache, tmp_path, capsys):
     assert "starts as a behaviour cloner of the highest-return episodes holding 10% of the transitions" in out  # the default origin
     assert "latent origin: the behaviour of the" in out  # in the calibration report, with the episodes it cloned
     summary = json.loads((tmp_path / "moc-hopper-medium-seed0" / "summary.json").read_text())
-    # the guard's verdict and what it returned agree: the start (step 0) when it fired, the last policy when it passed
-    assert summary["guard"]["returned"] == ("start" if summary["guard"]["fired"] else "trained")
-    assert (summary["selected"]["frames"] == 0) == summary["guard"]["fired"]
+    # the guard's verdict and what it returned agree: the start (step 0) or the percentile BC when it fired, the last
+    # policy when it passed; the BC's score is printed beside the others
+    guard = summary["guard"]
+    assert guard["returned"] == (guard["against"] if guard["fired"] else "trained") and guard["against"] in ("start", "bc")
+    assert (summary["selected"]["frames"] == 0) == guard["fired"] and (summary["selected"].get("policy") == "percentile_bc") == (guard["returned"] == "bc")
+    assert "percentile BC of the data's best episodes (the guard's other fallback) scored" in out
     assert "calibration report (offline rules" in out and "pessimism threshold" in out and "latent box" in out
     (run,) = tmp_path.glob("moc-hopper-medium-seed0")
     assert (run / "calibration.png").is_file() and json.loads((run / "calibration.json").read_text())["rules"] == "auto"
@@ -237,7 +242,7 @@ def test_the_robustness_variants_rerun_what_their_archived_runs_ran():
     archived = json.loads((mod.ARCHIVE / mod.SHIPPED / "d4" / "config.json").read_text())
     again = to_plain(compose("demo", [*mod.overrides(mod.SHIPPED), "dataset_seed=4"]))
     for key in ("ensemble", "cvae", "selection", "algo", "train"):
-        drop = {"selection": {"guard"}, "train": {"snapshot_frames"}, "ensemble": {"num_elites", "learn_reward"},
+        drop = {"selection": {"guard", "return_cap", "fallback"}, "train": {"snapshot_frames"}, "ensemble": {"num_elites", "learn_reward"},
                 "cvae": {"goal_key"}, "algo": {"termination_coef", "option_coef", "normalize_advantage"}}.get(key, set())  # added since
         assert all(again[key][k] == LATER_DEFAULTS.get(key, {}).get(k, again[key][k]) for k in drop if k in again[key]), key  # as before
         strip = lambda d: {k: v for k, v in d.items() if k not in drop}  # noqa: E731

@@ -563,7 +563,8 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
         assert saved["step"] == (0 if guard["fired"] else best["frames"]) == summary["selected"]["frames"]
     # a returned percentile BC acts in real actions: `offhrl evaluate` rolls it out as it is
     from torchrl_offhrl.recipes.evaluation import evaluate_run
-    from torchrl_offhrl.recipes.fallback import ClonedPolicy, fit_or_load_bc
+    from torchrl_offhrl.models import ClonedPolicy
+    from torchrl_offhrl.recipes.fallback import fit_or_load_bc
 
     bc = fit_or_load_bc(to_plain(_cfg("ppo", hopper_file, tmp_path / "g")), load_dataset(hopper_file), None, 0.1, progress=False)
     from torchrl_offhrl.utils import save_torch_file

@@ -282,7 +282,7 @@ def test_the_guard_judges_against_the_start_and_the_percentile_bc_and_falls_back
 
 def test_the_percentile_bc_fits_the_best_episodes_and_round_trips(tmp_path):
     from torchrl_offhrl.models import PercentileBC
-    from torchrl_offhrl.recipes.fallback import ClonedPolicy
+    from torchrl_offhrl.models import ClonedPolicy
 
     data = make_toy_dataset(num_episodes=8, episode_length=20)
     obs = data.data["observation"]  # a behaviour that is a function of the state, for the cloner to learn

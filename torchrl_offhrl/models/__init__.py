@@ -1,6 +1,6 @@
 """Learned models: vectorised ensembles, the dynamics ensemble, the CVAE, their trainer and their held-out quality."""
 from ._common import atomic_torch_save
-from .bc import PercentileBC
+from .bc import ClonedPolicy, PercentileBC
 from .cvae import ConditionalVAE, CVAEDecoder, LatentOrigin
 from .dynamics import DISCREPANCIES, DynamicsEnsemble
 from .ensemble import EnsembleLinear, EnsembleMLP
@@ -9,6 +9,7 @@ from .trainer import SupervisedTrainer
 
 __all__ = [
     "CVAEDecoder",
+    "ClonedPolicy",
     "ConditionalVAE",
     "DISCREPANCIES",
     "DynamicsEnsemble",

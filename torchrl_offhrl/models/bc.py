@@ -5,6 +5,7 @@ from typing import Sequence
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
 from torch import nn
 
 from ..nets import mlp
@@ -73,3 +74,27 @@ class PercentileBC(FitMixin, nn.Module):
         """Mean absolute action error in action-std units, shape ``[1]``."""
         batch = batch.reshape(-1)
         return ((self(batch.get("observation")) - batch.get("action")).abs() / self.action_std).mean().reshape(1)
+
+
+class ClonedPolicy:
+    """A :class:`PercentileBC` as an evaluator sees an agent (``recipes.evaluation``): ``eval_policy`` writes ``action`` from ``observation``."""
+
+    def __init__(self, bc: PercentileBC):
+        self.bc = bc.eval().requires_grad_(False)
+        self.eval_policy = TensorDictModule(self.bc, in_keys=["observation"], out_keys=["action"])
+        self.evaluation_files: tuple = ()
+
+    def evaluation_metrics(self, td, alive) -> dict:
+        return {}
+
+    def save_evaluation(self, td, alive, folder, title) -> None:
+        return None
+
+    def state_dict(self) -> dict:
+        return {"config": self.bc.config, "state_dict": {k: v.detach().cpu() for k, v in self.bc.state_dict().items()}}
+
+    @classmethod
+    def from_state(cls, state: Mapping) -> "ClonedPolicy":
+        bc = PercentileBC(**state["config"])
+        bc.load_state_dict(state["state_dict"])
+        return cls(bc)

@@ -350,7 +350,7 @@ LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01
                                                           "terminal_on_success": True},
                                                  "ensemble": {"reward_hidden_sizes": None, "num_elites": None, "learn_reward": True},
                                                  "cvae": {"goal_key": None}, "model_env": {"reward_penalty": 0.0, "latent_origin": "zero"},
-                                                 "selection": {"guard": False}}
+                                                 "selection": {"guard": False, "return_cap": "none", "fallback": "start"}}
 
 
 def fit_as_before(model_cfg: Mapping) -> dict:

@@ -47,6 +47,10 @@ def selection_lines(s: dict, cfg: dict) -> list[str]:
     if guard is not None:
         state = "off" if guard["fired"] is None else "FIRED" if guard["fired"] else "passed"
         out.append(f"Guard: {state} ({guard['reason']}).")
+    fb = s.get("fallback")
+    if fb is not None:
+        out.append(f"The percentile BC of the data's best episodes (the guard's other fallback) scored {fb.get('normalized_d4rl', float('nan')):.1f} "
+                   "(D4RL-normalised, reported).")
     if CHECKED["runs"]:
         out.append(f"This setting was checked in {CHECKED['runs']} runs ({CHECKED['dataset_seeds']} fresh dataset seeds, each its own 100k "
                    f"transitions and model fits, x {CHECKED['agent_seeds']} agent seeds): the returned policy beat its untrained start "

@@ -12,7 +12,7 @@ import torch
 
 from ..agents import make_agent
 from ..registry import task_of
-from ..models import ConditionalVAE
+from ..models import ClonedPolicy, ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
@@ -343,8 +343,6 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
     if policy == "selected" and (run / "selected.pt").is_file():
         chosen = load_torch_file(run / "selected.pt", "selected policy", "rerun the training command to write it again")
         if chosen.get("policy") == "percentile_bc":  # the guard returned the percentile BC: it acts in real actions, no decoder
-            from .fallback import ClonedPolicy
-
             env.close()
             return cfg, make_real_env(env_id, None, num_envs=num_envs, task=task), ClonedPolicy.from_state(chosen["bc"]), {**state, "frames": 0}, cvae
         agent.load_state_dict(chosen["agent"])

@@ -19,14 +19,13 @@ from pathlib import Path
 from typing import Mapping
 
 import torch
-from tensordict.nn import TensorDictModule
 
 from ..data import OfflineDataset
-from ..models import PercentileBC
+from ..models import ClonedPolicy, PercentileBC
 from ..utils import threads
-from .pipeline import _load_cached, make_model_env, make_real_env
+from .pipeline import load_cached, make_model_env, make_real_env
 
-__all__ = ["ClonedPolicy", "bc_path", "evaluate_fallback", "fit_or_load_bc"]
+__all__ = ["bc_path", "evaluate_fallback", "fit_or_load_bc"]
 
 
 def bc_path(model_dir, share: float) -> Path:
@@ -42,7 +41,7 @@ def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, 
     like the latent origin it sits beside.
     """
     path = bc_path(model_dir, share) if model_dir is not None else None
-    bc = _load_cached(PercentileBC, path) if path is not None else None
+    bc = load_cached(PercentileBC, path) if path is not None else None
     if bc is not None:
         return bc
     mask, _ = data.top_return_episodes(share)
@@ -54,30 +53,6 @@ def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, 
     if path is not None:
         bc.save(path)
     return bc
-
-
-class ClonedPolicy:
-    """A :class:`PercentileBC` as the evaluator sees an agent: ``eval_policy`` writes ``action`` from ``observation``."""
-
-    def __init__(self, bc: PercentileBC):
-        self.bc = bc.eval().requires_grad_(False)
-        self.eval_policy = TensorDictModule(self.bc, in_keys=["observation"], out_keys=["action"])
-        self.evaluation_files: tuple = ()
-
-    def evaluation_metrics(self, td, alive) -> dict:
-        return {}
-
-    def save_evaluation(self, td, alive, folder, title) -> None:
-        return None
-
-    def state_dict(self) -> dict:
-        return {"config": self.bc.config, "state_dict": {k: v.detach().cpu() for k, v in self.bc.state_dict().items()}}
-
-    @classmethod
-    def from_state(cls, state: Mapping) -> "ClonedPolicy":
-        bc = PercentileBC(**state["config"])
-        bc.load_state_dict(state["state_dict"])
-        return cls(bc)
 
 
 def evaluate_fallback(bc: PercentileBC, env_id: str, episodes: int, max_steps: int, seed: int, pcfg: Mapping, ensemble, data, threshold: float,

@@ -102,7 +102,7 @@ def _same_model_elsewhere(ident: dict, folder: Path, part: str) -> Path | None:
     return None
 
 
-def _load_cached(cls, path):
+def load_cached(cls, path):
     """A cached model, or None when there is none or it is corrupt (then it is deleted, with a warning, to be fitted again)."""
     if not path.is_file():
         return None
@@ -168,9 +168,9 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
                   f"(content hash {ident['data']} now): fitting models for it")
     val_ratio = cfg["dataset"].get("val_ratio", 0.1)
     torch.manual_seed(cfg["seed"])
-    ensemble = _load_cached(DynamicsEnsemble, e_path)
+    ensemble = load_cached(DynamicsEnsemble, e_path)
     shared = None if ensemble is not None else _same_model_elsewhere(ident, folder, "ensemble")
-    if shared is not None and (ensemble := _load_cached(DynamicsEnsemble, shared)) is not None:
+    if shared is not None and (ensemble := load_cached(DynamicsEnsemble, shared)) is not None:
         ensemble.save(e_path)  # each entry holds its own copy: deleting the other leaves this one whole
         info["ensemble"] = f"loaded from {shared.parent.name} (fitted with other CVAE settings)"
     if ensemble is not None:
@@ -185,12 +185,12 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
         ensemble.save(e_path)
         info["ensemble"] = "fitted"
         info["ensemble_history"] = ensemble.training_history
-    cvae = _load_cached(ConditionalVAE, c_path) if with_cvae else None
+    cvae = load_cached(ConditionalVAE, c_path) if with_cvae else None
     if not with_cvae:
         info["cvae"] = "not asked for"
     elif cvae is not None:
         info["cvae"] = "loaded"
-    elif (shared := _same_model_elsewhere(ident, folder, "cvae")) is not None and (cvae := _load_cached(ConditionalVAE, shared)) is not None:
+    elif (shared := _same_model_elsewhere(ident, folder, "cvae")) is not None and (cvae := load_cached(ConditionalVAE, shared)) is not None:
         cvae.save(c_path)
         info["cvae"] = f"loaded from {shared.parent.name} (fitted with other ensemble settings)"
     else:
@@ -238,7 +238,7 @@ def fit_or_load_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE,
     info = None
     if data is not None and share < 1.0:
         mask, info = data.top_return_episodes(share)
-    origin = _load_cached(LatentOrigin, path)
+    origin = load_cached(LatentOrigin, path)
     if origin is not None:
         return origin.to(cvae.decoder.obs_mean.device), info
     if data is None:

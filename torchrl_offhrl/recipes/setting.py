@@ -254,7 +254,8 @@ class Parts:
 def _fallback(p: Parts, evaluator, threshold: float) -> Callable:
     """``() -> (policy, record)``: the guard's percentile BC of the episodes the latent origin clones (all of them with
     ``latent_origin: behaviour``, the default share otherwise), fitted or loaded and evaluated as ``evaluator`` evaluates the agent."""
-    from .fallback import ClonedPolicy, evaluate_fallback, fit_or_load_bc
+    from ..models import ClonedPolicy
+    from .fallback import evaluate_fallback, fit_or_load_bc
 
     share = origin_share(p.pcfg["env"]) or DEFAULT_ORIGIN_SHARE
 
