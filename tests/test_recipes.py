@@ -773,3 +773,23 @@ def test_a_killed_and_resumed_run_gives_the_records_of_an_uninterrupted_one(algo
     assert [e["frames"] for e in a] == [e["frames"] for e in b] == [128, 256]
     for x, y in zip(a, b):
         assert {k: v for k, v in x.items() if k != "wall_s"} == {k: v for k, v in y.items() if k != "wall_s"}
+
+
+@pytest.mark.fault("data")
+def test_a_percentile_bc_that_fails_leaves_the_start_as_the_guards_fallback(hopper_file, cache, tmp_path, monkeypatch):
+    """The BC is fitted and evaluated at the run's end: if that fails, the run still finishes, guarded against the start alone,
+    and says why (the trained policies and their evaluations are never lost to it)."""
+    def broken(p, evaluator, threshold):
+        def run():
+            raise RuntimeError("no complete episode among the best ones")
+        return run
+
+    monkeypatch.setattr(setting_mod, "_fallback", broken)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        summary = train(_cfg("ppo", hopper_file, tmp_path, ["eval.at_start=true", "train.total_frames=128"]), progress=False)
+    run = Path(summary["run_dir"])
+    assert any("percentile BC could not be fitted" in str(w.message) for w in seen)
+    assert summary["guard"]["against"] == "start" and "percentile BC could not be fitted" in summary["guard"]["reason"]
+    assert "fallback" not in summary and not (run / "fallback.json").exists()
+    assert summary["guard"]["returned"] in ("start", "trained") and (run / "checkpoint.pt").is_file()

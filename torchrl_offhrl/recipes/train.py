@@ -150,10 +150,15 @@ class PreparedRun:
             run.records[-1] = rec
             run.checkpoint(agent)
         selected = run.selector.selected
-        cloned, fallback = None, None
+        cloned, fallback, fallback_error = None, None, None
         if run.selector.guard and s.fallback is not None and (run.selector.start or {}).get("agent") is not None:
-            cloned, fallback = s.fallback()  # the percentile BC of the start's episodes, evaluated as the agent is (recipes.fallback)
-            run.write_json("fallback.json", fallback)  # its whole record, model episodes included (what the guard paired)
+            try:  # the percentile BC of the start's episodes, evaluated as the agent is (recipes.fallback)
+                cloned, fallback = s.fallback()
+            except (RuntimeError, ValueError) as err:  # the run's policies are kept whatever the BC does: the start alone
+                fallback_error = f"the percentile BC could not be fitted or evaluated ({type(err).__name__}: {err}); the start is the only fallback"
+                warnings.warn(fallback_error, stacklevel=2)
+            else:
+                run.write_json("fallback.json", fallback)  # its whole record, model episodes included (what the guard paired)
         prefer = "start" if RunConfig.parse(cfg).selection.fallback == "start_unless_bc" else "bc"
         verdict = run.selector.verdict(fallback, prefer=prefer)  # the guard: the start (or the BC) instead, when no member shows a gain over them
         if verdict is not None and verdict["fired"]:
@@ -194,6 +199,8 @@ class PreparedRun:
                 summary["selected"].pop(k, None)
         if fallback is not None:  # what the percentile BC scored, whether or not it was returned
             summary["fallback"] = {k: v for k, v in fallback.items() if k not in ("model_episode_returns", "model_episode_members")}
+        if verdict is not None and fallback_error is not None:
+            verdict = {**verdict, "reason": f"{verdict['reason']}; {fallback_error}"}
         if verdict is not None:
             summary["guard"] = {**verdict, "returned": ("bc" if verdict.get("against") == "bc" else "start") if verdict["fired"] else "trained",
                                 "candidate_step": None if run.selector.selected is None else run.selector.selected["step"]}
