@@ -561,6 +561,18 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
         assert summary["selected"]["normalized_d4rl"] == fb["normalized_d4rl"]
     else:
         assert saved["step"] == (0 if guard["fired"] else best["frames"]) == summary["selected"]["frames"]
+    # the run's evaluation model env rebuilt from its folder (recipes.evaluation.run_models, what the diagnostics use)
+    # gives the start the model episodes its evaluation recorded
+    from torchrl_offhrl.recipes.evaluation import load_run_agent, run_models
+    from torchrl_offhrl.recipes.setting import eval_seed
+    from torchrl_offhrl.rollouts import evaluate_policy
+
+    _, env_r, agent_r, state_r, cvae_r = load_run_agent(run)
+    env_r.close()
+    agent_r.load_state_dict(state_r["selection"]["start"]["agent"])
+    menv = agent_r.attach(run_models(run).model_env(cvae_r))
+    rets = evaluate_policy(menv, agent_r.eval_policy, len(evals[0]["model_episode_returns"]), max_steps=40, deterministic=True, seed=eval_seed(0))
+    assert rets.double().tolist() == pytest.approx(evals[0]["model_episode_returns"], abs=1e-3)
     # a returned percentile BC acts in real actions: `offhrl evaluate` rolls it out as it is
     from torchrl_offhrl.recipes.evaluation import evaluate_run
     from torchrl_offhrl.models import ClonedPolicy

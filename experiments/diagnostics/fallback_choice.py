@@ -26,25 +26,19 @@ import argparse
 import json
 from pathlib import Path
 
-from torchrl_offhrl.recipes.config import model_config, model_env_config, offline_rules_for, resolve_dataset
-from torchrl_offhrl.recipes.evaluation import load_run_agent
+from torchrl_offhrl.recipes.evaluation import run_models
 from torchrl_offhrl.recipes.fallback import evaluate_fallback, fit_or_load_bc
-from torchrl_offhrl.recipes.pipeline import DEFAULT_ORIGIN_SHARE, fit_or_load_models, origin_share
+from torchrl_offhrl.recipes.pipeline import DEFAULT_ORIGIN_SHARE, origin_share
 from torchrl_offhrl.recipes.selection import data_return_cap, paired_gain_lcb
 from torchrl_offhrl.recipes.setting import eval_seed
 
 
 def probe(run: Path) -> dict:
-    cfg, env, _, _, cvae = load_run_agent(run, num_envs=1)
-    env.close()
-    data = resolve_dataset(cfg)
-    pcfg = model_config(cfg)
-    ens, _, info = fit_or_load_models(pcfg, data, progress=False)
-    rules = offline_rules_for(cfg, data, ens, cvae)
-    pcfg["env"], _ = model_env_config(cfg, data.metadata.get("level"), data, rules=rules)
+    rm = run_models(run)
+    cfg, data, pcfg, ens = rm.cfg, rm.data, rm.pcfg, rm.ensemble
     ev = cfg["eval"]
     share = origin_share(pcfg["env"]) or DEFAULT_ORIGIN_SHARE
-    bc = fit_or_load_bc(pcfg, data, info["model_dir"], share, progress=False)
+    bc = fit_or_load_bc(pcfg, data, rm.model_dir, share, progress=False)
 
     rec = evaluate_fallback(bc, cfg["env"]["env_id"], int(ev["episodes"]), int(ev["max_steps"]), eval_seed(int(cfg["seed"])), pcfg, ens, data,
                             float(cfg["threshold"]), model_episodes=int(ev.get("model_episodes") or ev["episodes"]),

@@ -26,9 +26,7 @@ from pathlib import Path
 
 import torch
 
-from torchrl_offhrl.recipes.config import model_config, model_env_config, offline_rules_for, resolve_dataset
-from torchrl_offhrl.recipes.evaluation import load_run_agent
-from torchrl_offhrl.recipes.pipeline import fit_or_load_models, make_model_env
+from torchrl_offhrl.recipes.evaluation import load_run_agent, run_models
 from torchrl_offhrl.recipes.setting import eval_seed
 from torchrl_offhrl.rollouts import evaluate_policy, first_episode_mask
 from torchrl_offhrl.utils import load_torch_file
@@ -37,15 +35,10 @@ from torchrl_offhrl.utils import load_torch_file
 def rollouts(run: Path) -> dict:
     cfg, env, agent, state, cvae = load_run_agent(run, num_envs=1)  # cvae: decoding from the run's latent origin
     env.close()
-    data = resolve_dataset(cfg)
-    pcfg = model_config(cfg)
-    ens, _, _ = fit_or_load_models(pcfg, data, progress=False)
-    rules = offline_rules_for(cfg, data, ens, cvae)
-    pcfg["env"], _ = model_env_config(cfg, data.metadata.get("level"), data, rules=rules)
+    rm = run_models(run)
     ev = cfg["eval"]
     n, steps = int(ev.get("model_episodes") or ev["episodes"]), int(ev["max_steps"])
-    menv = make_model_env(pcfg, ens, cvae, data, batch_size=n, latent=True, threshold=float(cfg["threshold"]), reset_states="initial",
-                          member_draw="cyclic", horizon=steps)
+    menv = rm.model_env(cvae)
     agent.attach(menv)
     records = {int(r["frames"]): r for r in json.loads((run / "evals.json").read_text())}
     policies = [(0, state["selection"]["start"]["agent"])]

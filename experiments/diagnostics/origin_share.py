@@ -25,9 +25,8 @@ from pathlib import Path
 import torch
 
 from torchrl_offhrl.models import ConditionalVAE
-from torchrl_offhrl.recipes.config import model_config, model_env_config, offline_rules_for, resolve_dataset
-from torchrl_offhrl.recipes.evaluation import load_run_agent
-from torchrl_offhrl.recipes.pipeline import apply_latent_origin, fit_or_load_models, make_model_env, make_real_env
+from torchrl_offhrl.recipes.evaluation import load_run_agent, run_models
+from torchrl_offhrl.recipes.pipeline import apply_latent_origin, make_real_env
 from torchrl_offhrl.recipes.selection import paired_gain_lcb
 from torchrl_offhrl.recipes.setting import eval_seed
 from torchrl_offhrl.rollouts import evaluate_policy
@@ -38,12 +37,8 @@ def score_shares(run: Path, shares: list[float]) -> list[dict]:
     cfg, env, agent, state, _ = load_run_agent(run, num_envs=1)
     env.close()
     agent.load_state_dict(state["selection"]["start"]["agent"])
-    data = resolve_dataset(cfg)
-    mcfg = model_config(cfg)
-    ens, cvae, info = fit_or_load_models(mcfg, data, progress=False)
-    model_dir = Path(cfg.get("model_dir") or info["model_dir"])
-    rules = offline_rules_for(cfg, data, ens, cvae)  # as training: the rules see the CVAE without an origin
-    mcfg["env"], _ = model_env_config(cfg, data.metadata.get("level"), data, rules=rules)
+    rm = run_models(run)  # as training: the rules see the CVAE without an origin
+    data, mcfg, model_dir = rm.data, rm.pcfg, rm.model_dir
     bound = float(mcfg["env"]["latent_bound"])
     ev, seed, env_id = cfg["eval"], eval_seed(1), cfg["env"]["env_id"]
     n, episodes, steps = int(ev.get("model_episodes") or ev["episodes"]), int(ev["episodes"]), int(ev["max_steps"])
@@ -52,8 +47,7 @@ def score_shares(run: Path, shares: list[float]) -> list[dict]:
         c = ConditionalVAE.load(model_dir / "cvae.pt")
         origin = {"latent_origin": "behaviour"} if share >= 1.0 else {"latent_origin": "best", "origin_share": share}
         apply_latent_origin({**mcfg, "env": {**mcfg["env"], **origin}}, data, c, model_dir, progress=False)
-        menv = agent.attach(make_model_env(mcfg, ens, c, data, batch_size=n, latent=True, reset_states="initial", member_draw="cyclic",
-                                           horizon=steps))
+        menv = agent.attach(rm.model_env(c, batch_size=n, threshold=mcfg["env"].get("threshold")))
         real = agent.attach(make_real_env(env_id, c, num_envs=episodes, latent_bound=bound))
         with torch.random.fork_rng():
             rets, td = evaluate_policy(menv, agent.eval_policy, n, max_steps=steps, deterministic=True, seed=seed, return_rollout=True)

@@ -16,8 +16,8 @@ from ..models import ClonedPolicy, ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
-from .config import acts_in_latent_space, latent_bound, model_config, resolve_dataset, transfer_config
-from .pipeline import apply_latent_origin, make_real_env, origin_path, origin_share
+from .config import acts_in_latent_space, latent_bound, model_config, model_env_config, offline_rules_for, resolve_dataset, transfer_config
+from .pipeline import apply_latent_origin, fit_or_load_models, make_model_env, make_real_env, origin_path, origin_share
 from .runs import read_json
 
 __all__ = ["Evaluator", "GoalEvaluator", "SeedsEvaluation", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
@@ -277,6 +277,41 @@ def acting_task(cfg: dict, state: dict) -> tuple[str, bool]:
     if not online:
         return "forward", False
     return tcfg["task"], acts_in_latent_space(cfg) and tcfg["decoder"] == "discard"
+
+
+class RunModels:
+    """A finished run's data, models and model-env settings, as its training resolved them (:func:`run_models`).
+
+    ``cfg`` (the run's ``config.json``), ``data``, ``pcfg`` (:func:`~torchrl_offhrl.recipes.config.model_config` with
+    its ``env`` resolved by the offline rules), ``ensemble``, ``cvae`` (as fitted: no latent origin), ``model_dir``
+    (the CVAE's cache folder) and ``rules``. :meth:`model_env` builds the run's evaluation model env.
+    """
+
+    def __init__(self, cfg: dict, data, pcfg: dict, ensemble, cvae, model_dir, rules):
+        self.cfg, self.data, self.pcfg, self.ensemble, self.cvae, self.model_dir, self.rules = cfg, data, pcfg, ensemble, cvae, model_dir, rules
+
+    def model_env(self, cvae=None, batch_size: int | None = None, latent: bool = True, threshold: float | None = None):
+        """The run's evaluation model env: ``eval.model_episodes`` episodes (or ``batch_size``) of ``eval.max_steps`` steps
+        from the data's start states, member ``i % K`` for episode ``i``, the run's threshold (or ``threshold``); decoding
+        through ``cvae`` (e.g. :func:`load_run_agent`'s, with the run's latent origin) when ``latent``."""
+        ev = self.cfg["eval"]
+        n = batch_size or int(ev.get("model_episodes") or ev["episodes"])
+        return make_model_env(self.pcfg, self.ensemble, cvae if latent else None, self.data, batch_size=n, latent=latent,
+                              threshold=float(self.cfg["threshold"] if threshold is None else threshold), reset_states="initial",
+                              member_draw="cyclic", horizon=int(ev["max_steps"]))
+
+
+def run_models(run_dir, data=None) -> RunModels:
+    """A finished run's data and models from the cache, with the offline rules computed again as its training computed
+    them (from the data and the fitted models: the CVAE before its latent origin), for diagnostics that roll the run's
+    policies out in its model."""
+    cfg = read_json(Path(run_dir) / "config.json")
+    data = resolve_dataset(cfg) if data is None else data
+    pcfg = model_config(cfg)
+    ensemble, cvae, info = fit_or_load_models(pcfg, data, progress=False)
+    rules = offline_rules_for(cfg, data, ensemble, cvae)
+    pcfg["env"], _ = model_env_config(cfg, data.metadata.get("level"), data, rules=rules)
+    return RunModels(cfg, data, pcfg, ensemble, cvae, Path(cfg.get("model_dir") or info["model_dir"]), rules)
 
 
 def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
