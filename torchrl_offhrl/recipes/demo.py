@@ -93,7 +93,8 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
     if s.get("selected") is not None and selected["frames"] != final["frames"]:
         rows.append((f"{algo} last policy ({final['frames']:,} frames)", final["return_mean"], final["return_std"], n_eval,
                      final["normalized_d4rl"], final["normalized_dataset"]))
-    rows.append((f"{algo} agent returned ({selected['frames']:,} frames)", selected["return_mean"], selected["return_std"], n_eval,
+    what = "the percentile BC" if selected.get("policy") == "percentile_bc" else f"{selected['frames']:,} frames"
+    rows.append((f"{algo} agent returned ({what})", selected["return_mean"], selected["return_std"], n_eval,
                  selected["normalized_d4rl"], selected["normalized_dataset"]))
     lines = [
         "",

@@ -297,7 +297,10 @@ class PolicySelector:
         name = {"start": "the start policy", "bc": "the percentile BC"}[against]
         why = ("" if fallback is None else
                "; the percentile BC's model episodes do not pair with the start's, it is left out" if bc is None else
-               f"; of the two fallbacks the {'BC unless the start' if prefer == 'bc' else 'start unless the BC'} shows a gain over the other")
+               {("bc", "bc"): "; the start shows no gain over the percentile BC, the fallback (selection.fallback=bc_unless_start)",
+                ("bc", "start"): "; the start shows a gain over the percentile BC and stays the fallback",
+                ("start", "start"): "; the percentile BC shows no gain over the start, the fallback (selection.fallback=start_unless_bc)",
+                ("start", "bc"): "; the percentile BC shows a gain over the start and is the fallback"}[(prefer, against)])
         out = {"against": against, "return_cap": cap,
                "start_over_bc_lcb": None if start_over_bc is None else float(start_over_bc),
                "bc_over_start_lcb": None if bc_over_start is None else float(bc_over_start)}
