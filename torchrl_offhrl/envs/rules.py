@@ -316,7 +316,7 @@ class OfflineRules:
         if origin is not None:  # recipes.pipeline.apply_latent_origin, model_env.latent_origin=best
             lines.append(f"  latent origin: the behaviour of the {origin['episodes_kept']} highest-return of {origin['episodes']} episodes "
                          f"({origin['transitions_kept']} transitions, {100 * origin['share']:g}% asked; mean return {origin['return_kept_mean']:.4g} "
-                         f"against {origin['return_mean']:.4g} over all): the untrained agent and the guard's fallback")
+                         f"against {origin['return_mean']:.4g} over all): the untrained agent, and a fallback of the guard with the percentile BC of the same episodes")
         return "\n".join(lines)
 
     def plot(self, path: str | os.PathLike) -> Path:
