@@ -177,6 +177,23 @@ def test_offhrl_results_outside_a_checkout_says_where_the_experiments_are(tmp_pa
     assert cli.checkout_root() == tmp_path
 
 
+def test_the_options_section_pairs_the_algorithms_seed_by_seed():
+    """MOC, 1-option MOC and PPO on two shared seeds (and a 1-option seed MOC lacks): per-seed differences by hand."""
+    from experiments.results.table1 import _options_section
+
+    def run(name, final, returned):
+        return {"name": name, "summary": {"final": {"normalized_d4rl": final}, "selected": {"normalized_d4rl": returned}}}
+
+    rows = _options_section([run("moc-hopper-medium-seed4", 10.0, 30.0), run("moc-hopper-medium-seed5", 20.0, 30.0),
+                             run("moc_1opt-hopper-medium-seed4", 12.0, 30.0), run("moc_1opt-hopper-medium-seed5", 25.0, 31.0),
+                             run("moc_1opt-hopper-medium-seed6", 90.0, 30.0), run("ppo-hopper-medium-seed4", 10.0, 30.0),
+                             run("iql-hopper-medium-seed4", 50.0, 50.0)])
+    one = rows[-1]
+    assert one.startswith("| hopper-medium | 1 option - MOC | 2 | +3.5 [") and "(+2.0, +5.0)" in one and one.endswith("(+0.0, +1.0) |")
+    assert len(rows) == 8  # title, text, head, one row (and their blank lines): no PPO row (one shared seed is no pair)
+    assert _options_section([run("iql-hopper-medium-seed4", 50.0, 50.0)]) == []
+
+
 def test_the_guard_section_counts_right_and_wrong_decisions_by_hand():
     """Four hand-made runs: fired and right, fired and wrong (cost 10), passed and right, passed and wrong (cost 5); a run
     without a guard (a dataset agent) is left out."""

@@ -428,6 +428,7 @@ def report(scale: str, tuning: bool = False) -> str:
             if src.is_file():
                 shutil.copyfile(src, out / f"option_usage_{env}_{r['name'].rsplit('-', 1)[1]}.png")  # e.g. option_usage_hopper-medium_seed4.png
     lines += _guard_section(runs)
+    lines += _options_section(runs)
     lines += ["", "Per seed (final / best D4RL score, and where the best was: model-env frames, or gradient steps for the dataset agents):", ""]
     for r in listed:
         ev, unit = r["evals"], (r["summary"] or {}).get("unit", "frames")
@@ -549,6 +550,44 @@ def _guard_section(runs: list[dict]) -> list[str]:
                    f"{sum(j - s for s, j in fired if j > s):.1f} | {len(passed)} | {sum(j >= s for s, j in passed)} | "
                    f"{sum(s - j for s, j in passed if j < s):.1f} |")
     return out
+
+
+def _options_section(runs: list[dict]) -> list[str]:
+    """The options question on the shipped default (issue 70): per dataset, 1-option MOC and PPO against MOC on the same
+    seeds (the same data, models, start and optimiser settings apart from the options), paired per seed: the mean
+    difference with its 95% bootstrap CI, for the last policy and for what the run returns."""
+    from torchrl_offhrl.stats import bootstrap_ci
+
+    by: dict[str, dict[str, dict[int, tuple]]] = defaultdict(dict)
+    for r in runs:
+        if r.get("partial") or not r["summary"]:
+            continue
+        algo, _, rest = r["name"].partition("-")
+        row, _, seed = rest.rpartition("-seed")
+        if algo in ("moc", "moc_1opt", "ppo") and seed.isdigit():
+            s = r["summary"]
+            by[row].setdefault(algo, {})[int(seed)] = (s["final"]["normalized_d4rl"], (s.get("selected") or s["final"])["normalized_d4rl"])
+    rows = []
+    for row, algos in sorted(by.items()):
+        for other, label in (("moc_1opt", "1 option - MOC"), ("ppo", "PPO - MOC")):
+            seeds = sorted(set(algos.get("moc", {})) & set(algos.get(other, {})))
+            if len(seeds) < 2:
+                continue
+            cells = []
+            for k in (0, 1):
+                d = [algos[other][sd][k] - algos["moc"][sd][k] for sd in seeds]
+                lo, hi = bootstrap_ci(d, "mean")
+                cells.append(f"{sum(d) / len(d):+.1f} [{lo:+.1f}, {hi:+.1f}] ({', '.join(f'{x:+.1f}' for x in d)})")
+            rows.append(f"| {row} | {label} | {len(seeds)} | {cells[0]} | {cells[1]} |")
+    if not rows:
+        return []
+    return ["", "## The options question: paired differences on the default", "",
+            "Each algorithm on the same seeds (dataset, fitted models, start policy and optimiser settings shared; only the "
+            "options differ between MOC and 1-option MOC; PPO is MOC's loss without options and terminations): the mean "
+            "over seeds of the per-seed difference in final D4RL score, its 95% bootstrap CI and the per-seed values. "
+            "*Returned* is what the guard hands back, which is the start or the percentile BC on nearly every run of "
+            "this page, so its differences say little about the options; the last policies carry the question.", "",
+            "| dataset | difference | seeds | last policy | returned |", "|---|---|---|---|---|", *rows]
 
 
 def _criteria_section(runs: list[dict]) -> list[str]:
