@@ -47,8 +47,15 @@ def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, 
     mask, _ = data.top_return_episodes(share)
     best = OfflineDataset(data.data[mask], metadata=data.metadata, action_bounds=(data.action_low, data.action_high))
     val_ratio = float((cfg.get("dataset") if isinstance(cfg.get("dataset"), Mapping) else {}).get("val_ratio", 0.1))
+    # at most 1,000 passes over the training transitions (at least one check): small data converges in few steps, and
+    # its held-out error, a handful of pairs, can creep down for ever (the design data's fits stopped after 7,500-14,500
+    # steps, well inside this bound)
+    fit = PercentileBC.default_fit
+    n_train = max(1, int(len(best) * (1 - val_ratio)))
+    max_steps = max(int(fit["steps_per_epoch"]), -(-1000 * n_train // int(fit["batch_size"])))
     with threads(cfg.get("fit_threads")):
-        bc = PercentileBC.for_dataset(best).fit(best, val_ratio=val_ratio, split_seed=int(cfg["seed"]), progress=progress, seed=int(cfg["seed"]))
+        bc = PercentileBC.for_dataset(best).fit(best, val_ratio=val_ratio, split_seed=int(cfg["seed"]), progress=progress, seed=int(cfg["seed"]),
+                                                max_steps=max_steps)
     bc.eval()
     if path is not None:
         bc.save(path)
