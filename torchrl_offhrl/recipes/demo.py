@@ -96,15 +96,16 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
     what = "the percentile BC" if selected.get("policy") == "percentile_bc" else f"{selected['frames']:,} frames"
     rows.append((f"{algo} agent returned ({what})", selected["return_mean"], selected["return_std"], n_eval,
                  selected["normalized_d4rl"], selected["normalized_dataset"]))
+    w = max([36] + [len(r[0]) for r in rows])  # the label column: as wide as the longest row's name
     lines = [
         "",
         "=" * 80,
         f"torchrl_offhrl demo: offline {algo} on {s['env_id']} from {s['dataset_transitions']:,} transitions of {data_label(s)}",
         "=" * 80,
-        f"{'':36s} {'return':>9s} {'± std':>8s} {'episodes':>9s} {'D4RL score':>11s} {'data score':>11s}",
+        f"{'':{w}s} {'return':>9s} {'± std':>8s} {'episodes':>9s} {'D4RL score':>11s} {'data score':>11s}",
     ]
     for name, m, sd, n, d4rl, own in rows:
-        lines.append(f"{name:36s} {m:9.1f} {sd:8.1f} {n:9d} {fmt_number(d4rl):>11s} {fmt_number(own):>11s}")
+        lines.append(f"{name:{w}s} {m:9.1f} {sd:8.1f} {n:9d} {fmt_number(d4rl):>11s} {fmt_number(own):>11s}")
     other = s["total_s"] - s["data_s"] - s["models_s"] - s["update_time_s"]
     lines += [
         "(data score: normalised with the dataset's own random/expert reference returns; n/a without an expert policy)",
