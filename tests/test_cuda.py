@@ -37,6 +37,8 @@ def test_agent_trains_on_cuda_and_resumes_on_the_cpu(algo, hopper_file, tmp_path
     monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
     first = train(_cfg(algo, hopper_file, tmp_path, "cuda", 10 if algo in DATASET_ALGOS else 1), progress=False)
     run = Path(first["run_dir"])
+    if algo in ("moc", "ppo"):  # the guard's percentile BC, fitted and evaluated on the GPU beside the agent (recipes.fallback)
+        assert first["guard"]["against"] in ("start", "bc") and torch.isfinite(torch.tensor(first["fallback"]["return_mean"]))
     state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=True)
     params = [v for v in state["agent"]["loss"].values() if v.is_floating_point()]
     assert params and all(torch.isfinite(v).all() for v in params)
