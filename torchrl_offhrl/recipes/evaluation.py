@@ -17,7 +17,7 @@ from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
 from .config import acts_in_latent_space, latent_bound, model_config, model_env_config, offline_rules_for, resolve_dataset, transfer_config
-from .pipeline import apply_latent_origin, fit_or_load_models, make_model_env, make_real_env, origin_path, origin_share
+from .pipeline import apply_latent_origin, fit_or_load_models, make_eval_model_env, make_real_env, origin_path, origin_share
 from .runs import read_json
 
 __all__ = ["Evaluator", "GoalEvaluator", "SeedsEvaluation", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
@@ -296,9 +296,8 @@ class RunModels:
         through ``cvae`` (e.g. :func:`load_run_agent`'s, with the run's latent origin) when ``latent``."""
         ev = self.cfg["eval"]
         n = batch_size or int(ev.get("model_episodes") or ev["episodes"])
-        return make_model_env(self.pcfg, self.ensemble, cvae if latent else None, self.data, batch_size=n, latent=latent,
-                              threshold=float(self.cfg["threshold"] if threshold is None else threshold), reset_states="initial",
-                              member_draw="cyclic", horizon=int(ev["max_steps"]))
+        return make_eval_model_env(self.pcfg, self.ensemble, cvae if latent else None, self.data, n, int(ev["max_steps"]),
+                                   float(self.cfg["threshold"] if threshold is None else threshold), latent=latent)
 
 
 def run_models(run_dir, data=None) -> RunModels:
@@ -321,7 +320,7 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
     selection (``selected.pt``, :mod:`~torchrl_offhrl.recipes.selection`)
     instead of the last one, where the run has it (else the last one). When
     the guard returned the percentile BC (:mod:`~torchrl_offhrl.recipes.fallback`),
-    ``agent`` is that :class:`~torchrl_offhrl.recipes.fallback.ClonedPolicy`
+    ``agent`` is that :class:`~torchrl_offhrl.models.ClonedPolicy`
     and ``env`` the real env in real actions.
 
     The env (``num_envs`` side by side) decodes through the run's CVAE, loaded

@@ -23,7 +23,7 @@ import torch
 from ..data import OfflineDataset
 from ..models import ClonedPolicy, PercentileBC
 from ..utils import threads
-from .pipeline import load_cached, make_model_env, make_real_env
+from .pipeline import load_cached, make_eval_model_env, make_real_env
 
 __all__ = ["bc_path", "evaluate_fallback", "fit_or_load_bc"]
 
@@ -66,7 +66,7 @@ def evaluate_fallback(bc: PercentileBC, env_id: str, episodes: int, max_steps: i
                       model_episodes: int | None = None, ref=None, gamma: float = 0.99, device="cpu") -> dict:
     """The evaluation record of ``bc`` as the run's :class:`~torchrl_offhrl.recipes.evaluation.Evaluator` records its agent's:
     ``episodes`` real-env episodes from ``seed``, and ``model_episodes`` model episodes (None: none) of ``max_steps`` steps
-    from the same start states under the same members as the agent's (``reset_states="initial"``, ``member_draw="cyclic"``,
+    from the same start states under the same members as the agent's (:func:`~torchrl_offhrl.recipes.pipeline.make_eval_model_env`,
     the same seed), in real actions: its ``model_episode_returns`` pair up with the start's."""
     from .evaluation import Evaluator
 
@@ -74,8 +74,7 @@ def evaluate_fallback(bc: PercentileBC, env_id: str, episodes: int, max_steps: i
     real = make_real_env(env_id, None, num_envs=episodes, device=device)
     model = None
     if model_episodes:
-        model = make_model_env(pcfg, ensemble, None, data, batch_size=int(model_episodes), latent=False, threshold=threshold,
-                               reset_states="initial", member_draw="cyclic", horizon=max_steps)
+        model = make_eval_model_env(pcfg, ensemble, None, data, model_episodes, max_steps, threshold, latent=False)
     ev = Evaluator(real, env_id, episodes, max_steps, seed=seed, ref=ref, model_env=model, gamma=gamma)
     try:
         with torch.no_grad():

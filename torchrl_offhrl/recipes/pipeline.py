@@ -31,6 +31,7 @@ __all__ = [
     "fit_or_load_origin",
     "origin_path",
     "origin_share",
+    "make_eval_model_env",
     "make_model_env",
     "make_real_env",
 ]
@@ -328,6 +329,16 @@ def make_model_env(
     if stacking:  # the decoder's goal: the option's sub-goal, tracked along the goal's abstract demonstration
         return TransformedEnv(base, Compose(SubGoalTracker(), latent_t))
     return TransformedEnv(base, latent_t)
+
+
+def make_eval_model_env(cfg: Mapping, ensemble: DynamicsEnsemble, cvae: ConditionalVAE | None, data: OfflineDataset, episodes: int,
+                        max_steps: int, threshold: float, latent: bool = True) -> TransformedEnv:
+    """The model env of the evaluations (:func:`make_model_env`): ``episodes`` episodes of ``max_steps`` steps from the data's
+    start states, member ``i % K`` for episode ``i``. Two policies evaluated in envs built alike with the same seed start
+    every episode from the same state under the same member, so their returns pair up (the guard's comparisons: the
+    agent, its start and the percentile BC, in latent or real actions)."""
+    return make_model_env(cfg, ensemble, cvae, data, batch_size=int(episodes), latent=latent, threshold=threshold, reset_states="initial",
+                          member_draw="cyclic", horizon=int(max_steps))
 
 
 def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = DEFAULT_LATENT_BOUND, device="cpu",

@@ -31,7 +31,8 @@ from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_
                      resolve_reward_scale, transfer_config)
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
-from .pipeline import DEFAULT_ORIGIN_SHARE, apply_latent_origin, fit_or_load_models, make_model_env, make_real_env, origin_share
+from .pipeline import (DEFAULT_ORIGIN_SHARE, apply_latent_origin, fit_or_load_models, make_eval_model_env, make_model_env, make_real_env,
+                       origin_share)
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
 from .schema import RunConfig, TransferConfig
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
@@ -309,9 +310,8 @@ class ModelEnvSetting:
             # the real env's start states, whatever training uses; every member rolls out the same number of episodes (the LCB over members)
             # episodes as long as the real env's (eval.max_steps), whatever the training horizon: the model's verdict on a policy is
             # only as long as its episodes, and the guard compares whole episodes (recipes.selection)
-            model_eval_env = agent.attach(make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.eval.model_episodes or p.episodes,
-                                                         latent=latent, threshold=threshold, reset_states="initial", member_draw="cyclic",
-                                                         horizon=p.rc.eval.max_steps))
+            model_eval_env = agent.attach(make_eval_model_env(p.pcfg, p.ensemble, cvae, p.data, p.rc.eval.model_episodes or p.episodes,
+                                                              p.rc.eval.max_steps, threshold, latent=latent))
         evaluator = p.evaluator(eval_env, model_eval_env, task="forward" if transfer else None)
         if model_eval_env is not None and not p.stacking and not transfer and p.rc.selection.fallback != "start":
             p.fallback = _fallback(p, evaluator, threshold)
