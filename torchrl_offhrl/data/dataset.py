@@ -250,10 +250,7 @@ class OfflineDataset:
         rewards = self.data.get(("next", "reward")).squeeze(-1).double()
         out = torch.zeros(ids.numel(), dtype=torch.float64, device=rewards.device)
         out.index_add_(0, inverse, rewards)
-        unfinished = self.metadata.get("unfinished_episodes") or []
-        if complete_only and unfinished:
-            out = out[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
-        return out
+        return self._complete(ids, out) if complete_only else out
 
     def episode_lengths(self, complete_only: bool = False) -> torch.Tensor:
         """Number of transitions of every episode in the data, in order (``complete_only``: as :meth:`episode_returns`).
@@ -262,12 +259,15 @@ class OfflineDataset:
         >>> make_toy_dataset(num_episodes=2, episode_length=5).episode_lengths().tolist()
         [5, 5]
         """
-        ep = self.data.get("episode")
-        ids, counts = torch.unique_consecutive(ep, return_counts=True)
+        ids, counts = torch.unique_consecutive(self.data.get("episode"), return_counts=True)
+        return self._complete(ids, counts) if complete_only else counts
+
+    def _complete(self, ids: torch.Tensor, per_episode: torch.Tensor) -> torch.Tensor:
+        """``per_episode`` (one value per episode id in ``ids``) without the episodes ``metadata["unfinished_episodes"]`` lists."""
         unfinished = self.metadata.get("unfinished_episodes") or []
-        if complete_only and unfinished:
-            counts = counts[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
-        return counts
+        if not unfinished:
+            return per_episode
+        return per_episode[~torch.isin(ids, torch.as_tensor(unfinished, dtype=ids.dtype, device=ids.device))]
 
     def top_return_episodes(self, share: float) -> tuple[torch.Tensor, dict]:
         """``(mask, info)``: the transitions of the highest-return episodes, as few as cover ``share`` of the data.

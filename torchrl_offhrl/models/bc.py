@@ -1,7 +1,7 @@
 """Percentile behaviour cloning: the guard's second fallback, a direct regression of the best episodes' actions."""
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import torch
 from tensordict import TensorDictBase
