@@ -272,6 +272,11 @@ def test_the_guard_judges_against_the_start_and_the_percentile_bc_and_falls_back
     # neither shows a gain over the other (member 0 prefers one, member 1 the other): the preference decides
     tie = _rec([12, 8, 12, 8])
     assert sel.verdict(fallback=tie)["against"] == "bc" and sel.verdict(fallback=tie, prefer="start")["against"] == "start"
+    kept = PolicySelector("last", guard=True, prefer="start")  # the preference set once, as a run sets it from selection.fallback
+    kept.load_state_dict(sel.state_dict())
+    assert kept.verdict(fallback=tie)["against"] == "start"
+    with pytest.raises(ValueError, match="prefer"):
+        PolicySelector("last", guard=True, prefer="neither")
     # a start that beats the BC by 5 under every member: the fallback, and the policy must beat both
     v = sel.verdict(fallback=_rec([5, 5, 5, 5]))
     assert v["against"] == "start" and v["start_over_bc_lcb"] == pytest.approx(5.0) and not v["fired"] and v["gain_lcb"] == pytest.approx(1.0)

@@ -193,6 +193,9 @@ class PolicySelector:
             evaluation against the start is not above 0 (:meth:`verdict`).
         return_cap: the guard's (and ``model_gain_lcb``'s) cap on every model
             episode's return (:func:`data_return_cap`; None: no cap).
+        prefer: which fallback a fired guard keeps when neither the start
+            nor a percentile BC shows a gain over the other (``"bc"`` or
+            ``"start"``; :meth:`verdict`).
 
     ``consider(record, agent, step)`` after each evaluation; ``selected``
     is ``{"index", "step", "score", "agent"}`` of the best so far (None
@@ -213,12 +216,16 @@ class PolicySelector:
         (200, {'w': 2})
     """
 
-    def __init__(self, criterion: str = "last", include_start: bool = False, guard: bool = False, return_cap: float | None = None):
+    def __init__(self, criterion: str = "last", include_start: bool = False, guard: bool = False, return_cap: float | None = None,
+                 prefer: str = "bc"):
         if criterion not in CRITERIA:
             raise ValueError(f"selection.criterion must be one of {sorted(CRITERIA)}, got {criterion!r}")
         self.criterion, self.key, self.include_start = criterion, CRITERIA[criterion], bool(include_start)
         self.guard = bool(guard)
         self.return_cap = None if return_cap is None else float(return_cap)
+        if prefer not in ("bc", "start"):
+            raise ValueError(f"prefer must be 'bc' or 'start', got {prefer!r}")
+        self.prefer = prefer
         self.selected: dict | None = None
         self.start: dict | None = None  # the step-0 evaluation: its record's model episodes and (guard) its agent state
         self._count = 0
@@ -262,7 +269,7 @@ class PolicySelector:
             self.selected["episodes"] = _episodes(record)
         return True
 
-    def verdict(self, fallback: dict | None = None, prefer: str = "bc") -> dict | None:
+    def verdict(self, fallback: dict | None = None, prefer: str | None = None) -> dict | None:
         """The guard's decision on the selected policy (None without a guard): ``{"fired", "gain_lcb", "against", "reason", ...}``.
 
         Without ``fallback`` the selected policy must show a gain over the
@@ -275,13 +282,15 @@ class PolicySelector:
         the BC unless the start shows a gain over it, with ``prefer="start"``
         the start unless the BC shows a gain over it
         (``start_over_bc_lcb`` / ``bc_over_start_lcb``). A BC whose episodes
-        do not pair up is left out (the reason says so).
+        do not pair up is left out (the reason says so). ``prefer`` (None: the
+        selector's own) overrides the preference for this call.
         """
         if not self.guard:
             return None
         if self.start is None or self.start.get("agent") is None:
             return {"fired": False, "gain_lcb": None, "reason": "no evaluation at step 0 (eval.at_start=false): nothing to compare with; "
                                                                  "the selected policy is returned unguarded"}
+        prefer = self.prefer if prefer is None else prefer
         if prefer not in ("bc", "start"):
             raise ValueError(f"prefer must be 'bc' or 'start', got {prefer!r}")
         cap, start = self.return_cap, self.start["record"]

@@ -116,7 +116,8 @@ class PreparedRun:
                           "at step 0, which eval.at_start=false skips: the last policy is returned, unguarded", stacklevel=2)
             criterion, guard = ("last" if criterion == "model_gain_lcb" else criterion), False
         cap = data_return_cap(s.data, rc.eval.max_steps) if rc.selection.return_cap == "data" else None
-        run.selector = PolicySelector(criterion, rc.selection.include_start, guard=guard, return_cap=cap)
+        run.selector = PolicySelector(criterion, rc.selection.include_start, guard=guard, return_cap=cap,
+                                      prefer="start" if rc.selection.fallback == "start_unless_bc" else "bc")
         previous_summary = None
         resumed = run.resume(agent, s.device)
         if not resumed:  # a start from the dataset before training (e.g. MOReL's behaviour cloning); a resumed run has it in its weights
@@ -159,8 +160,7 @@ class PreparedRun:
                 warnings.warn(fallback_error, stacklevel=2)
             else:
                 run.write_json("fallback.json", fallback)  # its whole record, model episodes included (what the guard paired)
-        prefer = "start" if RunConfig.parse(cfg).selection.fallback == "start_unless_bc" else "bc"
-        verdict = run.selector.verdict(fallback, prefer=prefer)  # the guard: the start (or the BC) instead, when no member shows a gain over them
+        verdict = run.selector.verdict(fallback)  # the guard: the start (or the BC) instead, when no member shows a gain over them
         if verdict is not None and verdict["fired"]:
             if verdict.get("against") == "bc":
                 selected = {"index": None, "step": 0, "score": verdict["gain_lcb"], "agent": None, "bc": cloned.state_dict(), "record": fallback}
