@@ -39,16 +39,18 @@ _BEST: dict = {}
 
 
 def data_best_return(run_name: str, roots: list[Path]) -> float:
-    """The best return of a complete episode in the data of the run ``run_name`` (its ``config.json`` under one of ``roots``)."""
+    """The guard's return cap of the run ``run_name`` (its ``config.json`` under one of ``roots``): the library's own
+    :func:`~torchrl_offhrl.recipes.selection.data_return_cap` on the run's data and ``eval.max_steps``."""
     from torchrl_offhrl.recipes.config import resolve_dataset
+    from torchrl_offhrl.recipes.selection import data_return_cap
 
     found = [r / run_name for r in roots if (r / run_name / "config.json").exists()]
     if not found:
         raise FileNotFoundError(f"no {run_name}/config.json under {', '.join(map(str, roots))}")
     cfg = json.loads((found[0] / "config.json").read_text())
-    key = (cfg["env"]["name"], str(cfg["dataset"]), cfg.get("dataset_seed"), cfg.get("num_transitions"))
+    key = (cfg["env"]["name"], str(cfg["dataset"]), cfg.get("dataset_seed"), cfg.get("num_transitions"), int(cfg["eval"]["max_steps"]))
     if key not in _BEST:
-        _BEST[key] = float(resolve_dataset(cfg).episode_returns(complete_only=True).max())
+        _BEST[key] = float(data_return_cap(resolve_dataset(cfg), key[-1]))
     return _BEST[key]
 
 
