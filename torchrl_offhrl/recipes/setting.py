@@ -262,10 +262,9 @@ def _fallback(p: Parts, evaluator, threshold: float) -> Callable:
 
     def run():
         bc = fit_or_load_bc(p.pcfg, p.data, p.model_info.get("model_dir"), share, progress=p.progress)
-        m = evaluator.model_env
         record = evaluate_fallback(bc, evaluator.env_id, evaluator.episodes, evaluator.max_steps, evaluator.seed, p.pcfg, p.ensemble, p.data, threshold,
-                                   model_episodes=None if m is None else m.batch_size.numel(), ref=evaluator.ref, gamma=evaluator.gamma,
-                                   device=p.device)
+                                   model_episodes=evaluator.model_env.batch_size.numel(), ref=evaluator.ref, gamma=evaluator.gamma,
+                                   device=p.device)  # only built with a model eval env (ModelEnvSetting)
         return ClonedPolicy(bc), {**record, "share": share}
 
     return run
