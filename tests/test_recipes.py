@@ -546,7 +546,7 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
     assert guard["return_cap"] == pytest.approx(cap) and "clipped at the data's best episode" in guard["reason"]
     best = max((e for e in evals if e["frames"] > 0), key=lambda e: paired_gain_lcb(e, evals[0], cap=cap))
     assert guard["candidate_step"] == best["frames"]
-    # the fallback (selection.fallback=start_or_bc): the percentile BC, evaluated on the same model episodes as the start;
+    # the fallback (selection.fallback=bc_unless_start): the percentile BC, evaluated on the same model episodes as the start;
     # the trained policy is judged against the BC unless the start shows a gain over it
     fb = json.loads((run / "fallback.json").read_text())
     assert fb["model_episode_members"] == evals[0]["model_episode_members"] and summary["fallback"]["normalized_d4rl"] == fb["normalized_d4rl"]
@@ -805,3 +805,22 @@ def test_a_percentile_bc_that_fails_leaves_the_start_as_the_guards_fallback(hopp
     assert summary["guard"]["against"] == "start" and "percentile BC could not be fitted" in summary["guard"]["reason"]
     assert "fallback" not in summary and not (run / "fallback.json").exists()
     assert summary["guard"]["returned"] in ("start", "trained") and (run / "checkpoint.pt").is_file()
+
+
+def test_the_percentile_bc_is_fitted_and_cached_once_per_run_seed(hopper_file, tmp_path):
+    """Runs of different seeds return independently fitted cloners (a table's seeds must not score one network several
+    times); a run of the same seed loads its own cloner back unchanged."""
+    from torchrl_offhrl.data import load_dataset
+    from torchrl_offhrl.recipes.fallback import bc_path, fit_or_load_bc
+
+    data = load_dataset(hopper_file)
+    cfg = to_plain(_cfg("ppo", hopper_file, tmp_path / "runs"))
+    nets = {}
+    for seed in (1, 2):
+        nets[seed] = fit_or_load_bc({**cfg, "seed": seed}, data, tmp_path, 0.1, progress=False)
+        assert bc_path(tmp_path, 0.1, seed).is_file()
+    assert sorted(p.name for p in tmp_path.glob("percentile_bc_*.pt")) == ["percentile_bc_top0.1_seed1.pt", "percentile_bc_top0.1_seed2.pt"]
+    w1, w2 = (torch.cat([p.detach().flatten() for p in nets[s].parameters()]) for s in (1, 2))
+    assert not torch.equal(w1, w2)
+    again = fit_or_load_bc({**cfg, "seed": 2}, data, tmp_path, 0.1, progress=False)
+    assert torch.equal(torch.cat([p.detach().flatten() for p in again.parameters()]), w2)

@@ -5,10 +5,11 @@ highest-return episodes through the CVAE decoder. A plain regression of the
 same episodes' actions (:class:`~torchrl_offhrl.models.PercentileBC`) is
 another cloner of them, and on half of the design datasets a much better one
 in the real env (``experiments/diagnostics/start_quality.py``). With
-``selection.fallback: start_or_bc`` (the default) the guard falls back to the
-better of the two by the model's own paired comparison
-(:meth:`~torchrl_offhrl.recipes.selection.PolicySelector.verdict`). This
-module fits the cloner (cached beside the CVAE: :func:`bc_path`) and
+``selection.fallback: bc_unless_start`` (the default) a fired guard returns
+this cloner unless the model's own paired comparison shows the start above
+it (:meth:`~torchrl_offhrl.recipes.selection.PolicySelector.verdict`). This
+module fits the cloner (one per run seed, cached beside the CVAE:
+:func:`bc_path`) and
 evaluates it as the run evaluates its agent: the same real-env episodes and
 the same model episodes (the same start states under the same member, in
 real actions), so its model episodes pair up with the start's.
@@ -28,19 +29,25 @@ from .pipeline import load_cached, make_eval_model_env, make_real_env
 __all__ = ["bc_path", "evaluate_fallback", "fit_or_load_bc"]
 
 
-def bc_path(model_dir, share: float) -> Path:
-    """Where the percentile BC of ``share`` of the data is cached: ``percentile_bc_top<share>.pt`` beside the CVAE."""
-    return Path(model_dir) / f"percentile_bc_top{share:g}.pt"
+def bc_path(model_dir, share: float, seed: int) -> Path:
+    """Where the percentile BC of ``share`` of the data fitted with ``seed`` is cached: ``percentile_bc_top<share>_seed<seed>.pt``
+    beside the CVAE.
+
+    The seed is in the name because the cloner is a policy the run returns: runs of different seeds must return
+    independently fitted cloners, or a table's seeds would score one network several times and its confidence interval
+    would measure only the evaluation's noise.
+    """
+    return Path(model_dir) / f"percentile_bc_top{share:g}_seed{int(seed)}.pt"
 
 
 def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, progress: bool = True) -> PercentileBC:
     """The :class:`~torchrl_offhrl.models.PercentileBC` of the highest-return episodes covering ``share`` of ``data``.
 
     Fitted when absent (its own fit settings, :attr:`~torchrl_offhrl.models.PercentileBC.default_fit`: to convergence on
-    the held-out episodes of the run's episode split) and cached in the CVAE's folder ``model_dir`` (:func:`bc_path`),
-    like the latent origin it sits beside.
+    the held-out episodes of the run's episode split, its initialisation and batches drawn from the run's seed) and cached
+    per seed in the CVAE's folder ``model_dir`` (:func:`bc_path`).
     """
-    path = bc_path(model_dir, share) if model_dir is not None else None
+    path = bc_path(model_dir, share, int(cfg["seed"])) if model_dir is not None else None
     bc = load_cached(PercentileBC, path) if path is not None else None
     if bc is not None:
         return bc
