@@ -356,12 +356,20 @@ def test_paper_table_layout(tmp_path):
     text = paper_table(runs, tmp_path / "t")
     final = text.split("## Final evaluation")[1].split("## Best")[0]
     best = text.split("## Best")[1].split("## Published")[0]
-    # a MOReL run without the behaviour-cloned start (the config before it followed MOReL's code) has a column of its own
-    header = "| dataset | MOC | PPO | SAC | MOReL | MOPO | IQL | CQL | TD3+BC | BC | MOReL-style (old) | ppo [no_cvae] | behaviour data |"
+    # the headline table: the shipped algorithms only
+    header = "| dataset | MOC | PPO | SAC | MOReL | MOPO | IQL | CQL | TD3+BC | BC | behaviour data |"
     assert header in final and header in best
     # MOC hopper: finals 40, 60 -> IQM 50.0, bootstrap CI [40, 60]; best after step 0: 50, 60 -> 55.0 [50, 60]
-    assert "| hopper-medium | 50.0 [40.0, 60.0] (2) | — | — | — | — | 42.0 (1) | — | — | — | 25.0 (1) | 7.0 (1) | 37.0 |" in final
-    assert "| hopper-medium | 55.0 [50.0, 60.0] (2) | — | — | — | — | 45.0 (1) | — | — | — | 25.0 (1) | 9.0 (1) | 37.0 |" in best
+    assert "| hopper-medium | 50.0 [40.0, 60.0] (2) | — | — | — | — | 42.0 (1) | — | — | — | 37.0 |" in final
+    assert "| hopper-medium | 55.0 [50.0, 60.0] (2) | — | — | — | — | 45.0 (1) | — | — | — | 37.0 |" in best
+    # a MOReL run without the behaviour-cloned start (the config before it followed MOReL's code) and an ablation have columns
+    # of their own, on variants.md, in the same layout; the headline page links it
+    assert "[variants.md](variants.md)" in text and "MOReL-style" not in text and "no_cvae" not in text
+    variants = (tmp_path / "t" / "variants.md").read_text()
+    vfinal = variants.split("## Final evaluation")[1].split("## Best")[0]
+    assert "| dataset | MOReL-style (old) | ppo [no_cvae] | behaviour data |" in vfinal
+    assert "| hopper-medium | 25.0 (1) | 7.0 (1) | 37.0 |" in vfinal and "| halfcheetah-medium | — | — | 38.0 |" in vfinal
+    assert "- hopper-medium, ppo [no_cvae]: s0: 7.0 / n/a / " in variants and "- hopper-medium, MOC:" not in variants
     # per seed: final / selected / last-5 mean / best / untrained; MOC's change over its start: +30 and +50
     assert "- hopper-medium, MOC: s0: 40.0 / n/a / 45.0 / 50.0 / 10.0; s1: 60.0 / n/a / 45.0 / 60.0 / 10.0; change over untrained +40.0" in text
     assert (tmp_path / "t" / "performance_profile.png").is_file()
@@ -385,6 +393,10 @@ def test_paper_table_layout(tmp_path):
                        ablation={"no_cvae": True, "no_pessimism": True} if a == "mopo" else None)  # as configs/algo/mopo.yaml sets it
              for a in ("moc", "ppo", "sac", "morel", "mopo", "iql", "cql", "td3bc", "bc")]
     assert "None: every column has its seeds." in paper_table(every, tmp_path / "n", min_seeds=1).split("## Missing")[1]
+    assert not (tmp_path / "n" / "variants.md").exists()  # nothing but the shipped algorithms: no variants page
+    (tmp_path / "t" / "stale").mkdir()
+    paper_table(every, tmp_path / "t")  # a report over runs without variants removes an earlier report's page
+    assert not (tmp_path / "t" / "variants.md").exists()
 
 
 def test_paper_table_says_which_dataset_instance_each_run_used(tmp_path):

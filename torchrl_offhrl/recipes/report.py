@@ -480,6 +480,12 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     ``missing_reasons``: keyed ``"<row>:<algo>"`` for one cell (e.g.
     ``"hopper-medium-expert:cql"``) or ``"<row>"`` for the rest of a row;
     a cell with neither says that no reason was given.
+
+    ``table.md`` holds the standard columns only (:data:`TABLE_COLUMNS`: each
+    algorithm as its shipped default runs it). Every other column (the paper
+    preset, ablations, tuning variants) goes to ``variants.md`` beside it, in
+    the same layout, so that the headline table measures what a user runs and
+    nothing else; a run set with no such column leaves no ``variants.md``.
     """
     from ..scores import PUBLISHED_SCORES
 
@@ -496,15 +502,22 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     row_name = {(e, d): f"{_env_name(e)}-{_dataset_name(d)}" for e, d in datasets}  # "hopper-medium": table rows, missing cells, figures
     present = {k[2] for k in groups}
     paper = [c + PAPER_SUFFIX for c in TABLE_COLUMNS if c + PAPER_SUFFIX in present]  # the same agents on the paper preset
-    columns = [*TABLE_COLUMNS, *paper, *sorted(present - set(TABLE_COLUMNS) - set(paper))]  # every standard column (missing: —), then others
-    titles = [column_title(c) for c in columns]
+    headline = list(TABLE_COLUMNS)  # every standard column (missing: —): table.md
+    variants = [*paper, *sorted(present - set(TABLE_COLUMNS) - set(paper))]  # the rest: variants.md
+    columns = [*headline, *variants]
     instances, mixed = _dataset_instances(groups, row_name, columns)
     episodes, mixed_episodes = _eval_episodes(groups, row_name, columns)
 
-    def table(kind: str) -> list[str]:
-        lines = ["| dataset | " + " | ".join(titles) + " | behaviour data |", "|" + "---|" * (len(columns) + 2)]
+    behaviour = {}  # the behaviour data's score per row: the first of its columns' (in column order) that has one
+    for c in columns:
+        for (e, d, c2), st in stats.items():
+            if c2 == c and st["behaviour_score"] is not None:
+                behaviour.setdefault((e, d), st["behaviour_score"])
+
+    def table(kind: str, columns: list[str]) -> list[str]:
+        lines = ["| dataset | " + " | ".join(column_title(c) for c in columns) + " | behaviour data |", "|" + "---|" * (len(columns) + 2)]
         for env_id, dataset in datasets:
-            cells, beh = [], []
+            cells = []
             for c in columns:
                 st = stats.get((env_id, dataset, c))
                 if st is None:
@@ -513,12 +526,13 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
                 n = sum(p[PER_SEED_KEY[kind]] is not None for p in st["per_seed"])
                 mark = (" ‡" if (env_id, dataset, c) in mixed else "") + (" §" if (env_id, dataset, c) in mixed_episodes else "")
                 cells.append(fmt_iqm(st[f"{kind}_iqm"], st[f"{kind}_ci"], n) + mark if n else "—")
-                if st["behaviour_score"] is not None:
-                    beh.append(st["behaviour_score"])
-            lines.append(f"| {row_name[env_id, dataset]} | " + " | ".join(cells) + f" | {fmt_number(beh[0] if beh else None)} |")
+            lines.append(f"| {row_name[env_id, dataset]} | " + " | ".join(cells) + f" | {fmt_number(behaviour.get((env_id, dataset)))} |")
         return lines
 
-    budgets = sorted({f"{column_title(k[2])}: {st['budget']}" for k, st in stats.items()})
+    budgets: dict[str, list[str]] = defaultdict(list)  # column -> its budgets ("MOC: 200 frames"), one per distinct budget
+    for k, st in sorted(stats.items(), key=lambda kv: column_title(kv[0][2])):
+        if (b := f"{column_title(k[2])}: {st['budget']}") not in budgets[k[2]]:
+            budgets[k[2]].append(b)
     reasons = dict(missing_reasons or {})
     short: list[str] = []
     # what one seed of a column cost, over all its runs on the page (the same for every row it is missing from)
@@ -541,40 +555,56 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
 
     sampled = has("sampled")  # the sampled policy's final score, on pages whose runs evaluated it
     rebuilt = any(p["rebuilt"] for st in stats.values() for p in st["per_seed"])  # the legend only where a row carries the mark
-    per_seed = [f"## Per-seed values (final / selected / last-5 mean / best / untrained{' / final sampled' if sampled else ''})", "",
-                *(["`*`: a run known only from an earlier page (start, best and final: no last five, no selection).", ""] if rebuilt else [])]
-    for env_id, dataset in datasets:
-        for c in columns:
-            st = stats.get((env_id, dataset, c))
-            if st is None:
-                continue
-            vals = "; ".join(f"s{p['seed']}{'*' if p['rebuilt'] else ''}: {fmt_number(p['final'])} / {fmt_number(p['selected'])} / {fmt_number(p['last5'])} / "
-                             f"{fmt_number(p['best'])} / {fmt_number(p['start'])}" + (f" / {fmt_number(p['sampled'])}" if sampled else "")
-                             for p in sorted(st["per_seed"], key=lambda p: (p["seed"] is None, p["seed"] or 0)))
-            change = "" if st["change_mean"] is None else (f"; change over untrained {st['change_mean']:+.1f} "
-                                                           f"[{st['change_ci'][0]:+.1f}, {st['change_ci'][1]:+.1f}], {st['change_up']} runs up")
-            per_seed.append(f"- {row_name[env_id, dataset]}, {column_title(c)}: {vals}{change}")
-    per_seed.append("")
-    md = [f"# {title}", "", *([f"Made by `{made_by}`.", ""] if made_by else []),
-          "D4RL-normalised real-env return, deterministic evaluation: interquartile mean over seeds with its 95% stratified-bootstrap "
-          "confidence interval, [lower, upper], (number of seeds); mean ± std per cell in table.csv.", "",
-          "## Final evaluation", "", *table("score"), "",
-          *(["## Selected policy (offline policy selection, without the real env)", "", *table("selected"), ""] if has("selected") else []),
-          *(["## Mean of the last 5 evaluations", "", *table("last5"), ""] if has("last5") else []),
-          *(["## Final evaluation of the sampled policy (actions and options drawn, on the same start states as the deterministic one)", "",
-             "The deterministic evaluation runs each policy's mode; what the agents' losses train is the sampled policy. "
-             "Read a row beside the same row of the final evaluation above: where the sampled score stays at the data's and the "
-             "deterministic one rises, training moved the mode, not the policy it trains.", "",
-             *table("sampled"), ""] if sampled else []),
-          "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
-          *table("best_score"), "",
-          "Budgets: " + "; ".join(budgets) + ".", "", *per_seed, *missing, *instances, *episodes,
+
+    def per_seed(columns: list[str]) -> list[str]:
+        lines = [f"## Per-seed values (final / selected / last-5 mean / best / untrained{' / final sampled' if sampled else ''})", "",
+                 *(["`*`: a run known only from an earlier page (start, best and final: no last five, no selection).", ""] if rebuilt else [])]
+        for env_id, dataset in datasets:
+            for c in columns:
+                st = stats.get((env_id, dataset, c))
+                if st is None:
+                    continue
+                vals = "; ".join(f"s{p['seed']}{'*' if p['rebuilt'] else ''}: {fmt_number(p['final'])} / {fmt_number(p['selected'])} / "
+                                 f"{fmt_number(p['last5'])} / {fmt_number(p['best'])} / {fmt_number(p['start'])}" + (f" / {fmt_number(p['sampled'])}" if sampled else "")
+                                 for p in sorted(st["per_seed"], key=lambda p: (p["seed"] is None, p["seed"] or 0)))
+                change = "" if st["change_mean"] is None else (f"; change over untrained {st['change_mean']:+.1f} "
+                                                               f"[{st['change_ci'][0]:+.1f}, {st['change_ci'][1]:+.1f}], {st['change_up']} runs up")
+                lines.append(f"- {row_name[env_id, dataset]}, {column_title(c)}: {vals}{change}")
+        return [*lines, ""]
+
+    def tables(columns: list[str]) -> list[str]:
+        return ["## Final evaluation", "", *table("score", columns), "",
+                *(["## Selected policy (offline policy selection, without the real env)", "", *table("selected", columns), ""] if has("selected") else []),
+                *(["## Mean of the last 5 evaluations", "", *table("last5", columns), ""] if has("last5") else []),
+                *(["## Final evaluation of the sampled policy (actions and options drawn, on the same start states as the deterministic one)", "",
+                   "The deterministic evaluation runs each policy's mode; what the agents' losses train is the sampled policy. "
+                   "Read a row beside the same row of the final evaluation above: where the sampled score stays at the data's and the "
+                   "deterministic one rises, training moved the mode, not the policy it trains.", "",
+                   *table("sampled", columns), ""] if sampled else []),
+                "## Best evaluation during training (after step 0; reported apart from the final one, never instead of it)", "",
+                *table("best_score", columns), "",
+                "Budgets: " + "; ".join(b for c in columns for b in sorted(budgets.get(c, []))) + ".", "", *per_seed(columns)]
+
+    legend = ("D4RL-normalised real-env return, deterministic evaluation: interquartile mean over seeds with its 95% stratified-bootstrap "
+              "confidence interval, [lower, upper], (number of seeds); mean ± std per cell in table.csv.")
+    md = [f"# {title}", "", *([f"Made by `{made_by}`.", ""] if made_by else []), legend, "",
+          *([f"Each column is an algorithm as its shipped default runs it. The paper preset, ablations and tuning variants "
+             f"({len(variants)} columns) are on [variants.md](variants.md), not here.", ""] if variants else []),
+          *tables(headline), *missing, *instances, *episodes,
           "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
           "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
           "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),
           *[f"| {m} | " + " | ".join(f"{v:g}" for v in row.values()) + " |" for m, row in PUBLISHED_SCORES.items()], ""]
     text = "\n".join(md)
     (out / "table.md").write_text(text)
+    if variants:  # the same layout for every column that is not a shipped default
+        (out / "variants.md").write_text("\n".join([
+            f"# {title}: variants, ablations and the paper preset", "", *([f"Made by `{made_by}`.", ""] if made_by else []), legend, "",
+            "These columns are not what `offhrl train algo=<algo>` runs: the paper preset (the paper's per-dataset settings, kept "
+            "to reproduce its columns), ablations and tuning variants, on the same data as the headline table, "
+            "[table.md](table.md) (the shipped algorithms; the missing cells and the published scores are there).", "", *tables(variants)]))
+    elif (out / "variants.md").is_file():
+        (out / "variants.md").unlink()  # an earlier report's variants: gone with their runs
     with open(out / "table.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["env", "dataset", "algo", *next(iter(stats.values())).keys()])
         w.writeheader()
