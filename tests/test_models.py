@@ -427,3 +427,26 @@ def test_decoder_sensitivity_is_zero_for_a_collapsed_decoder_and_the_box_for_an_
     assert identity["corner_std"] == pytest.approx([2.0, 2.0], rel=0.02)
     assert identity["prior_std"] == pytest.approx([1.0, 1.0], rel=0.03)
     assert identity["corner_share"] == pytest.approx(float((2.0 / data_std).mean()), rel=0.02)
+
+
+@pytest.mark.fault("resume")
+def test_a_checkpoint_whose_data_sums_differ_in_the_last_bits_is_resumed(toy_data, tmp_path):
+    """A float64 sum over many values depends on the order of its additions (the thread count): a fit killed under one
+    thread count and resumed under another must not be thrown away for sums equal to 1e-9. The data's bytes decide."""
+    from torchrl_offhrl.models.trainer import _same_fit
+
+    train, val = toy_data.split(0.1, seed=0)
+    trainer = SupervisedTrainer(lr=1e-3, batch_size=32, max_epochs=2, steps_per_epoch=5, progress=False)
+    ens = _gaussian_ensemble(toy_data, 0)
+    params = [p for p in ens.parameters() if p.requires_grad]
+    here = trainer._fingerprint(train.data.select(*ens.train_keys), len(val.data), ens.num_members, params)
+    there = {**here, "data_sums": [x * (1 + 3e-16) + 1e-13 for x in here["data_sums"]]}  # other rounding, same data
+    assert _same_fit(there, here)
+    assert not _same_fit({**there, "data_sums": [x + 1.0 for x in here["data_sums"]]}, here)  # other sums
+    assert not _same_fit({**here, "data_digest": "0" * 64}, here)  # other bytes, the same sums
+    old = {k: v for k, v in there.items() if k != "data_digest"}  # written before the digest: judged on the sums
+    assert _same_fit(old, here) and not _same_fit({**old, "lr": 1.0}, here)
+    changed = train.data.clone()
+    changed["action"][0, 0] += 1e-3  # one value: the sums barely move, the digest does
+    other = trainer._fingerprint(changed.select(*ens.train_keys), len(val.data), ens.num_members, params)
+    assert other["data_digest"] != here["data_digest"] and not _same_fit(other, here)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import os
 import time
@@ -111,10 +112,15 @@ class SupervisedTrainer:
     checkpoint_every_s: float | None = None
 
     def _fingerprint(self, train: TensorDictBase, n_val: int, k: int, params) -> dict:
-        """What a checkpoint must match to be resumed: the data (its sizes and each key's sum), the members, the step
-        settings, the shapes. The stopping rules (patience, rel_tol, max_epochs) may change between the two runs."""
-        sums = [float(value.double().sum()) for _, value in sorted(train.items(True, True), key=lambda kv: str(kv[0]))]
-        return {"n": train.shape[0], "n_val": n_val, "data_sums": sums, "k": k, "lr": self.lr, "batch_size": self.batch_size,
+        """What a checkpoint must match to be resumed: the data (its sizes, each key's sum and a digest of its bytes), the
+        members, the step settings, the shapes. The stopping rules (patience, rel_tol, max_epochs) may change between the
+        two runs (:func:`_same_fit` compares them)."""
+        items = sorted(train.items(True, True), key=lambda kv: str(kv[0]))
+        sums = [float(value.double().sum()) for _, value in items]
+        digest = hashlib.sha256()
+        for _, value in items:
+            digest.update(value.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
+        return {"n": train.shape[0], "n_val": n_val, "data_sums": sums, "data_digest": digest.hexdigest(), "k": k, "lr": self.lr, "batch_size": self.batch_size,
                 "steps_per_epoch": self.steps_per_epoch, "max_steps": self.max_steps, "weight_decay": self.weight_decay,
                 "seed": self.seed, "shapes": [list(p.shape) for p in params]}
 
@@ -127,7 +133,7 @@ class SupervisedTrainer:
         try:
             state = load_torch_file(path, "fit checkpoint", "it is set aside and the fit starts again")
             found = state.get("fingerprint") if isinstance(state, dict) else None
-            reason = None if found == fingerprint else f"it was written by another fit ({_difference(found, fingerprint)})"
+            reason = None if _same_fit(found, fingerprint) else f"it was written by another fit ({_difference(found, fingerprint)})"
         except CorruptFileError as err:
             state, reason = None, str(err)
         if reason is None:
@@ -271,6 +277,24 @@ class SupervisedTrainer:
             total = loss if total is None else total + loss
         model.train(was_training)
         return total / n
+
+
+def _same_fit(found, expected: dict) -> bool:
+    """Whether a checkpoint's fingerprint ``found`` is this fit's ``expected`` one.
+
+    The data are compared by their bytes' digest (exact); the per-key sums only to a relative 1e-9, because a float64 sum
+    over a million values depends on the order of its additions, which changes with the number of threads: a fit
+    interrupted under ``OMP_NUM_THREADS=1`` and resumed under two threads read sums that differ in the last bit, and was
+    thrown away. A checkpoint written before the digest existed is judged on its sums alone.
+    """
+    if not isinstance(found, dict) or set(found) - {"data_digest"} != set(expected) - {"data_digest"}:
+        return False
+    if any(found[key] != expected[key] for key in expected if key not in ("data_sums", "data_digest")):
+        return False
+    if "data_digest" in found and found["data_digest"] != expected["data_digest"]:
+        return False
+    a, b = found["data_sums"], expected["data_sums"]
+    return len(a) == len(b) and all(math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-9) for x, y in zip(a, b))
 
 
 def _difference(found, expected: dict) -> str:
