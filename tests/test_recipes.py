@@ -12,7 +12,7 @@ import torch
 
 from torchrl_offhrl.recipes import rundir
 from torchrl_offhrl.recipes import setting as setting_mod  # where the run builds its agent and models
-from torchrl_offhrl.recipes.config import compose, pessimism_for
+from torchrl_offhrl.recipes.config import compose, model_config, pessimism_for
 from torchrl_offhrl.recipes.report import aggregate
 from torchrl_offhrl.recipes.train import train
 from torchrl_offhrl.utils import to_plain
@@ -533,7 +533,7 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
     when the guard fired, the candidate's otherwise; model episodes of the evaluations run the real episode's length whatever
     the training horizon (a model criterion then reads whole episodes)."""
     guarded = ["selection.criterion=model_gain_lcb", "selection.guard=true"]
-    summary = train(_cfg("ppo", hopper_file, tmp_path / "g", ["model_env.horizon=20", "eval.at_start=true", "train.total_frames=256", *guarded]),
+    summary = train(_cfg("ppo", hopper_file, tmp_path / "g", ["seed=3", "model_env.horizon=20", "eval.at_start=true", "train.total_frames=256", *guarded]),
                     progress=False)
     run = Path(summary["run_dir"])
     guard, evals = summary["guard"], json.loads((run / "evals.json").read_text())
@@ -549,6 +549,8 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
     # the fallback (selection.fallback=bc_unless_start): the percentile BC, evaluated on the same model episodes as the start;
     # the trained policy is judged against the BC unless the start shows a gain over it
     fb = json.loads((run / "fallback.json").read_text())
+    seed = json.loads((run / "config.json").read_text())["seed"]  # fitted from the run's seed (not the models' dataset seed)
+    assert seed != 0 and (Path(summary["models"]) / f"percentile_bc_top0.1_seed{seed}.pt").is_file()
     assert fb["model_episode_members"] == evals[0]["model_episode_members"] and summary["fallback"]["normalized_d4rl"] == fb["normalized_d4rl"]
     start_over_bc = paired_gain_lcb(evals[0], fb, cap=cap)  # the default selection.fallback=bc_unless_start
     assert guard["start_over_bc_lcb"] == pytest.approx(start_over_bc) and guard["against"] == ("start" if start_over_bc > 0 else "bc")
@@ -571,14 +573,14 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
     env_r.close()
     agent_r.load_state_dict(state_r["selection"]["start"]["agent"])
     menv = agent_r.attach(run_models(run).model_env(cvae_r))
-    rets = evaluate_policy(menv, agent_r.eval_policy, len(evals[0]["model_episode_returns"]), max_steps=40, deterministic=True, seed=eval_seed(0))
+    rets = evaluate_policy(menv, agent_r.eval_policy, len(evals[0]["model_episode_returns"]), max_steps=40, deterministic=True, seed=eval_seed(3))  # the run's seed
     assert rets.double().tolist() == pytest.approx(evals[0]["model_episode_returns"], abs=1e-3)
     # a returned percentile BC acts in real actions: `offhrl evaluate` rolls it out as it is
     from torchrl_offhrl.recipes.evaluation import evaluate_run
     from torchrl_offhrl.models import ClonedPolicy
     from torchrl_offhrl.recipes.fallback import fit_or_load_bc
 
-    bc = fit_or_load_bc(to_plain(_cfg("ppo", hopper_file, tmp_path / "g")), load_dataset(hopper_file), None, 0.1, progress=False)
+    bc = fit_or_load_bc(to_plain(_cfg("ppo", hopper_file, tmp_path / "g")), load_dataset(hopper_file), None, 0.1, 0, progress=False)
     from torchrl_offhrl.utils import save_torch_file
 
     save_torch_file({"policy": "percentile_bc", "bc": ClonedPolicy(bc).state_dict(), "step": 0, "criterion": "last", "record": fb}, run / "selected.pt")
@@ -807,20 +809,18 @@ def test_a_percentile_bc_that_fails_leaves_the_start_as_the_guards_fallback(hopp
     assert summary["guard"]["returned"] in ("start", "trained") and (run / "checkpoint.pt").is_file()
 
 
-def test_the_percentile_bc_is_fitted_and_cached_once_per_run_seed(hopper_file, tmp_path):
+def test_the_percentile_bc_is_fitted_and_cached_once_per_run_seed(hopper_file, cache, tmp_path):
     """Runs of different seeds return independently fitted cloners (a table's seeds must not score one network several
-    times); a run of the same seed loads its own cloner back unchanged."""
+    times: the models' config carries the dataset's seed, the same for every run, so the run's seed is what counts); a run
+    of the same seed loads its own cloner back unchanged."""
     from torchrl_offhrl.data import load_dataset
     from torchrl_offhrl.recipes.fallback import bc_path, fit_or_load_bc
 
     data = load_dataset(hopper_file)
-    cfg = to_plain(_cfg("ppo", hopper_file, tmp_path / "runs"))
-    nets = {}
-    for seed in (1, 2):
-        nets[seed] = fit_or_load_bc({**cfg, "seed": seed}, data, tmp_path, 0.1, progress=False)
-        assert bc_path(tmp_path, 0.1, seed).is_file()
+    pcfg = model_config(_cfg("ppo", hopper_file, tmp_path / "runs"))
+    nets = {seed: fit_or_load_bc(pcfg, data, tmp_path, 0.1, seed, progress=False) for seed in (1, 2)}
     assert sorted(p.name for p in tmp_path.glob("percentile_bc_*.pt")) == ["percentile_bc_top0.1_seed1.pt", "percentile_bc_top0.1_seed2.pt"]
     w1, w2 = (torch.cat([p.detach().flatten() for p in nets[s].parameters()]) for s in (1, 2))
     assert not torch.equal(w1, w2)
-    again = fit_or_load_bc({**cfg, "seed": 2}, data, tmp_path, 0.1, progress=False)
+    again = fit_or_load_bc(pcfg, data, tmp_path, 0.1, 2, progress=False)
     assert torch.equal(torch.cat([p.detach().flatten() for p in again.parameters()]), w2)

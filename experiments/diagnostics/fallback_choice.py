@@ -38,7 +38,9 @@ def probe(run: Path) -> dict:
     cfg, data, pcfg, ens = rm.cfg, rm.data, rm.pcfg, rm.ensemble
     ev = cfg["eval"]
     share = origin_share(pcfg["env"]) or DEFAULT_ORIGIN_SHARE
-    bc = fit_or_load_bc(pcfg, data, rm.model_dir, share, progress=False)
+    # the dataset's seed, as the rows committed on the probes page were made (session 7, when every run on the data was
+    # given the cloner fitted from it); a run now fits its own cloner from its own seed
+    bc = fit_or_load_bc(pcfg, data, rm.model_dir, share, int(pcfg["seed"]), progress=False)
 
     rec = evaluate_fallback(bc, cfg["env"]["env_id"], int(ev["episodes"]), int(ev["max_steps"]), eval_seed(int(cfg["seed"])), pcfg, ens, data,
                             float(cfg["threshold"]), model_episodes=int(ev.get("model_episodes") or ev["episodes"]),

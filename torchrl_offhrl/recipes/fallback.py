@@ -40,14 +40,17 @@ def bc_path(model_dir, share: float, seed: int) -> Path:
     return Path(model_dir) / f"percentile_bc_top{share:g}_seed{int(seed)}.pt"
 
 
-def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, progress: bool = True) -> PercentileBC:
+def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, seed: int, progress: bool = True) -> PercentileBC:
     """The :class:`~torchrl_offhrl.models.PercentileBC` of the highest-return episodes covering ``share`` of ``data``.
 
     Fitted when absent (its own fit settings, :attr:`~torchrl_offhrl.models.PercentileBC.default_fit`: to convergence on
-    the held-out episodes of the run's episode split, its initialisation and batches drawn from the run's seed) and cached
-    per seed in the CVAE's folder ``model_dir`` (:func:`bc_path`).
+    held-out episodes; the episode split, the initialisation and the batches drawn from ``seed``, the run's seed) and cached
+    per seed in the CVAE's folder ``model_dir`` (:func:`bc_path`). ``cfg`` is the models' config
+    (:func:`~torchrl_offhrl.recipes.config.model_config`: the validation share, the fit threads); its own ``seed`` is the
+    dataset's, shared by every run on the data, which is why the run's seed is passed apart.
     """
-    path = bc_path(model_dir, share, int(cfg["seed"])) if model_dir is not None else None
+    seed = int(seed)
+    path = bc_path(model_dir, share, seed) if model_dir is not None else None
     bc = load_cached(PercentileBC, path) if path is not None else None
     if bc is not None:
         return bc
@@ -61,7 +64,7 @@ def fit_or_load_bc(cfg: Mapping, data: OfflineDataset, model_dir, share: float, 
     n_train = max(1, int(len(best) * (1 - val_ratio)))
     max_steps = max(int(fit["steps_per_epoch"]), -(-1000 * n_train // int(fit["batch_size"])))
     with threads(cfg.get("fit_threads")):
-        bc = PercentileBC.for_dataset(best).fit(best, val_ratio=val_ratio, split_seed=int(cfg["seed"]), progress=progress, seed=int(cfg["seed"]),
+        bc = PercentileBC.for_dataset(best).fit(best, val_ratio=val_ratio, split_seed=seed, progress=progress, seed=seed,
                                                 max_steps=max_steps)
     bc.eval()
     if path is not None:

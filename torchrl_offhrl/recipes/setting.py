@@ -261,7 +261,7 @@ def _fallback(p: Parts, evaluator, threshold: float) -> Callable:
     share = origin_share(p.pcfg["env"]) or DEFAULT_ORIGIN_SHARE
 
     def run():
-        bc = fit_or_load_bc(p.pcfg, p.data, p.model_info.get("model_dir"), share, progress=p.progress)
+        bc = fit_or_load_bc(p.pcfg, p.data, p.model_info.get("model_dir"), share, int(p.cfg["seed"]), progress=p.progress)
         record = evaluate_fallback(bc, evaluator.env_id, evaluator.episodes, evaluator.max_steps, evaluator.seed, p.pcfg, p.ensemble, p.data, threshold,
                                    model_episodes=evaluator.model_env.batch_size.numel(), ref=evaluator.ref, gamma=evaluator.gamma,
                                    device=p.device)  # only built with a model eval env (ModelEnvSetting)
