@@ -180,8 +180,17 @@ def test_the_task_registry_is_the_one_place_that_knows_the_stacking_envs():
 EXPERIMENTS = ROOT.parent / "experiments"
 
 
+def declared_names(source: str) -> set[str] | None:
+    """The names a module's ``__all__`` lists (a literal list or tuple at its top level), or None without one."""
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
+            return {elt.value for elt in getattr(node.value, "elts", []) if isinstance(elt, ast.Constant)}
+    return None
+
+
 def experiment_violations(root: Path = EXPERIMENTS, package: Path = ROOT) -> list[str]:
-    """The experiments' imports of the package that are relative, of a module that does not exist, or of a private name."""
+    """The experiments' imports of the package that are relative, of a module that does not exist, of a private name, or of
+    a name its module does not declare public (not in its ``__all__``, where it has one; a submodule is public)."""
     modules = module_sources(package)
     bad = []
     for path in sorted(root.rglob("*.py")):
@@ -198,6 +207,10 @@ def experiment_violations(root: Path = EXPERIMENTS, package: Path = ROOT) -> lis
                     bad.append(f"{path.relative_to(root)}:{node.lineno} imports {module}, not a module of {PKG}")
                 if (name or "").startswith("_") or any(part.startswith("_") for part in module.split(".")):
                     bad.append(f"{path.relative_to(root)}:{node.lineno} imports a private name: {module} {name or ''}".rstrip())
+                elif name and name != "*" and module in modules and f"{module}.{name}" not in modules:
+                    public = declared_names(modules[module])
+                    if public is not None and name not in public:
+                        bad.append(f"{path.relative_to(root)}:{node.lineno} imports {module} {name}, not in that module's __all__")
     return bad
 
 
@@ -216,8 +229,11 @@ def test_the_experiments_checker_catches_relative_and_private_imports(tmp_path):
     pkg = _fake_package(tmp_path, {"__init__.py": "", "data/__init__.py": "", "data/io.py": "def load():\n    pass\n"})
     exp = tmp_path / "experiments"
     exp.mkdir()
+    (pkg / "data" / "api.py").write_text('__all__ = ["load"]\nfrom .io import load, load as helper\n')
     (exp / "run.py").write_text("from torchrl_offhrl.data.io import load\nfrom torchrl_offhrl.data.io import _x\n"
-                                "from torchrl_offhrl.nothing import y\nfrom . import z\n")
+                                "from torchrl_offhrl.nothing import y\nfrom . import z\n"
+                                "from torchrl_offhrl.data.api import load, helper\nfrom torchrl_offhrl.data import io\n")
     assert experiment_violations(exp, pkg) == ["run.py:2 imports a private name: torchrl_offhrl.data.io _x",
                                                "run.py:3 imports torchrl_offhrl.nothing, not a module of torchrl_offhrl",
-                                               "run.py:4 imports relatively from the top of experiments/"]
+                                               "run.py:4 imports relatively from the top of experiments/",
+                                               "run.py:5 imports torchrl_offhrl.data.api helper, not in that module's __all__"]

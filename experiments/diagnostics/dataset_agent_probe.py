@@ -31,8 +31,8 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_offhrl.recipes.config import resolve_dataset
-from torchrl_offhrl.recipes.evaluation import evaluate_policy, load_run_agent
-from torchrl_offhrl.rollouts import first_episode_mask
+from torchrl_offhrl.recipes.evaluation import load_run_agent
+from torchrl_offhrl.rollouts import evaluate_policy, first_episode_mask
 
 
 def first_critic(agent):

@@ -24,7 +24,8 @@ import torch
 
 
 def evaluate(run: Path, episodes: int) -> dict:
-    from torchrl_offhrl.recipes.evaluation import GoalEvaluator, latent_bound, load_run_agent
+    from torchrl_offhrl.recipes.config import latent_bound
+    from torchrl_offhrl.recipes.evaluation import GoalEvaluator, load_run_agent
     from torchrl_offhrl.recipes.pipeline import make_real_env
     from torchrl_offhrl.recipes.setting import eval_seed
 

@@ -20,7 +20,7 @@ from .config import acts_in_latent_space, latent_bound, model_config, model_env_
 from .pipeline import apply_latent_origin, fit_or_load_models, make_eval_model_env, make_real_env, origin_path, origin_share
 from .runs import read_json
 
-__all__ = ["Evaluator", "GoalEvaluator", "SeedsEvaluation", "acting_task", "evaluate_run", "load_run_agent", "render_episode"]
+__all__ = ["Evaluator", "GoalEvaluator", "RunModels", "SeedsEvaluation", "acting_task", "evaluate_run", "load_run_agent", "render_episode", "run_models"]
 
 
 class Evaluator:
@@ -302,8 +302,14 @@ class RunModels:
 
 def run_models(run_dir, data=None) -> RunModels:
     """A finished run's data and models from the cache, with the offline rules computed again as its training computed
-    them (from the data and the fitted models: the CVAE before its latent origin), for diagnostics that roll the run's
-    policies out in its model."""
+    them (from the data and the fitted models: the CVAE before its latent origin): to study a finished run offline, e.g.
+    roll its saved policies, or a policy of your own, out in the model it was judged in::
+
+        run = "outputs/runs/moc-hopper-medium-seed0"
+        _, env, agent, state, cvae = load_run_agent(run)           # its last policy, acting in the real env
+        model_env = agent.attach(run_models(run).model_env(cvae))  # the model episodes its evaluations ran
+        returns = rollouts.evaluate_policy(model_env, agent.eval_policy, 50, max_steps=1000)
+    """
     cfg = read_json(Path(run_dir) / "config.json")
     data = resolve_dataset(cfg) if data is None else data
     pcfg = model_config(cfg)

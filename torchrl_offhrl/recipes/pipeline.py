@@ -25,6 +25,7 @@ from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp,
 from .config import LATER_DEFAULTS, fit_as_before
 
 __all__ = [
+    "DEFAULT_ORIGIN_SHARE",
     "GaussianLatentPolicy",
     "apply_latent_origin",
     "fit_or_load_models",

@@ -38,7 +38,7 @@ from .schema import RunConfig, TransferConfig
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 from .summary import data_label
 
-__all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "setting_of"]
+__all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "eval_seed", "setting_of"]
 
 
 def eval_seed(seed: int) -> int:

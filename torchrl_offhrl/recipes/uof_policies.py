@@ -42,7 +42,7 @@ from ..registry import task_of
 from ..utils import atomic_write, cache_dir, load_torch_file
 from .pipeline import make_real_env
 
-__all__ = ["EPOCH_FRAMES", "UOFController", "is_uof_policy", "load_uof_policy", "ship_uof_policy", "uof_dataset_path"]
+__all__ = ["EPOCH_FRAMES", "UOFController", "is_uof_policy", "load_uof_policy", "ship_uof_policy", "uof_dataset_path", "uof_route_dataset"]
 
 _TARGET = "diol.target_value_network_params."
 _ONLINE = "diol.value_network_params."
