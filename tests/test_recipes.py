@@ -824,3 +824,24 @@ def test_the_percentile_bc_is_fitted_and_cached_once_per_run_seed(hopper_file, c
     assert not torch.equal(w1, w2)
     again = fit_or_load_bc(pcfg, data, tmp_path, 0.1, 2, progress=False)
     assert torch.equal(torch.cat([p.detach().flatten() for p in again.parameters()]), w2)
+
+
+def test_building_a_setting_leaves_the_config_and_its_parts_as_given(hopper_file, cache, tmp_path):
+    """The setting resolves the P-MDP's settings into new parts (Parts.with_model_env) and its own config: the caller's
+    config gains no key, and the run's config.json holds what was resolved."""
+    import copy
+    import time
+
+    from torchrl_offhrl.recipes.setting import build_setting
+
+    cfg = to_plain(_cfg("ppo", hopper_file, tmp_path))
+    given = copy.deepcopy(cfg)
+    s = build_setting(cfg, tmp_path, time.time(), progress=False)
+    try:
+        assert cfg == given
+        resolved = s.cfg["resolved_model_env"]
+        assert set(resolved) == {"horizon", "reset_states", "latent_bound"} and s.parts.cfg is s.cfg
+        assert s.parts.pcfg["env"]["horizon"] == resolved["horizon"] and s.rules is s.parts.rules and s.rules is not None
+        assert {k: v for k, v in s.cfg.items() if k != "resolved_model_env"} == given
+    finally:
+        s.close()

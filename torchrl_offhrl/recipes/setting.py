@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -163,7 +163,7 @@ class Parts:
     data: object
     n_goals: int
     level: str | None
-    pcfg: dict                  # model_config(cfg); its "env" is filled by the setting
+    pcfg: dict                  # model_config(cfg); with the env's settings under "env" once resolved (with_model_env)
     ensemble: object
     cvae: object
     model_info: dict
@@ -173,6 +173,14 @@ class Parts:
     rules: object = None        # the OfflineRules of the model env, once a setting computed them
     progress: bool = True       # progress bars on long work (fits)
     fallback: object = None     # the guard's percentile BC, fitted and evaluated on demand (Setting.fallback)
+
+    def with_model_env(self, env: dict, rules=None, resolved: dict | None = None) -> Parts:
+        """New parts whose env settings (``pcfg["env"]``: the reward scale, the model env's horizon, threshold, ...) are
+        ``env``, computed by a setting from these parts; ``rules``: the offline rules that resolved them; ``resolved``: what
+        the run's ``config.json`` keeps of them (``cfg["resolved_model_env"]``, which
+        :func:`~torchrl_offhrl.recipes.config.latent_bound` reads). These parts are left as they are."""
+        cfg = self.cfg if resolved is None else {**self.cfg, "resolved_model_env": resolved}
+        return replace(self, cfg=cfg, pcfg={**self.pcfg, "env": env}, rules=self.rules if rules is None else rules)
 
     @property
     def env_id(self) -> str:
@@ -248,7 +256,7 @@ class Parts:
             title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, transfer=self.rc.transfer, stacking=self.stacking,
             n_goals=self.n_goals, pessimism=pessimism, threshold=threshold, reward_scale=self.pcfg["env"].get("reward_scale", 1.0),
             model_info=self.model_info, ref=self.ref, t_data=self.t_data, t_models=self.t_models, device=self.device, closers=list(closers),
-            eval_env_for=eval_env_for, fallback=self.fallback if selectable else None,
+            eval_env_for=eval_env_for, fallback=self.fallback if selectable else None, parts=self,
         )
 
 
@@ -286,18 +294,19 @@ class ModelEnvSetting:
         return True
 
     @staticmethod
-    def model_part(p: Parts, transfer: bool = False):
-        """``(agent, phase, eval_env, pessimism, threshold, selectable)``: the model env's agent and its offline phase."""
+    def model_part(p: Parts, transfer: bool = False) -> ModelPart:
+        """The model env's agent and its offline phase, on new parts with the model env's settings resolved."""
         cfg, latent = p.cfg, acts_in_latent_space(p.cfg)
         cvae = p.cvae if latent else None
         # the offline rules: every `auto` setting of the P-MDP from the data and the fitted models (envs.rules; the calibration report)
-        p.rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
-        p.pcfg["env"], pess = model_env_config(cfg, p.level, p.data, rules=p.rules)
-        cfg["resolved_model_env"] = {k: p.pcfg["env"][k] for k in RULE_KEYS if k in p.pcfg["env"]}  # the run's config.json keeps them
+        rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
+        env_settings, pess = model_env_config(cfg, p.level, p.data, rules=rules)
+        # the run's config.json keeps what the rules resolved
+        p = p.with_model_env(env_settings, rules=rules, resolved={k: env_settings[k] for k in RULE_KEYS if k in env_settings})
         if cvae is not None:  # model_env.latent_origin: where an agent's latent 0 decodes to (best: the best episodes' action at each state)
             _, origin_info = apply_latent_origin(p.pcfg, p.data, cvae, p.model_info.get("model_dir"), progress=p.progress)
-            if origin_info is not None and p.rules is not None:  # in the calibration report
-                p.rules.info["latent_origin"] = origin_info
+            if origin_info is not None and rules is not None:  # in the calibration report
+                rules.info["latent_origin"] = origin_info
         env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.collector.num_envs, latent=latent)
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
@@ -313,17 +322,32 @@ class ModelEnvSetting:
                                                               p.rc.eval.max_steps, threshold, latent=latent))
         evaluator = p.evaluator(eval_env, model_eval_env, task="forward" if transfer else None)
         if model_eval_env is not None and not p.stacking and not transfer and p.rc.selection.fallback != "start":
-            p.fallback = _fallback(p, evaluator, threshold)
+            p = replace(p, fallback=_fallback(p, evaluator, threshold))
         phase = p.offline_phase(evaluator, lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
                                 "frames", model_env_metrics, env, transfer=transfer)
         # offline policy selection needs the model env's evaluation; block stacking returns its last policy
-        return agent, phase, eval_env, pess, threshold, model_eval_env is not None and not p.stacking
+        return ModelPart(p, agent, phase, eval_env, pess, threshold, model_eval_env is not None and not p.stacking)
 
     def build(self, p: Parts) -> Setting:
-        agent, phase, eval_env, pess, threshold, selectable = self.model_part(p)
-        cvae = p.cvae if acts_in_latent_space(p.cfg) else None
-        return p.setting(agent, [phase], selectable=selectable, pessimism=pess, threshold=threshold, closers=(eval_env,),
-                         eval_env_for=lambda copies: agent.attach(p.eval_real_env(cvae, copies)))
+        m = self.model_part(p)
+        cvae = m.parts.cvae if acts_in_latent_space(m.parts.cfg) else None
+        return m.parts.setting(m.agent, [m.phase], selectable=m.selectable, pessimism=m.pessimism, threshold=m.threshold, closers=(m.eval_env,),
+                               eval_env_for=lambda copies: m.agent.attach(m.parts.eval_real_env(cvae, copies)))
+
+
+@dataclass
+class ModelPart:
+    """What :meth:`ModelEnvSetting.model_part` builds: the parts with the model env's settings resolved, the agent, its
+    offline phase, its real evaluation env, the resolved pessimism and threshold, and whether the returned policy may be
+    selected offline (the model env's evaluation ran)."""
+
+    parts: Parts
+    agent: object
+    phase: OfflinePhase
+    eval_env: object
+    pessimism: dict | None
+    threshold: float
+    selectable: bool
 
 
 class DatasetSetting:
@@ -341,11 +365,11 @@ class DatasetSetting:
         return False
 
     def build(self, p: Parts) -> Setting:
-        algo = p.cfg["algo"]
-        p.pcfg["env"] = {}
+        algo, env_settings = p.cfg["algo"], {}
         if "reward_scale" in agent_defaults(algo["name"]):  # the rewards it learns from: a number, or a name resolved from the data
             algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), p.data, float(algo.get("gamma", 0.99)))}
-            p.pcfg["env"]["reward_scale"] = algo["reward_scale"]
+            env_settings["reward_scale"] = algo["reward_scale"]
+        p = p.with_model_env(env_settings)
         eval_env = p.eval_real_env(None)  # the env whose specs the agent is built for
         agent = p.make_agent(eval_env, algo, latent=acts_in_latent_space(p.cfg))
         agent.attach(eval_env)
@@ -373,9 +397,10 @@ class OnlineSetting:
     def build(self, p: Parts) -> Setting:
         cfg = p.cfg
         settings, _ = model_env_config(cfg, p.level, p.data)  # the reward scale the agent learns with (resolved as on the model env) and the horizon
-        p.pcfg["env"] = {k: settings[k] for k in ("reward_scale", "horizon") if k in settings}
+        env_settings = {k: settings[k] for k in ("reward_scale", "horizon") if k in settings}
         if p.stacking:  # goals drawn by the env at each reset
-            p.pcfg["env"].setdefault("horizon", 25)
+            env_settings.setdefault("horizon", 25)
+        p = p.with_model_env(env_settings)
         env = make_real_env(p.env_id, None, num_envs=p.rc.collector.num_envs,
                             **({"max_episode_steps": int(p.pcfg["env"]["horizon"])} if p.stacking else {}))
         agent = p.make_agent(env, latent=False)
@@ -407,18 +432,20 @@ class TransferSetting:
         keep_decoder = latent and tcfg.decoder == "keep"
 
         def real_env(num_envs: int):  # the real env of the online phase, on the new task, in the action space the agent acts in
-            return make_real_env(p.env_id, p.cvae if keep_decoder else None, num_envs=num_envs, latent_bound=latent_bound(cfg), task=tcfg.task,
+            # (`p`: the parts as resolved below, whose config holds the latent box the offline rules chose)
+            return make_real_env(p.env_id, p.cvae if keep_decoder else None, num_envs=num_envs, latent_bound=latent_bound(p.cfg), task=tcfg.task,
                                  discard_decoder=latent and not keep_decoder)
 
         phases, eval_env, pess, threshold = [], None, None, None
         if not tcfg.from_scratch:
-            agent, phase, eval_env, pess, threshold, _ = ModelEnvSetting.model_part(p, transfer=True)
-            phases.append(phase)
+            m = ModelEnvSetting.model_part(p, transfer=True)
+            p, agent, eval_env, pess, threshold = m.parts, m.agent, m.eval_env, m.pessimism, m.threshold
+            phases.append(m.phase)
             with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
                 online_env = p.add_reward_transforms(agent.attach(real_env(tcfg.num_envs)))
                 online_eval_env = agent.attach(real_env(p.episodes))
         else:  # the agent is built for the real env it trains in; no P-MDP
-            p.pcfg["env"], _ = model_env_config(cfg, p.level, p.data)  # the reward scale it learns with
+            p = p.with_model_env(model_env_config(cfg, p.level, p.data)[0])  # the reward scale it learns with
             online_env = real_env(tcfg.num_envs)
             agent = p.make_agent(online_env, latent=latent)
             p.add_reward_transforms(agent.attach(online_env))
@@ -469,6 +496,4 @@ def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = Tr
     parts = Parts(cfg=cfg, rc=rc, run_path=Path(run_path), device=torch.device(cfg.get("device", "cpu")), stacking=stacking, data=data, n_goals=n_goals,
                   level=data.metadata.get("level"), pcfg=pcfg, ensemble=ensemble, cvae=cvae, model_info=model_info, t_data=t_data, t_models=t_models,
                   snapshots=snapshots, progress=progress)
-    setting = kind.build(parts)
-    setting.parts = parts
-    return setting
+    return kind.build(parts)  # the setting keeps the parts it resolved (Setting.parts)

@@ -107,6 +107,7 @@ class PreparedRun:
     def prepare(cls, cfg: dict, run: RunDirectory, t_start: float, progress: bool, on_record=None, rc: RunConfig | None = None) -> PreparedRun:
         rc = RunConfig.parse(cfg) if rc is None else rc
         s = build_setting(cfg, run.path, t_start, progress, rc=rc)  # data, models, agent, envs, evaluators, phases
+        cfg = s.cfg  # the config with what the setting resolved from the data and the models (resolved_model_env)
         agent, unit = s.agent, s.unit
         run.data_hash = s.data.content_hash()  # a run never resumes on other data found at the same path
         run.unit = unit
