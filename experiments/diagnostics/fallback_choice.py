@@ -33,14 +33,15 @@ from torchrl_offhrl.recipes.selection import data_return_cap, paired_gain_lcb
 from torchrl_offhrl.recipes.setting import eval_seed
 
 
-def probe(run: Path) -> dict:
+def probe(run: Path, bc_seed: str = "data") -> dict:
     rm = run_models(run)
     cfg, data, pcfg, ens = rm.cfg, rm.data, rm.pcfg, rm.ensemble
     ev = cfg["eval"]
     share = origin_share(pcfg["env"]) or DEFAULT_ORIGIN_SHARE
-    # the dataset's seed, as the rows committed on the probes page were made (session 7, when every run on the data was
-    # given the cloner fitted from it); a run now fits its own cloner from its own seed
-    bc = fit_or_load_bc(pcfg, data, rm.model_dir, share, int(pcfg["seed"]), progress=False)
+    # bc_seed "data": the dataset's seed, as the rows committed on the probes page in session 7 were made (every run on the
+    # data was then given the cloner fitted from it); "run": the run's own seed, as a run fits its cloner since session 8
+    seed = int(pcfg["seed"]) if bc_seed == "data" else int(cfg["seed"])
+    bc = fit_or_load_bc(pcfg, data, rm.model_dir, share, seed, progress=False)
 
     rec = evaluate_fallback(bc, cfg["env"]["env_id"], int(ev["episodes"]), int(ev["max_steps"]), eval_seed(int(cfg["seed"])), pcfg, ens, data,
                             float(cfg["threshold"]), model_episodes=int(ev.get("model_episodes") or ev["episodes"]),
@@ -49,7 +50,7 @@ def probe(run: Path) -> dict:
     start, last = evals[0], evals[-1]
     cap = data_return_cap(data, int(ev["max_steps"]))
     return {
-        "run": run.name, "cap": cap,
+        "run": run.name, "cap": cap, "bc_seed": seed,
         "real_start": start["normalized_d4rl"], "real_bc": rec["normalized_d4rl"], "real_last": last["normalized_d4rl"],
         "model_start": start["model_return_mean"], "model_bc": rec["model_return_mean"], "model_last": last["model_return_mean"],
         "start_over_bc": paired_gain_lcb(start, rec, cap=cap), "bc_over_start": paired_gain_lcb(rec, start, cap=cap),
@@ -82,13 +83,15 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="*", type=Path)
     ap.add_argument("--out", type=Path)
     ap.add_argument("--score", type=Path, help="a file this script wrote: what each selection.fallback returns on its runs")
+    ap.add_argument("--bc-seed", choices=("data", "run"), default="data",
+                    help="the cloner's seed: the dataset's (as the committed rows were made) or the run's (as a run fits it now)")
     a = ap.parse_args(argv)
     if a.score:
         score(json.loads(a.score.read_text()))
         return 0
     rows = []
     for run in a.runs:
-        rows.append(probe(run))
+        rows.append(probe(run, a.bc_seed))
         print(json.dumps({k: round(v, 2) if isinstance(v, float) else v for k, v in rows[-1].items()}), flush=True)
         if a.out:
             a.out.write_text(json.dumps(rows, indent=1))

@@ -364,7 +364,14 @@ _HOPPER_ME = ("The models were fitted and cached on 2026-12-04 (one core beside 
 _CQL_MEDIUM = ("Seeds 4-6 ran on a lent H100 (2026-11-27: the same config, the data rebuilt bit for bit from the row's action "
                "pack, ~6 min per 100k updates); seeds 7-8 need a GPU again (~8 h per seed on one core): `BATCH=1 bash "
                "scripts/gpu_runs.sh ... ENV cql 7 8` with the row's pack made on its CPU type, at the next lent GPU.")
-MISSING = {"full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": _CQL_MEDIUM,
+_DEMO_DATASET_AGENTS = ("Not run at the demo scale: 100k gradient steps per seed, ~20-28 min per seed of IQL or TD3+BC on one "
+                        "core of the 2-core CPU machine (`benchmarks/peer_updates.py`: 86 and 129 updates/s alone), ~8 h per seed "
+                        "of CQL; the five seeds of the two rows' three agents are ~15 CPU-hours, more than the sessions held beside "
+                        "the default's runs. BC (what issue 70's acceptance compares with) ran. `offhrl results table1 run --scale demo "
+                        "--envs ENV --datasets medium-expert --algos ALGO --seeds 4 5 6 7 8` runs them (resumable; `--batch-seeds` "
+                        "trains the five together).")
+MISSING = {"demo": {f"{env}-medium-expert:{algo}": _DEMO_DATASET_AGENTS for env in ("hopper", "halfcheetah") for algo in ("iql", "cql", "td3bc")},
+           "full": {"hopper-medium:cql": _CQL_MEDIUM, "halfcheetah-medium:cql": _CQL_MEDIUM,
                     "hopper-medium-expert": _HOPPER_ME.format(hopper_sac=_HOPPER_SAC_CHECKPOINT), "halfcheetah-medium-expert": _HALFCHEETAH_ME,
                     "hopper-medium-expert:cql": _CQL_ME,
                     "halfcheetah-medium-expert:cql": _CQL_ME + (" HalfCheetah's two packs (36 MiB) do not fit one call beside the "
