@@ -421,6 +421,14 @@ def test_paper_table_says_which_dataset_instance_each_run_used(tmp_path):
     assert "(2) ‡" in me and me.count("‡") == 1  # BC pools the two instances; MOC's seeds share one
     assert "‡" not in next(line for line in final.splitlines() if line.startswith("| hopper-medium |"))
     assert "## Dataset instances" not in paper_table(runs[4:], tmp_path / "u")
+    # a variant's runs on another instance: listed (and marked) on variants.md, the page its column is on, not on table.md
+    variant = [_fake_run(tmp_path / "v", "moc_fit60k", s, "Hopper-v5", "medium", "frames", (10.0, 20.0, 30.0), data_hash=h)
+               for s, h in ((4, "cccc"), (5, "dddd"))]
+    text = paper_table([*runs[4:], *variant], tmp_path / "w")
+    assert "## Dataset instances" not in text
+    variants = (tmp_path / "w" / "variants.md").read_text()
+    assert "- hopper-medium: `cccc`: moc_fit60k s4; `dddd`: moc_fit60k s5" in variants.split("## Dataset instances")[1]
+    assert "(2) ‡" in next(line for line in variants.splitlines() if line.startswith("| hopper-medium |"))
 
 
 def test_paper_table_marks_cells_pooling_different_evaluation_episodes(tmp_path):

@@ -157,7 +157,7 @@ def cmd_report(args) -> int:
     from .recipes.report import paper_table
 
     print(paper_table(args.runs, args.out, min_seeds=args.min_seeds, made_by=_command_line()))
-    print(f"\nwritten: {args.out}/table.md, table.csv, curves_<env>-<dataset>.png")
+    print(f"\nwritten: {args.out}/table.md, table.csv, curves_<env>-<dataset>.png (and variants.md for columns that are not a shipped algorithm's)")
     return 0
 
 

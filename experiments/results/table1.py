@@ -366,8 +366,8 @@ _CQL_MEDIUM = ("Seeds 4-6 ran on a lent H100 (2026-11-27: the same config, the d
                "scripts/gpu_runs.sh ... ENV cql 7 8` with the row's pack made on its CPU type, at the next lent GPU.")
 _DEMO_DATASET_AGENTS = ("Not run at the demo scale: 100k gradient steps per seed, ~20-28 min per seed of IQL or TD3+BC on one "
                         "core of the 2-core CPU machine (`benchmarks/peer_updates.py`: 86 and 129 updates/s alone), ~8 h per seed "
-                        "of CQL; the five seeds of the two rows' three agents are ~15 CPU-hours, more than the sessions held beside "
-                        "the default's runs. BC (what issue 70's acceptance compares with) ran. `offhrl results table1 run --scale demo "
+                        "of CQL: five seeds on the two rows are ~8 CPU-hours for IQL and TD3+BC together and ~80 for CQL, more than the "
+                        "sessions held beside the default's runs. BC (what issue 70's acceptance compares with) ran. `offhrl results table1 run --scale demo "
                         "--envs ENV --datasets medium-expert --algos ALGO --seeds 4 5 6 7 8` runs them (resumable; `--batch-seeds` "
                         "trains the five together).")
 MISSING = {"demo": {f"{env}-medium-expert:{algo}": _DEMO_DATASET_AGENTS for env in ("hopper", "halfcheetah") for algo in ("iql", "cql", "td3bc")},

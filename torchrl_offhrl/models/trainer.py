@@ -182,7 +182,8 @@ class SupervisedTrainer:
         history: list[dict] = []
         total_steps = 0
         start_epoch = 0
-        fingerprint = self._fingerprint(train, 0 if val is None else val.shape[0], k, params)
+        # what a checkpoint must match (a digest of the whole training set: only for a fit that keeps one)
+        fingerprint = self._fingerprint(train, 0 if val is None else val.shape[0], k, params) if self.checkpoint is not None else None
         state = self._resume(fingerprint) if self.checkpoint is not None else None
         if state is not None:
             with torch.no_grad():

@@ -399,10 +399,11 @@ PER_SEED_KEY = {"score": "final", "best_score": "best", "last5": "last5", "selec
 
 
 def _seeds_by(groups: Mapping[tuple, list], columns: Sequence[str], value) -> list[tuple[tuple, dict]]:
-    """Each cell ``(env_id, dataset, column)`` in the page's order with its runs' seeds split by ``value(config)``:
+    """Each cell ``(env_id, dataset, column)`` of the page's ``columns``, in its order, with its runs' seeds split by ``value(config)``:
     ``[(key, {value: [seed, ...]})]`` (the sections on cells that pool runs of different kinds)."""
     out = []
-    for key, rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], columns.index(kv[0][2]))):
+    cells = [(key, rs) for key, rs in groups.items() if key[2] in columns]  # the page's columns only
+    for key, rs in sorted(cells, key=lambda kv: (kv[0][0], kv[0][1], columns.index(kv[0][2]))):
         split = defaultdict(list)
         for r in rs:
             cfg = r.get("config") or {}
@@ -505,8 +506,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     headline = list(TABLE_COLUMNS)  # every standard column (missing: —): table.md
     variants = [*paper, *sorted(present - set(TABLE_COLUMNS) - set(paper))]  # the rest: variants.md
     columns = [*headline, *variants]
-    instances, mixed = _dataset_instances(groups, row_name, columns)
-    episodes, mixed_episodes = _eval_episodes(groups, row_name, columns)
+    _, mixed = _dataset_instances(groups, row_name, columns)  # the marked cells (the sections: per page, below)
+    _, mixed_episodes = _eval_episodes(groups, row_name, columns)
 
     behaviour = {}  # the behaviour data's score per row: the first of its columns' (in column order) that has one
     for c in columns:
@@ -550,13 +551,15 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             costs = [f"{TABLE_COLUMNS[c]} {cost_of[c]}" for c, _ in cols if cost_of[c]]
             short.append(f"- {row}: {', '.join(cells)}. {why}" + (f" Measured on this page's runs: {'; '.join(costs)}." if costs else ""))
     missing = [f"## Missing cells (fewer than {min_seeds} seeds)", "", *(short or ["None: every column has its seeds."]), ""]
-    def has(key: str) -> bool:  # a table only where some run has that score
-        return any(p[key] is not None for st in stats.values() for p in st["per_seed"])
+    def seeds_of(columns: list[str]):
+        return [p for (_, _, c), st in stats.items() if c in columns for p in st["per_seed"]]
 
-    sampled = has("sampled")  # the sampled policy's final score, on pages whose runs evaluated it
-    rebuilt = any(p["rebuilt"] for st in stats.values() for p in st["per_seed"])  # the legend only where a row carries the mark
+    def has(key: str, columns: list[str]) -> bool:  # a table only where some run of the page's columns has that score
+        return any(p[key] is not None for p in seeds_of(columns))
 
     def per_seed(columns: list[str]) -> list[str]:
+        sampled = has("sampled", columns)
+        rebuilt = any(p["rebuilt"] for p in seeds_of(columns))  # the legend only where a row carries the mark
         lines = [f"## Per-seed values (final / selected / last-5 mean / best / untrained{' / final sampled' if sampled else ''})", "",
                  *(["`*`: a run known only from an earlier page (start, best and final: no last five, no selection).", ""] if rebuilt else [])]
         for env_id, dataset in datasets:
@@ -573,9 +576,11 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
         return [*lines, ""]
 
     def tables(columns: list[str]) -> list[str]:
+        sampled = has("sampled", columns)  # the sampled policy's final score, on pages whose runs evaluated it
         return ["## Final evaluation", "", *table("score", columns), "",
-                *(["## Selected policy (offline policy selection, without the real env)", "", *table("selected", columns), ""] if has("selected") else []),
-                *(["## Mean of the last 5 evaluations", "", *table("last5", columns), ""] if has("last5") else []),
+                *(["## Selected policy (offline policy selection, without the real env)", "", *table("selected", columns), ""]
+                  if has("selected", columns) else []),
+                *(["## Mean of the last 5 evaluations", "", *table("last5", columns), ""] if has("last5", columns) else []),
                 *(["## Final evaluation of the sampled policy (actions and options drawn, on the same start states as the deterministic one)", "",
                    "The deterministic evaluation runs each policy's mode; what the agents' losses train is the sampled policy. "
                    "Read a row beside the same row of the final evaluation above: where the sampled score stays at the data's and the "
@@ -590,7 +595,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     md = [f"# {title}", "", *([f"Made by `{made_by}`.", ""] if made_by else []), legend, "",
           *([f"Each column is an algorithm as its shipped default runs it. The paper preset, ablations and tuning variants "
              f"({len(variants)} columns) are on [variants.md](variants.md), not here.", ""] if variants else []),
-          *tables(headline), *missing, *instances, *episodes,
+          *tables(headline), *missing, *_dataset_instances(groups, row_name, headline)[0], *_eval_episodes(groups, row_name, headline)[0],
           "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
           "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
           "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),
@@ -602,7 +607,8 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             f"# {title}: variants, ablations and the paper preset", "", *([f"Made by `{made_by}`.", ""] if made_by else []), legend, "",
             "These columns are not what `offhrl train algo=<algo>` runs: the paper preset (the paper's per-dataset settings, kept "
             "to reproduce its columns), ablations and tuning variants, on the same data as the headline table, "
-            "[table.md](table.md) (the shipped algorithms; the missing cells and the published scores are there).", "", *tables(variants)]))
+            "[table.md](table.md) (the shipped algorithms; the missing cells and the published scores are there).", "", *tables(variants),
+            *_dataset_instances(groups, row_name, variants)[0], *_eval_episodes(groups, row_name, variants)[0]]))
     elif (out / "variants.md").is_file():
         (out / "variants.md").unlink()  # an earlier report's variants: gone with their runs
     with open(out / "table.csv", "w", newline="") as f:

@@ -38,7 +38,7 @@ from .schema import RunConfig, TransferConfig
 from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 from .summary import data_label
 
-__all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "eval_seed", "setting_of"]
+__all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "ModelPart", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "eval_seed", "setting_of"]
 
 
 def eval_seed(seed: int) -> int:
@@ -269,7 +269,7 @@ def _fallback(p: Parts, evaluator, threshold: float) -> Callable:
     share = origin_share(p.pcfg["env"]) or DEFAULT_ORIGIN_SHARE
 
     def run():
-        bc = fit_or_load_bc(p.pcfg, p.data, p.model_info.get("model_dir"), share, int(p.cfg["seed"]), progress=p.progress)
+        bc = fit_or_load_bc(p.pcfg, p.data, p.model_info.get("model_dir"), share, p.rc.seed, progress=p.progress)
         record = evaluate_fallback(bc, evaluator.env_id, evaluator.episodes, evaluator.max_steps, evaluator.seed, p.pcfg, p.ensemble, p.data, threshold,
                                    model_episodes=evaluator.model_env.batch_size.numel(), ref=evaluator.ref, gamma=evaluator.gamma,
                                    device=p.device)  # only built with a model eval env (ModelEnvSetting)
