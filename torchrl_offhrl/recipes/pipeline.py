@@ -23,6 +23,7 @@ from ..envs import DEFAULT_LATENT_BOUND, AffineActionMap, BlockStackModelEnv, La
 from ..models import ConditionalVAE, DynamicsEnsemble, LatentOrigin
 from ..utils import CorruptFileError, atomic_write, cache_dir, remove_stale_tmp, threads, to_plain
 from .config import LATER_DEFAULTS, fit_as_before
+from .schema import ModelEnvConfig
 
 __all__ = [
     "DEFAULT_ORIGIN_SHARE",
@@ -208,8 +209,9 @@ def _fit_or_load_models(cfg: Mapping, data: OfflineDataset, progress: bool, with
 
 #: ``model_env.latent_origin``'s choices
 LATENT_ORIGINS = ("best", "behaviour", "zero")
-#: the share of the data's transitions ``latent_origin=best`` clones when ``model_env.origin_share`` is not given
-DEFAULT_ORIGIN_SHARE = 0.1
+#: the share of the data's transitions ``latent_origin=best`` clones when ``model_env.origin_share`` is not given (a
+#: run's config before the key existed): the schema's default, :class:`~torchrl_offhrl.recipes.schema.ModelEnvConfig`
+DEFAULT_ORIGIN_SHARE = ModelEnvConfig.origin_share
 
 
 def origin_share(env: Mapping) -> float | None:
