@@ -2,14 +2,15 @@
 from __future__ import annotations
 
 import errno
+import json
 import os
 import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["CorruptFileError", "DiskWriteError", "atomic_write", "cache_dir", "checksum_mismatch", "checksum_path", "file_digest", "load_torch_file", "one_thread", "remove_stale_tmp",
-           "save_torch_file", "threads", "to_plain", "write_checksum"]
+__all__ = ["CorruptFileError", "DiskWriteError", "atomic_write", "cache_dir", "checksum_mismatch", "checksum_path", "file_digest", "load_torch_file", "one_thread", "read_json", "remove_stale_tmp",
+           "save_torch_file", "threads", "to_plain", "write_checksum", "write_json"]
 
 
 class CorruptFileError(ValueError):
@@ -270,3 +271,27 @@ def import_class(path: str, base: type, key: str) -> type:
     if not (isinstance(cls, type) and issubclass(cls, base)):
         raise TypeError(f"{key}={path!r} is not a subclass of {base.__name__}")
     return cls
+
+
+def write_json(path: Path, obj, indent: int = 2) -> Path:
+    """Write a run's JSON record atomically, with its SHA-256 beside it (``<name>.sha256``), which :func:`read_json` checks."""
+    path = Path(path)
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text(json.dumps(obj, indent=indent, default=str))
+    write_checksum(path)
+    return path
+
+
+def read_json(path: Path):
+    """A run's JSON record (``config.json``, ``summary.json``, ``evals.json``); a damaged one is named in a ``ValueError``:
+    not valid JSON, or (a :class:`CorruptFileError`) valid but no longer the bytes the run wrote
+    (its ``.sha256``; a record without one, e.g. an archived copy, is read as it is)."""
+    path = Path(path)
+    digest = checksum_mismatch(path)
+    if digest is not None:
+        raise CorruptFileError(f"{path} does not match its checksum {digest.name}: it changed after the run wrote it (damaged, or "
+                               f"edited by hand); rerun or resume the run to write it again, or delete {digest.name} to read it as it is")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON ({err}): the file is damaged; rerun or resume the run to write it again") from None

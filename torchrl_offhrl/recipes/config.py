@@ -21,7 +21,7 @@ from .schema import section_defaults
 
 __all__ = [
     "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "fit_as_before", "model_config", "model_env_config",
-    "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "transfer_config", "transfer_label",
+    "data_label", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "transfer_config", "transfer_label",
 ]
 
 #: Settings that may change between a run and its resumption; anything else must match the checkpoint.
@@ -333,6 +333,22 @@ def transfer_label(cfg: Mapping) -> str:
     if t is None:
         return ""
     return ("scratch-" if t["from_scratch"] else "to-") + str(t["task"]) + ("-keepdecoder" if t["decoder"] == "keep" else "")
+
+
+def data_label(summary: dict) -> str:
+    """The data a run used, by name: the file (or Minari id) it was given, else the generated level (``hopper-medium``).
+
+    >>> data_label({"dataset": "/data/my_robot.hdf5", "level": "medium", "env_id": "Hopper-v5"})
+    '/data/my_robot.hdf5'
+    >>> data_label({"dataset": "medium", "level": "medium", "env_id": "Hopper-v5"})
+    'hopper-medium'
+    """
+    spec = str(summary.get("dataset"))
+    if "/" in spec or Path(spec).suffix in (".hdf5", ".h5"):
+        return spec
+    level = summary.get("level") or spec
+    env = str(summary.get("env_id", "")).split("-")[0].lower()
+    return level if not env or level.startswith(env + "-") else f"{env}-{level}"
 
 
 def algo_label(algo_cfg: Mapping) -> str:

@@ -23,9 +23,8 @@ from pathlib import Path
 
 import torch
 
-from ..utils import CorruptFileError, atomic_write, checksum_path, load_torch_file, save_torch_file
+from ..utils import CorruptFileError, atomic_write, checksum_path, load_torch_file, save_torch_file, write_json
 from .config import RESUMABLE_KEYS, fingerprints_match
-from .runs import write_json
 
 __all__ = ["RunDirectory", "RunInUseError", "trim_csv_logs"]
 
@@ -152,7 +151,7 @@ class RunDirectory:
         return True
 
     def write_json(self, name: str, obj) -> Path:
-        """A record of the run, written atomically with its checksum (:func:`~torchrl_offhrl.recipes.runs.write_json`)."""
+        """A record of the run, written atomically with its checksum (:func:`~torchrl_offhrl.utils.write_json`)."""
         return write_json(self.path / name, obj)
 
     def checkpoint(self, agent, source: dict | None = None) -> None:

@@ -12,7 +12,7 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..utils import CorruptFileError, atomic_write, checksum_mismatch, write_checksum
+from ..utils import atomic_write, read_json, write_json  # noqa: F401  (read_json, write_json: re-exported, a run's records)
 
 __all__ = ["archive_run", "archive_runs", "expand_run_dirs", "load_run", "logged_tail_mean", "read_json", "read_scalar_logs", "record_step", "run_unit"]
 
@@ -40,30 +40,6 @@ def load_run(run_dir) -> dict:
         raise ValueError(f"{evals_path} holds no evaluation records ({evals!r}): the run has not evaluated yet; "
                          "let it run to its first evaluation, or leave it out")
     return {"dir": str(d), "config": cfg, "evals": evals, "summary": summary}
-
-
-def write_json(path: Path, obj, indent: int = 2) -> Path:
-    """Write a run's JSON record atomically, with its SHA-256 beside it (``<name>.sha256``), which :func:`read_json` checks."""
-    path = Path(path)
-    with atomic_write(path) as tmp:
-        Path(tmp).write_text(json.dumps(obj, indent=indent, default=str))
-    write_checksum(path)
-    return path
-
-
-def read_json(path: Path):
-    """A run's JSON record (``config.json``, ``summary.json``, ``evals.json``); a damaged one is named in a ``ValueError``:
-    not valid JSON, or (a :class:`~torchrl_offhrl.utils.CorruptFileError`) valid but no longer the bytes the run wrote
-    (its ``.sha256``; a record without one, e.g. an archived copy, is read as it is)."""
-    path = Path(path)
-    digest = checksum_mismatch(path)
-    if digest is not None:
-        raise CorruptFileError(f"{path} does not match its checksum {digest.name}: it changed after the run wrote it (damaged, or "
-                               f"edited by hand); rerun or resume the run to write it again, or delete {digest.name} to read it as it is")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON ({err}): the file is damaged; rerun or resume the run to write it again") from None
 
 
 def archive_run(run_dir, dest, extra: Sequence[str] = ()) -> Path:

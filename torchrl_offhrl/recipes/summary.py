@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..scores import normalized_score
+from .config import data_label  # noqa: F401  (re-exported: the summary's name for the data)
 from .runs import record_step
 
 __all__ = ["data_label", "fmt_number", "format_summary", "run_summary"]
@@ -50,22 +51,6 @@ def format_summary(summary) -> str:
                  f"real return {sel['return_mean']:.1f}, D4RL-normalised {fmt_number(sel.get('normalized_d4rl'))} "
                  "(the real-env score is reported, never used to choose)")
     return text
-
-
-def data_label(summary: dict) -> str:
-    """The data a run used, by name: the file (or Minari id) it was given, else the generated level (``hopper-medium``).
-
-    >>> data_label({"dataset": "/data/my_robot.hdf5", "level": "medium", "env_id": "Hopper-v5"})
-    '/data/my_robot.hdf5'
-    >>> data_label({"dataset": "medium", "level": "medium", "env_id": "Hopper-v5"})
-    'hopper-medium'
-    """
-    spec = str(summary.get("dataset"))
-    if "/" in spec or Path(spec).suffix in (".hdf5", ".h5"):
-        return spec
-    level = summary.get("level") or spec
-    env = str(summary.get("env_id", "")).split("-")[0].lower()
-    return level if not env or level.startswith(env + "-") else f"{env}-{level}"
 
 
 def run_summary(cfg, data, behaviour: dict, records: list[dict], *, ref, pessimism, threshold, frames: int, updates: int,
