@@ -1,0 +1,53 @@
+"""The harness that runs OfflineRL-Kit's MOPO on our data (experiments/peers/offlinerlkit_mopo.py): the parts that do
+not need the kit, which is not shipped (the side-by-side itself is an experiment, not a test)."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from experiments.peers.offlinerlkit_mopo import OldApiEnv, main, stand_in_modules, transitions  # noqa: E402
+
+
+def test_the_old_api_env_steps_as_pre_gymnasium_gym_and_normalises_on_the_data_references():
+    env = OldApiEnv("Pendulum-v1", ref=(-100.0, 300.0))
+    env.seed(3)
+    first = env.reset()
+    env.seed(3)
+    assert np.array_equal(env.reset(), first)  # seed() applies to the next reset
+    obs, reward, done, info = env.step(env.action_space.sample() * 0)
+    assert obs.shape == first.shape and isinstance(done, bool) and isinstance(info, dict)
+    assert env.get_normalized_score(100.0) == pytest.approx(0.5)
+    dones = [env.step(np.zeros(1, dtype=np.float32))[2] for _ in range(199)]
+    assert dones[-1] and not any(dones[:-1])  # Pendulum's time limit (200 steps) ends the episode: done
+
+
+def test_our_transitions_become_the_kits_arrays_with_true_terminations_only(hopper_file):
+    from torchrl_offhrl.data import load_dataset
+
+    data = load_dataset(hopper_file)
+    d = transitions(data)
+    n = len(data)
+    assert {k: v.shape[0] for k, v in d.items()} == dict.fromkeys(("observations", "actions", "next_observations", "rewards", "terminals"), n)
+    assert d["rewards"].ndim == 1 and d["terminals"].dtype == np.float32
+    assert np.array_equal(d["terminals"], data.data["next", "terminated"].reshape(-1).numpy().astype(np.float32))
+    assert np.array_equal(d["next_observations"], data.data["next", "observation"].numpy())
+
+
+def test_the_stand_in_modules_give_the_names_the_kit_reads(monkeypatch):
+    import types
+
+    for name in ("gym", "gym.envs", "gym.envs.mujoco", "d4rl"):  # whatever is there comes back after the test, and no stand-in stays
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))
+    stand_in_modules(lambda task, **kw: ("made", task))
+    import gym
+    from gym.envs.mujoco import mujoco_env
+
+    assert gym.make("hopper-medium-v2") == ("made", "hopper-medium-v2") and mujoco_env.MujocoEnv is object
+    assert gym.spaces.Space is object and gym.Env is object and "d4rl" in sys.modules
+
+
+def test_a_folder_that_is_not_the_kit_is_refused_with_what_to_do(tmp_path, hopper_file):
+    with pytest.raises(SystemExit, match="is not a checkout of OfflineRL-Kit .* fetch https://github.com/yihaosun1124/OfflineRL-Kit"):
+        main(["--kit", str(tmp_path), "--dataset", str(hopper_file), "--task", "hopper-random-v2", "--out", str(tmp_path / "o")])
