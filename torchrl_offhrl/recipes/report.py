@@ -506,14 +506,16 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     headline = list(TABLE_COLUMNS)  # every standard column (missing: —): table.md
     variants = [*paper, *sorted(present - set(TABLE_COLUMNS) - set(paper))]  # the rest: variants.md
     columns = [*headline, *variants]
-    _, mixed = _dataset_instances(groups, row_name, columns)  # the marked cells (the sections: per page, below)
-    _, mixed_episodes = _eval_episodes(groups, row_name, columns)
+    # each page's sections on cells that pool runs of different kinds, and the cells they mark (a mark is per cell: either page)
+    pages = {"table": headline, "variants": variants}
+    instances = {page: _dataset_instances(groups, row_name, cols) for page, cols in pages.items()}  # page -> (section, marked cells)
+    episodes = {page: _eval_episodes(groups, row_name, cols) for page, cols in pages.items()}
+    mixed, mixed_episodes = instances["table"][1] | instances["variants"][1], episodes["table"][1] | episodes["variants"][1]
 
     behaviour = {}  # the behaviour data's score per row: the first of its columns' (in column order) that has one
-    for c in columns:
-        for (e, d, c2), st in stats.items():
-            if c2 == c and st["behaviour_score"] is not None:
-                behaviour.setdefault((e, d), st["behaviour_score"])
+    for (e, d, c), st in sorted(stats.items(), key=lambda kv: columns.index(kv[0][2])):
+        if st["behaviour_score"] is not None:
+            behaviour.setdefault((e, d), st["behaviour_score"])
 
     def table(kind: str, columns: list[str]) -> list[str]:
         lines = ["| dataset | " + " | ".join(column_title(c) for c in columns) + " | behaviour data |", "|" + "---|" * (len(columns) + 2)]
@@ -530,10 +532,9 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             lines.append(f"| {row_name[env_id, dataset]} | " + " | ".join(cells) + f" | {fmt_number(behaviour.get((env_id, dataset)))} |")
         return lines
 
-    budgets: dict[str, list[str]] = defaultdict(list)  # column -> its budgets ("MOC: 200 frames"), one per distinct budget
-    for k, st in sorted(stats.items(), key=lambda kv: column_title(kv[0][2])):
-        if (b := f"{column_title(k[2])}: {st['budget']}") not in budgets[k[2]]:
-            budgets[k[2]].append(b)
+    budgets: dict[str, set[str]] = defaultdict(set)  # column -> its distinct budgets ("MOC: 200 frames")
+    for k, st in stats.items():
+        budgets[k[2]].add(f"{column_title(k[2])}: {st['budget']}")
     reasons = dict(missing_reasons or {})
     short: list[str] = []
     # what one seed of a column cost, over all its runs on the page (the same for every row it is missing from)
@@ -595,7 +596,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
     md = [f"# {title}", "", *([f"Made by `{made_by}`.", ""] if made_by else []), legend, "",
           *([f"Each column is an algorithm as its shipped default runs it. The paper preset, ablations and tuning variants "
              f"({len(variants)} columns) are on [variants.md](variants.md), not here.", ""] if variants else []),
-          *tables(headline), *missing, *_dataset_instances(groups, row_name, headline)[0], *_eval_episodes(groups, row_name, headline)[0],
+          *tables(headline), *missing, *instances["table"][0], *episodes["table"][0],
           "## Published scores (measured on D4RL's datasets, not ours: for orientation only)", "",
           "| method | " + " | ".join(k for k in next(iter(PUBLISHED_SCORES.values()))) + " |",
           "|" + "---|" * (1 + len(next(iter(PUBLISHED_SCORES.values())))),
@@ -608,7 +609,7 @@ def paper_table(run_dirs: Sequence, out_dir, title: str = "Offline RL on our dat
             "These columns are not what `offhrl train algo=<algo>` runs: the paper preset (the paper's per-dataset settings, kept "
             "to reproduce its columns), ablations and tuning variants, on the same data as the headline table, "
             "[table.md](table.md) (the shipped algorithms; the missing cells and the published scores are there).", "", *tables(variants),
-            *_dataset_instances(groups, row_name, variants)[0], *_eval_episodes(groups, row_name, variants)[0]]))
+            *instances["variants"][0], *episodes["variants"][0]]))
     elif (out / "variants.md").is_file():
         (out / "variants.md").unlink()  # an earlier report's variants: gone with their runs
     with open(out / "table.csv", "w", newline="") as f:
