@@ -267,14 +267,13 @@ def test_the_guard_judges_against_the_start_and_the_percentile_bc_and_falls_back
     v = sel.verdict(fallback=bc)
     assert v["against"] == "bc" and v["fired"] and v["start_over_bc_lcb"] == pytest.approx(-3.0) and v["bc_over_start_lcb"] == pytest.approx(2.0)
     assert v["gain_lcb_over_start"] == pytest.approx(1.0) and v["gain_lcb"] == pytest.approx(-2.0) and "percentile BC is returned" in v["reason"]
-    assert sel.verdict(fallback=bc, prefer="start")["against"] == "bc"  # the BC shows a gain over the start: either preference takes it
+    kept = PolicySelector("last", guard=True, prefer="start")  # the preference set once, as a run sets it from selection.fallback
+    kept.load_state_dict(sel.state_dict())  # the same records: only the preference differs
+    assert kept.verdict(fallback=bc)["against"] == "bc"  # the BC shows a gain over the start: either preference takes it
     assert not sel.verdict()["fired"] and sel.verdict()["against"] == "start"  # without the BC: judged against the start, passes
     # neither shows a gain over the other (member 0 prefers one, member 1 the other): the preference decides
     tie = _rec([12, 8, 12, 8])
-    assert sel.verdict(fallback=tie)["against"] == "bc" and sel.verdict(fallback=tie, prefer="start")["against"] == "start"
-    kept = PolicySelector("last", guard=True, prefer="start")  # the preference set once, as a run sets it from selection.fallback
-    kept.load_state_dict(sel.state_dict())
-    assert kept.verdict(fallback=tie)["against"] == "start"
+    assert sel.verdict(fallback=tie)["against"] == "bc" and kept.verdict(fallback=tie)["against"] == "start"
     with pytest.raises(ValueError, match="prefer"):
         PolicySelector("last", guard=True, prefer="neither")
     # a start that beats the BC by 5 under every member: the fallback, and the policy must beat both

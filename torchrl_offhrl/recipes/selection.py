@@ -269,7 +269,7 @@ class PolicySelector:
             self.selected["episodes"] = _episodes(record)
         return True
 
-    def verdict(self, fallback: dict | None = None, prefer: str | None = None) -> dict | None:
+    def verdict(self, fallback: dict | None = None) -> dict | None:
         """The guard's decision on the selected policy (None without a guard): ``{"fired", "gain_lcb", "against", "reason", ...}``.
 
         Without ``fallback`` the selected policy must show a gain over the
@@ -278,21 +278,18 @@ class PolicySelector:
         a percentile BC of the same episodes (:mod:`~torchrl_offhrl.recipes.fallback`;
         its model episodes pair up with the start's): the selected policy must
         then show a gain over both (``gain_lcb`` the smaller bound), and a
-        fired guard returns one of them (``against``): with ``prefer="bc"``
-        the BC unless the start shows a gain over it, with ``prefer="start"``
+        fired guard returns one of them (``against``): with the selector's
+        ``prefer="bc"`` the BC unless the start shows a gain over it, with ``prefer="start"``
         the start unless the BC shows a gain over it
         (``start_over_bc_lcb`` / ``bc_over_start_lcb``). A BC whose episodes
-        do not pair up is left out (the reason says so). ``prefer`` (None: the
-        selector's own) overrides the preference for this call.
+        do not pair up is left out (the reason says so).
         """
         if not self.guard:
             return None
         if self.start is None or self.start.get("agent") is None:
             return {"fired": False, "gain_lcb": None, "reason": "no evaluation at step 0 (eval.at_start=false): nothing to compare with; "
                                                                  "the selected policy is returned unguarded"}
-        prefer = self.prefer if prefer is None else prefer
-        if prefer not in ("bc", "start"):
-            raise ValueError(f"prefer must be 'bc' or 'start', got {prefer!r}")
+        prefer = self.prefer
         cap, start = self.return_cap, self.start["record"]
         bc = None if fallback is None else _episodes(fallback)
         start_over_bc = None if bc is None else paired_gain_lcb(start, bc, cap=cap)
