@@ -52,6 +52,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from tensordict.nn import TensorDictModuleBase
+from torchrl.objectives import SoftUpdate
 
 from .base import DatasetAgent, MetricMeans, OnPolicyAgent, backward
 from .sac import SACAgent
@@ -282,18 +283,25 @@ class SeedBatch:
             w_opt.state.clear()
 
     def _rebind_target_updater(self) -> None:
-        """Point the worker's target updater (TorchRL's ``SoftUpdate``, which caches its source and target tensors) at the
-        worker's own loss, with the same pairs agent 0's updater steps."""
+        """Give the worker a target updater of its own loss: a new one of agent 0's updater's kind and rate, built on the
+        worker's loss through TorchRL's public API (an updater caches the tensors it steps when first used, so the deep
+        copy's would step agent 0's). ``init_`` copies each source into its target; the targets are put back after, so
+        the worker keeps the targets it holds (agent 0's, then the seeds' stacked ones)."""
         u = getattr(self.worker, "target_updater", None)
         if u is None:
             return
-        u.loss_module = self.worker.loss
-        for attr, names in (("_sources_val", u._source_names), ("_targets_val", u._target_names)):
-            old = u.__dict__.pop(attr, None)
-            fresh = TensorDict({name: getattr(self.worker.loss, name) for name in names}, [])
-            if old is not None:
-                fresh = fresh.select(*old.keys(True, True)).lock_()
-            u.__dict__[attr] = fresh
+        if not isinstance(u, SoftUpdate):
+            raise ValueError(f"SeedBatch: {type(self.agents[0]).__name__}'s target updater is a {type(u).__name__}; only "
+                             "TorchRL's SoftUpdate is rebuilt for a seeds' batch")
+        fresh = SoftUpdate(self.worker.loss, eps=u.eps)
+        if u.initialized:
+            params = TensorDict.from_module(self.worker.loss, as_module=False)
+            targets = params.select(*(k for k in params.keys(True, True) if (k if isinstance(k, str) else k[0]).startswith("target_")))
+            kept = targets.clone()
+            with torch.no_grad():
+                fresh.init_()
+                targets.update_(kept)
+        self.worker.target_updater = fresh
 
     def stack(self) -> None:
         """Stack the agents' tensors, optimiser states and step counts into the worker (at the start, and after loading checkpoints).
