@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from experiments.peers.offlinerlkit_mopo import OldApiEnv, main, stand_in_modules, transitions  # noqa: E402
+from experiments.peers.offlinerlkit_mopo import OldApiEnv, final_evaluation, main, stand_in_modules, transitions  # noqa: E402
 
 
 def test_the_old_api_env_steps_as_pre_gymnasium_gym_and_normalises_on_the_data_references():
@@ -51,3 +51,27 @@ def test_the_stand_in_modules_give_the_names_the_kit_reads(monkeypatch):
 def test_a_folder_that_is_not_the_kit_is_refused_with_what_to_do(tmp_path, hopper_file):
     with pytest.raises(SystemExit, match="is not a checkout of OfflineRL-Kit .* fetch https://github.com/yihaosun1124/OfflineRL-Kit"):
         main(["--kit", str(tmp_path), "--dataset", str(hopper_file), "--task", "hopper-random-v2", "--out", str(tmp_path / "o")])
+
+
+def test_our_evaluation_of_the_kits_policy_replays_seeded_episodes_and_normalises_their_mean():
+    import gymnasium
+
+    class ZeroPolicy:  # the kit's policy interface: eval(), select_action(obs [1, d], deterministic) -> [1, a]
+        def eval(self):
+            self.evaluated = True
+
+        def select_action(self, obs, deterministic=False):
+            assert obs.shape == (1, 3) and deterministic
+            return np.zeros((1, 1), dtype=np.float32)
+
+    policy = ZeroPolicy()
+    out = final_evaluation(policy, "Pendulum-v1", ref=(-2000.0, 0.0), seed=4, episodes=2)
+    assert policy.evaluated and out["lengths"] == [200, 200]
+    expected = []
+    for i in range(2):  # the same episodes by hand: reset with eval_seed(4) + i = 4007 + i, zero torque
+        env = gymnasium.make("Pendulum-v1")
+        env.reset(seed=4007 + i)
+        expected.append(sum(float(env.step(np.zeros(1, dtype=np.float32))[1]) for _ in range(200)))
+    assert out["returns"] == pytest.approx(expected)
+    assert expected[0] != pytest.approx(expected[1])  # two different start states
+    assert out["normalized_mean"] == pytest.approx(100 * (np.mean(expected) + 2000.0) / 2000.0)

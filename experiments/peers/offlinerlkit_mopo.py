@@ -17,7 +17,13 @@ loading our HDF5 and evaluating in Gymnasium v5:
 
 The kit's ``--task`` picks its termination function and names its logs: give the D4RL name of the same environment
 and level (``hopper-medium-v2``, ``halfcheetah-medium-expert-v2``); its logs go to ``--out`` (``<out>/log/<task>/...``:
-the progress CSV holds ``eval/normalized_episode_reward`` per epoch).
+the progress CSV holds ``eval/normalized_episode_reward`` per epoch, from the kit's own ``--eval_episodes`` episodes).
+
+Our evaluation, on the policy the kit ends with: ``--final-episodes`` (default 30, as our runs' evaluations) episodes
+in the same Gymnasium env, acting with the kit's ``select_action(obs, deterministic=True)``, episode ``i`` reset with
+seed ``eval_seed(seed) + i`` (the kit's ``--seed``), normalised with the data's reference returns; written to
+``<out>/final_eval.json`` (per-episode returns and lengths, the normalised mean). The policy is taken from the kit's
+trainer when its ``train()`` returns (its method is wrapped, not changed).
 """
 from __future__ import annotations
 
@@ -30,6 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_offhrl.data import load_dataset
+from torchrl_offhrl.recipes.setting import eval_seed
+from torchrl_offhrl.utils import write_json
 
 
 class OldApiEnv:
@@ -78,6 +86,28 @@ def stand_in_modules(make) -> None:
     sys.modules.update({"gym": gym, "gym.envs": envs, "gym.envs.mujoco": mujoco, "d4rl": types.ModuleType("d4rl")})
 
 
+def final_evaluation(policy, env_id: str, ref: tuple[float, float], seed: int, episodes: int) -> dict:
+    """``episodes`` deterministic episodes of the kit's ``policy`` in ``env_id`` (Gymnasium), episode ``i`` reset with
+    seed ``eval_seed(seed) + i``; returns, lengths and the normalised mean return (x100, as our pages and the kit)."""
+    import gymnasium
+
+    env = gymnasium.make(env_id)
+    returns, lengths = [], []
+    policy.eval()
+    for i in range(episodes):
+        obs, _ = env.reset(seed=eval_seed(seed) + i)
+        total, steps, done = 0.0, 0, False
+        while not done:
+            action = policy.select_action(obs.reshape(1, -1), deterministic=True)
+            obs, reward, terminated, truncated, _ = env.step(action.flatten())
+            total, steps, done = total + float(reward), steps + 1, terminated or truncated
+        returns.append(total)
+        lengths.append(steps)
+    low, high = ref
+    return {"env": env_id, "seed": seed, "episodes": episodes, "returns": returns, "lengths": lengths,
+            "normalized_mean": 100.0 * (float(np.mean(returns)) - low) / (high - low)}
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     ours, theirs = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
@@ -87,7 +117,9 @@ def main(argv=None) -> int:
     ap.add_argument("--task", required=True, help="the D4RL name of the same env and level, e.g. hopper-medium-v2")
     ap.add_argument("--env", default=None, help="the Gymnasium env to evaluate in (default: the dataset's own)")
     ap.add_argument("--out", type=Path, required=True, help="where the kit writes its logs")
+    ap.add_argument("--final-episodes", type=int, default=30, help="episodes of our evaluation of the kit's last policy (0: none)")
     a = ap.parse_args(ours)
+    a.out = a.out.resolve()  # the kit runs in it (chdir below)
     runner = a.kit / "run_example" / "run_mopo.py"
     if not runner.is_file():
         raise SystemExit(f"{a.kit} is not a checkout of OfflineRL-Kit ({runner} is missing): fetch "
@@ -105,7 +137,25 @@ def main(argv=None) -> int:
     sys.argv = ["run_mopo.py", "--task", a.task, *theirs]  # the kit parses its arguments when its module is imported
     run_mopo = __import__("run_mopo")
     run_mopo.qlearning_dataset = lambda env, *args, **kwargs: transitions(data)
-    run_mopo.train(run_mopo.get_args())
+    trainer_cls, kept = run_mopo.MBPolicyTrainer, {}
+    own_train = trainer_cls.train
+
+    def train_and_keep(self, *args, **kwargs):
+        out = own_train(self, *args, **kwargs)
+        kept["policy"] = self.policy
+        return out
+
+    trainer_cls.train = train_and_keep
+    kit_args = run_mopo.get_args()
+    try:
+        run_mopo.train(kit_args)
+    finally:
+        trainer_cls.train = own_train
+    if a.final_episodes > 0 and "policy" in kept:
+        result = final_evaluation(kept["policy"], env_id, ref, int(kit_args.seed), a.final_episodes)
+        result["kit_args"] = {k: v for k, v in vars(kit_args).items() if isinstance(v, (int, float, str, bool, list, type(None)))}
+        write_json(a.out / "final_eval.json", result)
+        print(f"our evaluation of the kit's last policy ({a.final_episodes} episodes): {result['normalized_mean']:.1f}")
     return 0
 
 
