@@ -1,10 +1,10 @@
-"""Does a change to the training loop keep its behaviour? Ten tiny runs, one per setting, recorded for comparison.
+"""Does a change to the training loop keep its behaviour? Thirteen tiny runs, one per setting, recorded for comparison.
 
     python experiments/diagnostics/loop_equivalence.py record NAME [CASE ...]    # -> /tmp/loop_equivalence/NAME.json
     python experiments/diagnostics/loop_equivalence.py compare BEFORE AFTER
 
 Each case is a tiny config of one setting of ``offhrl train`` (MOC, MOC with
-model-LCB selection, PPO without the CVAE, SAC, IQL, MOC transfer, PPO from
+model-LCB selection, PPO without the CVAE, SAC, IQL, TD3+BC, CQL, MOPO, MOC transfer, PPO from
 scratch, PPO online, UOF and BC on block stacking) on small generated
 datasets; ``record`` keeps every evaluation record and the summary (times and
 paths left out), ``compare`` says per case whether they are identical. Run
@@ -36,6 +36,10 @@ CASES = {
     "ppo_nocvae": ["algo=ppo", "algo.frames_per_batch=64", "algo.epochs=2", "ablation.no_cvae=true", *TINY],
     "sac": ["algo=sac", "algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32", *TINY],
     "iql": ["algo=iql", "algo.batch_size=32", *TINY],
+    "td3bc": ["algo=td3bc", "algo.batch_size=32", *TINY],
+    "cql": ["algo=cql", "algo.batch_size=32", "algo.policy_eval_start=100", *TINY],
+    "mopo": ["algo=mopo", "algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32", "ensemble.num_models=3",
+             "ensemble.num_elites=2", *TINY],
     "moc_transfer": ["algo=moc", "algo.frames_per_batch=64", "algo.epochs=2", *TINY, *TRANSFER],
     "ppo_scratch": ["algo=ppo", "algo.frames_per_batch=64", "algo.epochs=2", *TINY, *TRANSFER, "transfer.from_scratch=true"],
     "ppo_online": ["algo=ppo", "algo.frames_per_batch=64", "algo.epochs=2", "train.online=true", *TINY],
