@@ -303,3 +303,24 @@ def test_moc_option_kl_and_starts_hand_computed():
     assert m["option_usage_mean"] == pytest.approx([1 / 5, 4 / 5])
     one = make_agent("moc", env, hidden_sizes=[8], num_options=1)
     assert one.evaluation_metrics(td.set("option", torch.zeros(E, T, dtype=torch.long)), alive)["option_kl"] == 0.0
+
+
+def test_an_agent_naming_its_losss_hyperparameters_takes_those_with_the_losss_defaults_unless_it_deviates():
+    """IQL's config keys for its loss are the ones it names, with IQLLoss's defaults unless ``loss_defaults`` differs;
+    a name the loss does not take is refused, and the built loss holds what the config asked for."""
+    from torchrl.objectives import IQLLoss
+
+    from torchrl_offhrl.agents.registry import loss_arguments
+    from torchrl_offhrl.data import make_gym_env
+
+    agent_cls = AGENTS["iql"]
+    assert loss_arguments(agent_cls) == {"expectile": 0.7, "temperature": 3.0, "loss_function": "l2"}
+    assert "reduction" not in agent_defaults("iql") and agent_defaults("iql")["expectile"] == 0.7
+
+    class Typo(agent_cls):
+        loss_hyperparameters = ("expectile", "temperture")
+
+    with pytest.raises(TypeError, match=r"names \['temperture'\], which IQLLoss does not take"):
+        loss_arguments(Typo)
+    agent = make_agent("iql", make_gym_env("Pendulum-v1"), {"expectile": 0.9, "hidden_sizes": [8]})
+    assert isinstance(agent.loss, IQLLoss) and agent.loss.expectile == 0.9 and agent.loss.temperature == 3.0

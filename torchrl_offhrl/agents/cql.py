@@ -79,12 +79,25 @@ class CQLAgent(DatasetAgent):
     min_q_weight 1 with the Lagrange rule at threshold 5, stochastic backup,
     MLP(256, 256).
 
+    The loss's hyper-parameters (:attr:`loss_hyperparameters`) are not
+    arguments of the agent: they go to :class:`BatchableCQLLoss` (TorchRL's
+    :class:`~torchrl.objectives.CQLLoss`) unchanged (``**loss_kwargs``),
+    documented and typed there; :attr:`loss_defaults` holds the values here
+    that differ from the loss's own.
+
     Examples:
         >>> from torchrl_offhrl.data import make_gym_env
         >>> agent = CQLAgent(make_gym_env("Pendulum-v1"), hidden_sizes=(32,), batch_size=8)
         >>> agent.policy_eval_start
         40000
     """
+
+    #: the loss the agent trains, and the arguments of it a config sets (the rest are TorchRL's plumbing, left at its defaults)
+    loss_class = BatchableCQLLoss
+    loss_hyperparameters: tuple = ("temperature", "min_q_weight", "max_q_backup", "deterministic_backup", "num_random", "with_lagrange",
+                                   "lagrange_thresh", "loss_function")
+    #: TorchRL's sota script's for hopper-medium (the loss's defaults: no Lagrange rule, threshold 0, deterministic backup, smooth_l1)
+    loss_defaults: dict = {"with_lagrange": True, "lagrange_thresh": 5.0, "deterministic_backup": False, "loss_function": "l2"}
 
     def __init__(
         self,
@@ -99,15 +112,7 @@ class CQLAgent(DatasetAgent):
         critic_lr: float = 3e-4,
         gamma: float = 0.99,
         tau: float = 0.005,
-        temperature: float = 1.0,
-        min_q_weight: float = 1.0,
-        max_q_backup: bool = False,
-        deterministic_backup: bool = False,
-        num_random: int = 10,
-        with_lagrange: bool = True,
-        lagrange_thresh: float = 5.0,
         policy_eval_start: int = 40_000,
-        loss_function: str = "l2",
         batch_size: int = 256,
         reward_scale: float = 1.0,
         default_policy_scale: float = 1.0,
@@ -115,16 +120,14 @@ class CQLAgent(DatasetAgent):
         fused_adam: bool = True,
         compile: bool | str = False,
         cudagraphs: bool = False,
+        **loss_kwargs,
     ):
         self.compile = compile_setting(compile)
         self.cudagraphs = bool(cudagraphs)
         self.policy = gaussian_actor(env, action_key, hidden_sizes, obs_loc, obs_scale, default_policy_scale, scale_lb)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
-        self.loss = BatchableCQLLoss(
-            self.policy, qvalue, loss_function=loss_function, temperature=temperature, min_q_weight=min_q_weight, max_q_backup=max_q_backup,
-            deterministic_backup=deterministic_backup, num_random=num_random, with_lagrange=with_lagrange, lagrange_thresh=lagrange_thresh,
-            action_spec=env.full_action_spec_unbatched[action_key],
-        )
+        self.loss = self.loss_class(self.policy, qvalue, action_spec=env.full_action_spec_unbatched[action_key],
+                                    **{**self.loss_defaults, **loss_kwargs})
         self.loss.set_keys(action=action_key)
         self.loss.make_value_estimator(gamma=gamma)
         self.target_updater = SoftUpdate(self.loss, tau=tau)
@@ -133,7 +136,7 @@ class CQLAgent(DatasetAgent):
             adam(self.loss.qvalue_network_params.flatten_keys().values(), lr=critic_lr, fused=fused_adam),
             adam([self.loss.log_alpha], lr=actor_lr, fused=fused_adam),
         ]
-        if with_lagrange:
+        if self.loss.with_lagrange:
             optimizers.append(adam([self.loss.log_alpha_prime], lr=critic_lr, fused=fused_adam))
         self.optimizer = group_optimizers(*optimizers)
         self.policy_eval_start = int(policy_eval_start)

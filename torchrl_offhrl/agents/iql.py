@@ -27,12 +27,24 @@ class IQLAgent(DatasetAgent):
     episode return)`` (``reward_scale: return_range``, the IQL paper's
     normalisation; the class itself takes a number, default 1).
 
+    The loss's hyper-parameters (:attr:`loss_hyperparameters`: ``expectile``,
+    ``temperature``, ``loss_function``) are not arguments of the agent: they
+    go to TorchRL's :class:`~torchrl.objectives.IQLLoss` unchanged
+    (``**loss_kwargs``), documented and typed there; :attr:`loss_defaults`
+    holds the values here that differ from the loss's own.
+
     Examples:
         >>> from torchrl_offhrl.data import make_gym_env
         >>> agent = IQLAgent(make_gym_env("Pendulum-v1"), hidden_sizes=(32,), batch_size=8)
         >>> sorted(k for k in agent.loss.state_dict() if k.endswith("0.weight"))[:1]
         ['actor_network_params.module.0.module.0.net.0.weight']
     """
+
+    #: the loss the agent trains, and the arguments of it a config sets (the rest are TorchRL's plumbing, left at its defaults)
+    loss_class = IQLLoss
+    loss_hyperparameters: tuple = ("expectile", "temperature", "loss_function")
+    #: the IQL paper's locomotion values and TorchRL's sota script's loss (the loss's defaults: 0.5, 1.0, smooth_l1)
+    loss_defaults: dict = {"expectile": 0.7, "temperature": 3.0, "loss_function": "l2"}
 
     def __init__(
         self,
@@ -46,9 +58,6 @@ class IQLAgent(DatasetAgent):
         lr: float = 3e-4,
         gamma: float = 0.99,
         tau: float = 0.005,
-        expectile: float = 0.7,
-        temperature: float = 3.0,
-        loss_function: str = "l2",
         batch_size: int = 256,
         reward_scale: float = 1.0,
         default_policy_scale: float = 1.0,
@@ -58,6 +67,7 @@ class IQLAgent(DatasetAgent):
         fused_adam: bool = True,
         compile: bool | str = False,
         cudagraphs: bool = False,
+        **loss_kwargs,
     ):
         self.compile = compile_setting(compile)
         self.cudagraphs = bool(cudagraphs)
@@ -73,8 +83,7 @@ class IQLAgent(DatasetAgent):
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
         value = ValueOperator(NormalizedMLP(obs_dim, 0, 1, list(hidden_sizes), "relu", obs_loc, obs_scale), in_keys=["observation"],
                               out_keys=["state_value"])
-        self.loss = IQLLoss(self.policy, qvalue, value, num_qvalue_nets=2, loss_function=loss_function, temperature=temperature,
-                            expectile=expectile)
+        self.loss = self.loss_class(self.policy, qvalue, value, num_qvalue_nets=2, **{**self.loss_defaults, **loss_kwargs})
         self.loss.set_keys(action=action_key)
         self.loss.make_value_estimator(gamma=gamma)
         self.target_updater = SoftUpdate(self.loss, tau=tau)

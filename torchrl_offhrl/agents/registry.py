@@ -36,7 +36,10 @@ def agent_defaults(name: str, loss=None) -> dict:
     MOC's :class:`~torchrl_offhrl.objectives.OptionCriticLoss`) takes the
     loss's keyword arguments, with the loss's defaults unless the agent's
     ``loss_defaults`` gives others, apart from the ones the agent sets itself
-    (``loss_set_by_agent``): the loss declares them once. ``loss``: the
+    (``loss_set_by_agent``) or, where the agent names them
+    (``loss_hyperparameters``: a TorchRL loss's tuning knobs, not its
+    plumbing such as ``reduction`` or ``priority_key``), only those: the loss
+    declares them once. ``loss``: the
     loss class the config names instead (``algo.loss``, a class or a dotted
     path), whose own arguments are taken too.
     """
@@ -73,11 +76,15 @@ def loss_arguments(cls, loss=None) -> dict:
 
         loss = import_class(loss, getattr(cls, "loss_base", cls.loss_class), "algo.loss")
     set_by_agent, deviations = getattr(cls, "loss_set_by_agent", ()), getattr(cls, "loss_defaults", {})
+    only = getattr(cls, "loss_hyperparameters", None)
     out: dict = {}
     for params in _init_chain(loss or cls.loss_class):
         for k, p in params.items():
-            if k != "self" and k not in set_by_agent and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
+            if k != "self" and k not in set_by_agent and (only is None or k in only) and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
                 out.setdefault(k, deviations.get(k, p.default))
+    if only is not None and set(only) - set(out):
+        raise TypeError(f"{cls.__name__}.loss_hyperparameters names {sorted(set(only) - set(out))}, which "
+                        f"{(loss or cls.loss_class).__name__} does not take")
     return out
 
 

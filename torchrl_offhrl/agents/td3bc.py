@@ -26,12 +26,24 @@ class TD3BCAgent(DatasetAgent):
     0.005, MLP(256, 256); observations normalised with the dataset's
     statistics as in the paper; rewards unscaled.
 
+    The loss's hyper-parameters (:attr:`loss_hyperparameters`: ``alpha``,
+    ``policy_noise``, ``noise_clip``, ``loss_function``) are not arguments of
+    the agent: they go to TorchRL's :class:`~torchrl.objectives.TD3BCLoss`
+    unchanged (``**loss_kwargs``), documented and typed there;
+    :attr:`loss_defaults` holds the value here that differs from the loss's.
+
     Examples:
         >>> from torchrl_offhrl.data import make_gym_env
         >>> agent = TD3BCAgent(make_gym_env("Pendulum-v1"), hidden_sizes=(32,), batch_size=8)
         >>> agent.policy_update_delay
         2
     """
+
+    #: the loss the agent trains, and the arguments of it a config sets (the rest are TorchRL's plumbing, left at its defaults)
+    loss_class = TD3BCLoss
+    loss_hyperparameters: tuple = ("alpha", "policy_noise", "noise_clip", "loss_function")
+    #: TorchRL's sota script's critic loss (the loss's default: smooth_l1); alpha and the noise are the loss's defaults
+    loss_defaults: dict = {"loss_function": "l2"}
 
     def __init__(
         self,
@@ -45,23 +57,20 @@ class TD3BCAgent(DatasetAgent):
         lr: float = 3e-4,
         gamma: float = 0.99,
         tau: float = 0.005,
-        alpha: float = 2.5,
-        policy_noise: float = 0.2,
-        noise_clip: float = 0.5,
         policy_update_delay: int = 2,
-        loss_function: str = "l2",
         batch_size: int = 256,
         reward_scale: float = 1.0,
         fused_adam: bool = True,
         compile: bool | str = False,
         cudagraphs: bool = False,
+        **loss_kwargs,
     ):
         self.compile = compile_setting(compile)
         self.cudagraphs = bool(cudagraphs)
         self.policy = deterministic_actor(env, action_key, hidden_sizes, obs_loc, obs_scale)
         qvalue = q_network(env, action_key, hidden_sizes, obs_loc, obs_scale)
-        self.loss = TD3BCLoss(self.policy, qvalue, action_spec=env.full_action_spec_unbatched[action_key], num_qvalue_nets=2, alpha=alpha,
-                              policy_noise=policy_noise, noise_clip=noise_clip, loss_function=loss_function)
+        self.loss = self.loss_class(self.policy, qvalue, action_spec=env.full_action_spec_unbatched[action_key], num_qvalue_nets=2,
+                                    **{**self.loss_defaults, **loss_kwargs})
         self.loss.set_keys(action=action_key)
         self.loss.make_value_estimator(gamma=gamma)
         self.target_updater = SoftUpdate(self.loss, tau=tau)
