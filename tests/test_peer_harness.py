@@ -75,3 +75,41 @@ def test_our_evaluation_of_the_kits_policy_replays_seeded_episodes_and_normalise
     assert out["returns"] == pytest.approx(expected)
     assert expected[0] != pytest.approx(expected[1])  # two different start states
     assert out["normalized_mean"] == pytest.approx(100 * (np.mean(expected) + 2000.0) / 2000.0)
+
+
+def test_the_mopo_side_by_side_reads_both_sides_runs_and_compares_them_at_the_same_points(tmp_path):
+    """Hand-made run folders: ours (summary + evaluations) and the kit's (our final evaluation + its progress CSV)."""
+    import json
+
+    from experiments.peers.mopo_side_by_side import kit_runs, main, our_runs
+    from torchrl_offhrl.stats import iqm
+
+    ours, kit = tmp_path / "ours", tmp_path / "kit"
+    for seed, (last, ret, evals) in {4: (30.0, 40.0, [10.0, 50.0, 30.0]), 5: (20.0, 20.0, [25.0, 20.0])}.items():
+        d = ours / f"mopo-hopper-medium-seed{seed}"
+        d.mkdir(parents=True)
+        (d / "summary.json").write_text(json.dumps({"seed": seed, "final": {"normalized_d4rl": last, "updates": 204800},
+                                                    "selected": {"normalized_d4rl": ret}, "behaviour_normalized_d4rl": 35.9}))
+        (d / "evals.json").write_text(json.dumps([{"step": 0, "normalized_d4rl": 99.0}]  # the untrained start: not "best"
+                                                 + [{"step": 40960 * (i + 1), "normalized_d4rl": v} for i, v in enumerate(evals)]))
+    (ours / "mopo-hopper-medium-seed6").mkdir()  # unfinished: no summary, left out
+    for seed, final in {4: 12.0, 6: 18.0}.items():
+        d = kit / "hopper-medium" / f"seed{seed}"
+        rec = d / "log" / "hopper-medium-v2" / "mopo&x" / f"seed_{seed}&t" / "record"
+        rec.mkdir(parents=True)
+        (d / "final_eval.json").write_text(json.dumps({"seed": seed, "normalized_mean": final, "episodes": 30}))
+        # its own evaluations every epoch of 1024 updates: 40 (= 40,960) and 80 are our points, 1 and 79 are not
+        rows = [(1024, 70.0), (40960, 15.0 + seed), (79 * 1024, 90.0), (81920, 5.0)]
+        (rec / "policy_training_progress.csv").write_text("eval/normalized_episode_reward,timestep\n"
+                                                           + "".join(f"{v},{t}\n" for t, v in rows))
+    (kit / "hopper-medium" / "seed5").mkdir()  # unfinished: no final evaluation, left out
+    o, k = our_runs(ours, "hopper-medium"), kit_runs(kit, "hopper-medium")
+    assert sorted(o) == [4, 5] and o[4] == {"last": 30.0, "returned": 40.0, "best": 50.0, "data": 35.9, "updates": 204800}
+    assert sorted(k) == [4, 6] and k[4] == {"last": 12.0, "own_last": 5.0, "own_best": 19.0, "updates": 81920, "episodes": 30}
+    assert k[6]["own_best"] == 21.0  # the best at our points only (90 at epoch 79 and 70 at epoch 1 are not)
+    out = tmp_path / "page.md"
+    assert main(["--ours", str(ours), "--kit", str(kit), "--datasets", "hopper-medium", "--out", str(out)]) == 0
+    table = json.loads(out.with_suffix(".json").read_text())
+    row = next(r for r in table if r["who"] == "OfflineRL-Kit" and r["key"] == "last")
+    assert row["seeds"] == [4, 6] and row["values"] == [12.0, 18.0] and row["iqm_ci"][0] == iqm([12.0, 18.0])
+    assert "| ours | last policy, 30 episodes | 4 5 | 25.0 [" in out.read_text() and "the data: 35.9" in out.read_text()
