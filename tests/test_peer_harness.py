@@ -91,14 +91,15 @@ def test_the_mopo_side_by_side_reads_both_sides_runs_and_compares_them_at_the_sa
         (d / "summary.json").write_text(json.dumps({"seed": seed, "final": {"normalized_d4rl": last, "updates": 204800},
                                                     "selected": {"normalized_d4rl": ret}, "behaviour_normalized_d4rl": 35.9}))
         (d / "evals.json").write_text(json.dumps([{"step": 0, "normalized_d4rl": 99.0}]  # the untrained start: not "best"
-                                                 + [{"step": 40960 * (i + 1), "normalized_d4rl": v} for i, v in enumerate(evals)]))
+                                                 + [{"step": 10_250_000 * (i + 1), "normalized_d4rl": v} for i, v in enumerate(evals)]))
     (ours / "mopo-hopper-medium-seed6").mkdir()  # unfinished: no summary, left out
     for seed, final in {4: 12.0, 6: 18.0}.items():
         d = kit / "hopper-medium" / f"seed{seed}"
         rec = d / "log" / "hopper-medium-v2" / "mopo&x" / f"seed_{seed}&t" / "record"
         rec.mkdir(parents=True)
         (d / "final_eval.json").write_text(json.dumps({"seed": seed, "normalized_mean": final, "episodes": 30}))
-        # its own evaluations every epoch of 1024 updates: 40 (= 40,960) and 80 are our points, 1 and 79 are not
+        # its own evaluations every epoch of 1024 updates: epochs 40 and 80 are the nearest to our points (41,000 and 82,000
+        # updates; the other three points' nearest is epoch 80 too), epochs 1 and 79 are not
         rows = [(1024, 70.0), (40960, 15.0 + seed), (79 * 1024, 90.0), (81920, 5.0)]
         (rec / "policy_training_progress.csv").write_text("eval/normalized_episode_reward,timestep\n"
                                                            + "".join(f"{v},{t}\n" for t, v in rows))

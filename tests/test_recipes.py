@@ -32,7 +32,8 @@ TINY = [
     "eval.at_start=false",
 ]
 ALGO_TINY = {"sac": ["algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32"], "ppo": ["algo.epochs=2"], "moc": ["algo.epochs=2"]}
-ALGO_TINY["mopo"] = [*ALGO_TINY["sac"], "algo.real_ratio=0.25"]
+# MOPO's rollout schedule, small: a rollout of 8 envs x 5 steps, then 16 gradient steps (configs/algo/mopo.yaml's 50,000 and 1,000)
+ALGO_TINY["mopo"] = ["algo.batch_size=32", "algo.real_ratio=0.25", "algo.rollout_batch_size=8", "algo.rollout_freq=16"]
 
 
 def _cfg(algo, data, out, extra=()):
@@ -760,6 +761,37 @@ def test_mopo_mixes_real_ratio_of_each_minibatch_from_the_scaled_dataset(toy_dat
     assert out["updates"] == batch.numel()
     with pytest.raises(ValueError, match="ablation.no_cvae=true"):
         make_agent("mopo", env, action_key="action", hidden_sizes=[16]).use_dataset(marked.exclude("action"))
+
+
+def test_mopo_rolls_out_as_its_code_does_every_env_once_then_rollout_freq_steps(toy_data, fitted_gaussian_ensemble):
+    """MOPO's schedule (algo.rollout_freq): each collected batch is one rollout of every env (6 envs x horizon 5 = 30 frames),
+    followed by rollout_freq = 12 gradient steps; the replay keeps model_retain_rollouts = 2 rollouts (60 frames); SAC's
+    schedule keys it sets are refused when given, and so are random first frames and a model env of another size."""
+    from torchrl_offhrl.agents import make_agent
+    from torchrl_offhrl.recipes.config import model_env_config
+    from torchrl_offhrl.recipes.pipeline import make_model_env
+
+    cfg = to_plain(compose("offline_train", ["algo=mopo", "model_env.reward_scale=1.0"]))
+    assert (cfg["algo"]["rollout_batch_size"], cfg["algo"]["rollout_freq"], cfg["algo"]["model_retain_rollouts"]) == (50000, 1000, 5)
+    assert cfg["train"]["total_frames"] == 205 * 50000 * 5 and cfg["eval"]["every_frames"] == 41 * 50000 * 5  # hopper-medium: h 5
+    settings, _ = model_env_config(cfg, "medium")
+    env = make_model_env({"env": {**settings, "horizon": 5}}, fitted_gaussian_ensemble, None, toy_data, batch_size=6, latent=False)
+    kw = dict(action_key="action", hidden_sizes=[16], batch_size=8, real_ratio=0.25, init_random_frames=0)
+    agent = make_agent("mopo", env, rollout_freq=12, model_retain_rollouts=2, rollout_batch_size=6, **kw)
+    assert agent.frames_per_batch == 30 and agent.utd_ratio == pytest.approx(12 / 30) and agent.replay_buffer.storage.max_size == 60
+    agent.use_dataset(toy_data[:], reward_scale=1.0)
+    for _ in range(3):
+        with torch.no_grad():
+            batch = env.rollout(5, agent.policy, break_when_any_done=False)
+        assert agent.update(batch)["updates"] == 12
+    assert len(agent.replay_buffer) == 60  # three rollouts of 30 frames, the last two kept
+    for bad, match in (({"utd_ratio": 2.0}, "algo.utd_ratio"), ({"buffer_size": 10}, "algo.buffer_size")):
+        with pytest.raises(ValueError, match=match):
+            make_agent("mopo", env, rollout_freq=12, **bad, **kw)
+    with pytest.raises(ValueError, match="init_random_frames=0"):
+        make_agent("mopo", env, rollout_freq=12, **{**kw, "init_random_frames": 5})
+    with pytest.raises(ValueError, match="rollout_batch_size=7: the model env has 6 envs"):
+        make_agent("mopo", env, rollout_freq=12, rollout_batch_size=7, **kw)
 
 
 def test_mopo_trains_end_to_end_with_the_dataset_in_its_minibatches(hopper_file, cache, tmp_path):

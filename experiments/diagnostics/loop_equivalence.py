@@ -38,7 +38,7 @@ CASES = {
     "iql": ["algo=iql", "algo.batch_size=32", *TINY],
     "td3bc": ["algo=td3bc", "algo.batch_size=32", *TINY],
     "cql": ["algo=cql", "algo.batch_size=32", "algo.policy_eval_start=100", *TINY],
-    "mopo": ["algo=mopo", "algo.init_random_frames=64", "algo.utd_ratio=0.25", "algo.batch_size=32", "ensemble.num_models=3",
+    "mopo": ["algo=mopo", "algo.rollout_batch_size=8", "algo.rollout_freq=16", "algo.batch_size=32", "ensemble.num_models=3",
              "ensemble.num_elites=2", *TINY],
     "moc_transfer": ["algo=moc", "algo.frames_per_batch=64", "algo.epochs=2", *TINY, *TRANSFER],
     "ppo_scratch": ["algo=ppo", "algo.frames_per_batch=64", "algo.epochs=2", *TINY, *TRANSFER, "transfer.from_scratch=true"],

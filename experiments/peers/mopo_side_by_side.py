@@ -10,8 +10,8 @@ Reads what the two runs left, runs nothing:
   best of its evaluations (``evals.json``, the initial one aside) and the data's own score;
 * the kit's: ``<kit>/<dataset>/seed<N>/`` (``experiments/peers/offlinerlkit_mopo.py``): our evaluation of its last
   policy (``final_eval.json``, 30 episodes as ours), and its own per-epoch evaluations (its progress CSV, 10 episodes
-  each: the last, and the best of those at our evaluation points, every 40,960 updates, so that "best" picks from as
-  many evaluations on both sides).
+  each: the last, and the best of those nearest to our five evaluation points, every 41,000 updates, so that "best"
+  picks from as many evaluations on both sides).
 
 Each row: IQM [95% bootstrap CI] over seeds and the per-seed values, D4RL-normalised on the data's reference returns.
 Writes the page and a JSON of the rows beside it (``.json``).
@@ -26,8 +26,9 @@ from pathlib import Path
 from torchrl_offhrl.stats import iqm_ci
 from torchrl_offhrl.utils import atomic_write, write_json
 
-#: our evaluation points (frames = updates for MOPO's SAC at utd 1), where the kit's own evaluations are read for "best"
-EVERY = 40_960
+#: our evaluation points in gradient steps (MOPO's schedule: every 41 rollouts of 1,000 steps), where the kit's own
+#: evaluations (one per epoch of 1,024 steps) are read for "best": at each point, the kit's evaluation nearest to it
+POINTS = tuple(41_000 * k for k in range(1, 6))
 
 
 def our_runs(root: Path, dataset: str) -> dict[int, dict]:
@@ -46,7 +47,7 @@ def our_runs(root: Path, dataset: str) -> dict[int, dict]:
     return out
 
 
-def kit_runs(root: Path, dataset: str, every: int = EVERY) -> dict[int, dict]:
+def kit_runs(root: Path, dataset: str, points=POINTS) -> dict[int, dict]:
     """Seed -> the scores of the kit's finished MOPO runs on ``dataset`` (those with our final evaluation)."""
     out = {}
     for d in sorted((root / dataset).glob("seed*")):
@@ -59,7 +60,7 @@ def kit_runs(root: Path, dataset: str, every: int = EVERY) -> dict[int, dict]:
             with open(path, newline="") as fh:
                 rows = [r for r in csv.DictReader(fh) if r.get("eval/normalized_episode_reward")]
         own = [(int(float(r["timestep"])), float(r["eval/normalized_episode_reward"])) for r in rows]
-        at_ours = [v for t, v in own if t % every == 0]
+        at_ours = [min(own, key=lambda tv: abs(tv[0] - p))[1] for p in points] if own else []
         out[int(f["seed"])] = {"last": f["normalized_mean"], "own_last": own[-1][1] if own else None,
                                "own_best": max(at_ours) if at_ours else None, "updates": own[-1][0] if own else None,
                                "episodes": f["episodes"]}
@@ -101,7 +102,8 @@ def page(table: list[dict]) -> str:
              "Made by `python experiments/peers/mopo_side_by_side.py` from the runs' own files (nothing reruns). Ours: "
              "`offhrl results table1 run --scale demo --envs <env> --datasets medium --algos mopo` (the shipped `algo=mopo`: "
              "7 Gaussian members fitted by likelihood with learned log-variance bounds, 5 elites, MOPO's penalty on the "
-             "largest norm of their predicted standard deviations, SAC on branched rollouts; 204,800 updates). The kit's: "
+             "largest norm of their predicted standard deviations, SAC with MOPO's rollout schedule: every 1,000 steps a rollout "
+             "from 50,000 dataset states, the last 5 kept; 205 rollouts, 205,000 updates). The kit's: "
              "its `run_example/run_mopo.py` unchanged (`experiments/peers/offlinerlkit_mopo.py`), on the same HDF5 file, "
              "MOPO's rollout length and penalty for the dataset, 200 epochs of 1,024 updates (the same 204,800), its own "
              "model fit and evaluations. Scores: D4RL-normalised on the data's reference returns; IQM [95% bootstrap CI] over "

@@ -246,6 +246,17 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
                 print(f"{where} {env}-{dataset} {algo}{'_' + tag if tag else ''} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
+def rollout_budget(cfg, updates: int = 204_800, evaluations: int = 5) -> list[str]:
+    """The frame budget of an agent on MOPO's rollout schedule (``algo.rollout_freq`` gradient steps after each rollout of
+    ``algo.rollout_batch_size`` x ``model_env.horizon`` frames): ``updates`` gradient steps rounded up to whole rollouts
+    (204,800 -> 205 rollouts of 1,000), evaluated ``evaluations`` times at equal numbers of rollouts (every 41)."""
+    per = int(cfg.algo.rollout_freq)
+    rollouts = -(-updates // per)
+    rollouts = -(-rollouts // evaluations) * evaluations
+    frames = int(cfg.algo.rollout_batch_size) * int(cfg.model_env.horizon)
+    return [f"train.total_frames={rollouts * frames}", f"eval.every_frames={rollouts // evaluations * frames}"]
+
+
 def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed: int, speed: list[str],
                 changes: list[str] = (), tag: str | None = None, paper: bool = False) -> dict:
     """The config of one Table I run (``speed``: checked not to change it; ``changes``: a variant named ``tag``; ``paper``:
@@ -259,6 +270,8 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
     cfg = compose(CONFIG[scale], overrides)  # the demo's on-policy minibatch is already left out for the agents without one
     if "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
         overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
+    if cfg.algo.get("rollout_freq"):  # MOPO's schedule: its budget in whole rollouts, as its config (configs/algo/mopo.yaml)
+        overrides += rollout_budget(cfg)
     if tag:
         overrides += [*changes, f"++algo.label={name}"]  # after the scale's own: the variant's settings win
     cfg = to_plain(compose(CONFIG[scale], overrides))

@@ -1,6 +1,8 @@
 """MOPO (Yu et al., 2020): SAC on short model rollouts with an uncertainty-penalised reward, mixed with the dataset's transitions."""
 from __future__ import annotations
 
+import inspect
+
 import torch
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
@@ -26,13 +28,52 @@ class MOPOAgent(SACAgent):
 
     The dataset's actions are real actions: with ``real_ratio > 0`` the agent
     must act in them (``ablation.no_cvae=true``, as ``algo=mopo`` sets).
+
+    MOPO's rollout schedule (``rollout_freq``, default None: SAC's own, one
+    model frame per ``utd_ratio`` of a gradient step). MOPO's code does not
+    step the model once per gradient step: every ``rollout_freq`` (1,000)
+    gradient steps it branches one ``horizon``-step rollout from each of
+    ``rollout_batch_size`` (50,000) dataset states with the current policy,
+    and its replay keeps the last ``model_retain_rollouts`` (5) rollouts.
+    With ``rollout_freq`` set, each batch the agent collects is one rollout
+    of every env of the model env (``collector.num_envs`` is MOPO's rollout
+    batch, ``algo.rollout_batch_size`` in a run's config, which builds the
+    model env with that many envs): ``frames_per_batch`` is the envs times the env's ``horizon``,
+    each batch is followed by ``rollout_freq`` gradient steps (``utd_ratio``
+    is set from them), and the replay holds ``model_retain_rollouts``
+    batches (``buffer_size`` is set from it). No random-action frames come
+    first (``init_random_frames`` must be 0): MOPO rolls out its policy from
+    the start.
     """
 
     #: the transition entries the SAC loss reads, taken from both sources
     TRANSITION_KEYS = ("observation", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"))
 
-    def __init__(self, env, *, real_ratio: float = 0.05, **kwargs):
+    def __init__(self, env, *, real_ratio: float = 0.05, rollout_freq: int | None = None, rollout_batch_size: int | None = None,
+                 model_retain_rollouts: int = 5, **kwargs):
+        if rollout_batch_size is not None and int(rollout_batch_size) != int(env.batch_size.numel()):
+            raise ValueError(f"algo.rollout_batch_size={rollout_batch_size}: the model env has {env.batch_size.numel()} envs; the run "
+                             "builds it with that many (recipes.setting), a model env of your own must have as many")
+        if rollout_freq is not None:
+            horizon = getattr(getattr(env, "base_env", env), "horizon", None)
+            if horizon is None:
+                raise ValueError("algo.rollout_freq (MOPO's rollout schedule) needs a model env with a horizon (PessimisticModelEnv)")
+            if int(rollout_freq) < 1 or int(model_retain_rollouts) < 1:
+                raise ValueError(f"algo.rollout_freq and algo.model_retain_rollouts must be >= 1 (gradient steps per rollout, rollouts "
+                                 f"kept), got {rollout_freq} and {model_retain_rollouts}")
+            if kwargs.get("init_random_frames", 0):
+                raise ValueError("algo.rollout_freq: MOPO rolls out its own policy from the start; set algo.init_random_frames=0")
+            sac = inspect.signature(SACAgent.__init__).parameters
+            superseded = sorted(k for k in ("frames_per_batch", "utd_ratio", "buffer_size") if k in kwargs and kwargs[k] != sac[k].default)
+            if superseded:
+                raise ValueError(f"algo.rollout_freq sets {', '.join('algo.' + k for k in superseded)} from MOPO's rollout schedule (a "
+                                 "rollout of every env per batch, rollout_freq gradient steps after it, model_retain_rollouts kept): "
+                                 "leave them at SAC's defaults, or give algo.rollout_freq=null for SAC's schedule")
+            rollout = int(env.batch_size.numel()) * int(horizon)  # one rollout of every env: MOPO's rollout batch x its length
+            kwargs.update(frames_per_batch=rollout, utd_ratio=int(rollout_freq) / rollout, buffer_size=int(model_retain_rollouts) * rollout,
+                          init_random_frames=0)
         super().__init__(env, **kwargs)
+        self.rollout_freq = None if rollout_freq is None else int(rollout_freq)
         if not 0.0 <= float(real_ratio) < 1.0:
             raise ValueError(f"algo.real_ratio must be in [0, 1) (the share of each minibatch drawn from the dataset), got {real_ratio}")
         self.real_ratio = float(real_ratio)

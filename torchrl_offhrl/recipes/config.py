@@ -19,6 +19,20 @@ from ..registry import LEVELS
 from ..utils import to_plain
 from .schema import section_defaults
 
+
+def _register_resolvers() -> None:
+    """``${offhrl_mul:a,b,...}``: the product of integers, for a budget a config states in its own units (MOPO's: rollouts of
+    ``algo.rollout_batch_size`` x ``model_env.horizon`` frames, ``configs/algo/mopo.yaml``)."""
+    import math
+
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("offhrl_mul"):
+        OmegaConf.register_new_resolver("offhrl_mul", lambda *xs: math.prod(int(x) for x in xs))
+
+
+_register_resolvers()
+
 __all__ = [
     "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "fit_as_before", "model_config", "model_env_config",
     "data_label", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "transfer_config", "transfer_label",

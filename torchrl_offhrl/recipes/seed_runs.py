@@ -328,7 +328,7 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=N
     kind = OffPolicySeedBatch if p.cfg["algo"]["name"] in OFF_POLICY else OnPolicySeedBatch
     batch = kind(agents, generators=[lane.rng for lane in lanes])
     latent = acts_in_latent_space(p.cfg)
-    per_seed = int(p.rc.collector.num_envs)
+    per_seed = int(p.cfg["algo"].get("rollout_batch_size") or p.rc.collector.num_envs)  # as each run's own model env (recipes.setting)
     env = make_model_env(p.pcfg, p.ensemble, p.cvae if latent else None, p.data, batch_size=n * per_seed, latent=latent,
                          threshold=lanes[0].r.setting.threshold)  # the runs' own threshold, not calibrated again
     p.add_reward_transforms(agents[0].attach(env))

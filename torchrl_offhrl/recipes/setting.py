@@ -306,7 +306,9 @@ class ModelEnvSetting:
             _, origin_info = apply_latent_origin(p.pcfg, p.data, cvae, p.model_info.get("model_dir"), progress=p.progress)
             if origin_info is not None and rules is not None:  # in the calibration report
                 rules.info["latent_origin"] = origin_info
-        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=p.rc.collector.num_envs, latent=latent)
+        # the model env's batch: the collector's envs, or the agent's own rollout batch (MOPO's 50,000 branched rollouts)
+        n_envs = p.cfg["algo"].get("rollout_batch_size") or p.rc.collector.num_envs
+        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=n_envs, latent=latent)
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
         p.add_reward_transforms(agent.attach(env))
