@@ -115,6 +115,26 @@ def test_offline_rules_report_on_fitted_models(tmp_path):
     assert "pessimism threshold" in text and "latent box" in text and "model episodes" in text
     assert rules.plot(tmp_path / "calibration.png").stat().st_size > 0
     assert set(rules.settings()) == {"threshold", "penalty", "horizon", "reset_states", "latent_bound"}
+    assert "not used" not in text
+    # a run that sets its own (MOPO: no termination, 5-step rollouts): the report still states the rules, marked
+    from torchrl_offhrl.recipes.config import compose, model_env_config, rules_not_used
+    from torchrl_offhrl.utils import to_plain
+
+    cfg = to_plain(compose("offline_train", ["algo=mopo", "model_env.reward_scale=1.0"]))
+    settings, _ = model_env_config(cfg, "medium", data, rules=rules)
+    not_used = rules_not_used(cfg, settings, rules)
+    assert not_used == {"pessimism": "ablation.no_pessimism: no episode ends on the members' disagreement, no penalty",
+                        "horizon": "model_env.horizon=5 (the config's)", "reset_states": "model_env.reset_states=any (the config's)"}
+    rules.info["not_used"] = not_used
+    lines = rules.summary().splitlines()
+    assert sum("[not used by this run: ablation.no_pessimism" in line for line in lines) == 2  # the threshold and the penalty
+    episodes = next(line for line in lines if "model episodes" in line)
+    assert episodes.endswith("[not used by this run: model_env.horizon=5 (the config's); model_env.reset_states=any (the config's)]")
+    assert "not used" not in next(line for line in lines if "latent box" in line)
+    default = to_plain(compose("offline_train", ["model_env.reward_scale=1.0"]))  # the shipped default: every rule used
+    assert rules_not_used(default, model_env_config(default, "medium", data, rules=rules)[0], rules) == {}
+    paper = to_plain(compose("offline_train", ["preset=paper", "model_env.reward_scale=1.0"]))
+    assert rules_not_used(paper, model_env_config(paper, "medium", data, rules=rules)[0], rules)["pessimism"].startswith("the paper preset's table")
 
 
 # ----------------------------------------------------------------------------------------------------------- the guard

@@ -284,17 +284,25 @@ class OfflineRules:
         train_above = None
         if self.train_discrepancy is not None and self.train_discrepancy.numel():
             train_above = float((self.train_discrepancy > self.threshold).double().mean())
+        # the rules' values a run sets otherwise (recipes.config.rules_not_used): stated, marked as not this run's
+        not_used = self.info.get("not_used") or {}
+
+        def mark(*keys: str) -> str:
+            why = "; ".join(dict.fromkeys(not_used[k] for k in keys if k in not_used))
+            return f" [not used by this run: {why}]" if why else ""
+
         lines = [
             "calibration report (offline rules: the dataset and the fitted models only, no simulator)",
             f"  pessimism threshold {self.threshold:.4g} ({self.discrepancy}): the largest held-out discrepancy of {t['held_out_pairs']} pairs "
             f"(median {t['held_out_median']:.3g}); training pairs above it: "
             + ("n/a" if train_above is None else f"{100 * train_above:.3f}%")
-            + f"; held-out error / discrepancy (median) {t['error_over_discrepancy']:.2f}",
-            f"  penalty {self.penalty:.4g}: std of the returns-to-go ({p['returns_to_go_std']:.4g}) + max(0, -min) ({max(0.0, -p['returns_to_go_min']):.4g})",
+            + f"; held-out error / discrepancy (median) {t['error_over_discrepancy']:.2f}" + mark("pessimism"),
+            f"  penalty {self.penalty:.4g}: std of the returns-to-go ({p['returns_to_go_std']:.4g}) + max(0, -min) "
+            f"({max(0.0, -p['returns_to_go_min']):.4g})" + mark("pessimism"),
             f"  model episodes {self.horizon} steps from {'the data start states' if self.reset_states == 'initial' else 'any dataset state'}: "
             f"open-loop held-out error within {h['tolerance']} for {self.horizon} steps "
             f"(median error at 1/10/50/100 steps: {', '.join(str(h['error_at'].get(str(s))) for s in (1, 10, 50, 100))}; data episodes' "
-            f"median length {h['episode_length_median']:.0f})",
+            f"median length {h['episode_length_median']:.0f})" + mark("horizon", "reset_states"),
         ]
         q = self.info.get("models")
         if q is not None:
@@ -311,7 +319,7 @@ class OfflineRules:
         if self.latent_bound is not None:
             lb = self.info["latent_bound"]
             lines.append(f"  latent box +-{self.latent_bound:.3g}: {100 * lb['quantile']:.0f}% of the decoder's posterior draws on held-out pairs "
-                         f"(|posterior mean| q99 {lb['posterior_mean_abs_q99']:.3g})")
+                         f"(|posterior mean| q99 {lb['posterior_mean_abs_q99']:.3g})" + mark("latent_bound"))
         origin = self.info.get("latent_origin")
         if origin is not None:  # recipes.pipeline.apply_latent_origin, model_env.latent_origin=best
             lines.append(f"  latent origin: the behaviour of the {origin['episodes_kept']} highest-return of {origin['episodes']} episodes "

@@ -35,7 +35,7 @@ _register_resolvers()
 
 __all__ = [
     "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "fit_as_before", "model_config", "model_env_config",
-    "data_label", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "transfer_config", "transfer_label",
+    "data_label", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "rules_not_used", "transfer_config", "transfer_label",
 ]
 
 #: Settings that may change between a run and its resumption; anything else must match the checkpoint.
@@ -219,6 +219,25 @@ def model_env_config(cfg: Mapping, level: str | None, data: OfflineDataset | Non
         raise ValueError("model_env.reward_scale=auto is computed from the dataset: pass data to model_env_config")
     menv["reward_scale"] = resolve_reward_scale(scale, data, float(cfg.get("algo", {}).get("gamma", 0.99)), key="model_env.reward_scale")
     return {**menv, **pess}, pess
+
+
+def rules_not_used(cfg: Mapping, settings: Mapping, rules) -> dict[str, str]:
+    """What the calibration report states that the run does not use, and why: ``{"pessimism" | "horizon" | "reset_states" |
+    "latent_bound": reason}``. ``settings``: :func:`model_env_config`'s env settings for ``cfg`` with ``rules``. A report
+    that printed the rules' threshold or episode length for a run that sets its own (MOPO: no termination, 5-step
+    rollouts) would describe another model env than the one the agent trains in."""
+    out = {}
+    if cfg.get("ablation", {}).get("no_pessimism", False):
+        out["pessimism"] = "ablation.no_pessimism: no episode ends on the members' disagreement, no penalty"
+    elif (settings.get("threshold"), settings.get("penalty")) != (rules.threshold, rules.penalty):
+        given = ", ".join(f"{k} {settings[k]:.4g}" for k in ("threshold", "penalty") if k in settings and isinstance(settings[k], (int, float)))
+        source = "the paper preset's table" if pessimism_table(cfg) is not None else "model_env.pessimism"
+        out["pessimism"] = f"{source} gives " + (given or "a calibration of its own")
+    menv = cfg.get("model_env") or {}
+    for key in RULE_KEYS:
+        if menv.get(key, "auto") != "auto":
+            out[key] = f"model_env.{key}={menv[key]} (the config's)"
+    return out
 
 
 def offline_rules_for(cfg: Mapping, data: OfflineDataset, ensemble, cvae=None):

@@ -27,7 +27,7 @@ from torchrl.envs import RewardScaling, RewardSum
 from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
 from ..blockstack import goals as G
 from ..registry import task_of
-from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_config, offline_rules_for, resolve_dataset,
+from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_config, offline_rules_for, resolve_dataset, rules_not_used,
                      data_label, resolve_reward_scale, transfer_config)
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
@@ -300,6 +300,8 @@ class ModelEnvSetting:
         # the offline rules: every `auto` setting of the P-MDP from the data and the fitted models (envs.rules; the calibration report)
         rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
         env_settings, pess = model_env_config(cfg, p.level, p.data, rules=rules)
+        if rules is not None:  # the calibration report says which of the rules' values this run sets otherwise
+            rules.info["not_used"] = rules_not_used(cfg, env_settings, rules)
         # the run's config.json keeps what the rules resolved
         p = p.with_model_env(env_settings, rules=rules, resolved={k: env_settings[k] for k in RULE_KEYS if k in env_settings})
         if cvae is not None:  # model_env.latent_origin: where an agent's latent 0 decodes to (best: the best episodes' action at each state)
