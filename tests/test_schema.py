@@ -155,3 +155,14 @@ def test_every_section_is_typed_and_refuses_a_key_it_lacks():
     assert ens == EnsembleConfig(hidden_sizes=(64, 64), fit=FitConfig(lr=3e-4)) and ens.fit.patience == 5
     with pytest.raises(ValueError, match="ensemble.fit.patience: expected an integer >= 0, got -1"):
         validate_config({"ensemble": {"fit": {"patience": -1}}})
+
+
+def test_mopos_rollout_schedule_values_are_named_before_any_work():
+    """algo=mopo's schedule keys are range-checked up front, every bad one named at once."""
+    with pytest.raises(ValueError) as err:
+        validate_config(to_plain(compose("offline_train", ["algo=mopo", "algo.rollout_freq=0", "algo.rollout_batch_size=-4",
+                                                           "algo.model_retain_rollouts=0"])))
+    for named in ("algo.rollout_freq: expected an integer >= 1 or null, got 0", "algo.rollout_batch_size: expected an integer >= 1 or null, got -4",
+                  "algo.model_retain_rollouts: expected an integer >= 1, got 0"):
+        assert named in str(err.value)
+    validate_config(to_plain(compose("offline_train", ["algo=mopo", "algo.rollout_freq=null", "algo.rollout_batch_size=null"])))  # SAC's schedule

@@ -387,6 +387,9 @@ ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "policy_ema": ("null or a number in (0, 1]", lambda v: v is None or (_is_num(v) and 0 < v <= 1)),
     "reward_scale": ("a positive number, 'auto' or 'return_range'", lambda v: v in ("auto", "return_range") or (_is_num(v) and v > 0)),
     "anneal_lr": ("true or false", lambda v: isinstance(v, bool)),
+    "rollout_freq": _int(1, optional=True),           # MOPO's schedule (agents.MOPOAgent)
+    "rollout_batch_size": _int(1, optional=True),
+    "model_retain_rollouts": _int(1),
 }
 
 
