@@ -165,4 +165,7 @@ def test_mopos_rollout_schedule_values_are_named_before_any_work():
     for named in ("algo.rollout_freq: expected an integer >= 1 or null, got 0", "algo.rollout_batch_size: expected an integer >= 1 or null, got -4",
                   "algo.model_retain_rollouts: expected an integer >= 1, got 0"):
         assert named in str(err.value)
-    validate_config(to_plain(compose("offline_train", ["algo=mopo", "algo.rollout_freq=null", "algo.rollout_batch_size=null"])))  # SAC's schedule
+    sac_schedule = ["algo=mopo", "algo.rollout_freq=null", "algo.rollout_batch_size=null"]
+    with pytest.raises(Exception, match="with either null .SAC's schedule. give train.total_frames and eval.every_frames"):
+        to_plain(compose("offline_train", sac_schedule))  # the budget in rollouts has no rollouts to count
+    validate_config(to_plain(compose("offline_train", [*sac_schedule, "train.total_frames=204800", "eval.every_frames=40960"])))

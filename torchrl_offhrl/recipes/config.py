@@ -27,8 +27,14 @@ def _register_resolvers() -> None:
 
     from omegaconf import OmegaConf
 
+    def mul(*xs):
+        if any(x is None for x in xs):
+            raise ValueError("a budget counted in rollouts needs algo.rollout_batch_size and model_env.horizon; with either null "
+                             "(SAC's schedule) give train.total_frames and eval.every_frames in frames")
+        return math.prod(int(x) for x in xs)
+
     if not OmegaConf.has_resolver("offhrl_mul"):
-        OmegaConf.register_new_resolver("offhrl_mul", lambda *xs: math.prod(int(x) for x in xs))
+        OmegaConf.register_new_resolver("offhrl_mul", mul)
 
 
 _register_resolvers()
