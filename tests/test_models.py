@@ -450,3 +450,43 @@ def test_a_checkpoint_whose_data_sums_differ_in_the_last_bits_is_resumed(toy_dat
     changed["action"][0, 0] += 1e-3  # one value: the sums barely move, the digest does
     other = trainer._fingerprint(changed.select(*ens.train_keys), len(val.data), ens.num_members, params)
     assert other["data_digest"] != here["data_digest"] and not _same_fit(other, here)
+
+
+def test_a_sampling_model_env_steps_each_member_mean_plus_its_std_times_the_envs_noise(toy_data):
+    """MOPO's step (model_env.sample): next state and reward = the member's mean + its predicted std x standard normal noise,
+    the noise drawn from the env's generator (replayed here by hand); without sampling, the member's mean; an ensemble
+    without predicted stds is refused."""
+    import pytest
+    import torch
+
+    from torchrl_offhrl.envs import PessimisticModelEnv
+    from torchrl_offhrl.models import DynamicsEnsemble
+
+    ens = DynamicsEnsemble.for_dataset(toy_data, num_models=3, hidden_sizes=(16,), loss="nll").fit(toy_data, max_epochs=2, progress=False)
+    kw = dict(threshold=float("inf"), penalty=0.0, termination_fn=None, horizon=5, member_mode="step", batch_size=[6], seed=3)
+    mean_env, sampling_env = PessimisticModelEnv(ens, toy_data, **kw), PessimisticModelEnv(ens, toy_data, sample=True, **kw)
+    td = sampling_env.reset()
+    td["action"] = torch.rand(6, toy_data.action_dim) * 2 - 1
+    rng = torch.Generator().manual_seed(0)
+    rng.set_state(sampling_env._rng.get_state())  # the generator's state before the step: the member draw, then the noise
+    out = sampling_env.step(td.clone())["next"]
+    member = torch.randint(0, 3, (6,), generator=rng)
+    pred = ens.predict(td["observation"], td["action"])
+    rows = torch.arange(6)
+    std = pred["std"][member, rows]
+    noise = torch.randn(std.shape, generator=rng) * std
+    d = toy_data.observation_dim
+    assert torch.allclose(out["observation"], pred["next_observation"][member, rows] + noise[:, :d], atol=1e-5)
+    assert torch.allclose(out["reward"].reshape(-1), pred["reward"][member, rows] + noise[:, d], atol=1e-5)
+    assert (noise.abs() > 0).all()
+    mean_env._rng.set_state(sampling_env._rng.get_state())
+    td2 = mean_env.reset()
+    td2["action"] = td["action"]
+    state = mean_env._rng.get_state()
+    plain = mean_env.step(td2.clone())["next"]
+    rng.set_state(state)
+    member2 = torch.randint(0, 3, (6,), generator=rng)
+    pred2 = ens.predict(td2["observation"], td2["action"])
+    assert torch.allclose(plain["observation"], pred2["next_observation"][member2, rows], atol=1e-6)  # the mean, no noise
+    with pytest.raises(ValueError, match="sample=True draws from a member's Gaussian"):
+        PessimisticModelEnv(DynamicsEnsemble.for_dataset(toy_data, num_models=2, hidden_sizes=(8,)), toy_data, sample=True, **kw)

@@ -776,6 +776,11 @@ def test_mopo_rolls_out_as_its_code_does_every_env_once_then_rollout_freq_steps(
     assert cfg["train"]["total_frames"] == 205 * 50000 * 5 and cfg["eval"]["every_frames"] == 41 * 50000 * 5  # hopper-medium: h 5
     settings, _ = model_env_config(cfg, "medium")
     env = make_model_env({"env": {**settings, "horizon": 5}}, fitted_gaussian_ensemble, None, toy_data, batch_size=6, latent=False)
+    assert (env.base_env.member_mode, env.base_env.sample) == ("step", True)  # MOPO's step: a random elite, sampled
+    from torchrl_offhrl.recipes.pipeline import make_eval_model_env
+
+    evaluation = make_eval_model_env({"env": settings}, fitted_gaussian_ensemble, None, toy_data, 4, 20, threshold=float("inf"), latent=False)
+    assert (evaluation.base_env.member_mode, evaluation.base_env.sample) == ("episode", False)  # the guard's bound is per member
     kw = dict(action_key="action", hidden_sizes=[16], batch_size=8, real_ratio=0.25, init_random_frames=0)
     agent = make_agent("mopo", env, rollout_freq=12, model_retain_rollouts=2, rollout_batch_size=6, **kw)
     assert agent.frames_per_batch == 30 and agent.utd_ratio == pytest.approx(12 / 30) and agent.replay_buffer.storage.max_size == 60

@@ -70,6 +70,11 @@ class PessimisticModelEnv(EnvBase):
             ``f(next_obs) -> bool[...]``, or ``None`` (never).
         horizon (int): truncation after this many steps (default 1000).
         member_mode (str): ``"episode"``, ``"step"`` or ``"mean"``.
+        sample (bool): a step draws the next state and reward from the
+            member's Gaussian (its mean plus its predicted standard deviation
+            times standard normal noise, from the env's generator), as MOPO's
+            code steps its model; default False: the member's mean. Needs an
+            ensemble that predicts standard deviations (``loss="nll"``).
         member_draw (str): how an episode's member is chosen at reset:
             ``"random"`` (uniformly, the default) or ``"cyclic"`` (env ``i``
             of the batch always uses member ``i % K``: an evaluation that
@@ -123,6 +128,7 @@ class PessimisticModelEnv(EnvBase):
         termination_fn: str | Callable | None = "auto",
         horizon: int = 1000,
         member_mode: str = "episode",
+        sample: bool = False,
         reset_states: str = "initial",
         member_draw: str = "random",
         bounds_margin: float = 1.0,
@@ -140,6 +146,10 @@ class PessimisticModelEnv(EnvBase):
                              "loss='nll' (ensemble.loss=nll) or choose another discrepancy.")
         if member_mode not in _MEMBER_MODES:
             raise ValueError(f"member_mode must be one of {_MEMBER_MODES}, got {member_mode!r}.")
+        if sample and (getattr(ensemble, "loss_type", "nll") != "nll" or member_mode == "mean"):
+            raise ValueError("sample=True draws from a member's Gaussian: it needs an ensemble fitted with loss='nll' "
+                             "(ensemble.loss=nll), which predicts standard deviations, and a member per step or episode (not "
+                             "member_mode='mean')")
         if member_draw not in ("random", "cyclic"):
             raise ValueError(f"member_draw must be 'random' or 'cyclic', got {member_draw!r}.")
         if reset_states not in ("initial", "any"):
@@ -164,6 +174,7 @@ class PessimisticModelEnv(EnvBase):
         self.predict_chunk: int | None = 1024
         self.horizon = int(horizon)
         self.member_mode = member_mode
+        self.sample = bool(sample)
         self.member_draw = member_draw
         self.num_members = ensemble.num_members
 
@@ -284,6 +295,12 @@ class PessimisticModelEnv(EnvBase):
             rows = torch.arange(n, device=self.device)
             next_obs = pred["next_observation"][member, rows]
             reward = rewards[member, rows]
+            if self.sample:  # MOPO's step: the member's mean plus its predicted std times standard normal noise
+                std = pred["std"][member, rows]  # [n, obs_dim (+ 1: the reward's, when the ensemble learns the reward)]
+                noise = torch.randn(std.shape, generator=self._rng, dtype=std.dtype).to(self.device) * std
+                next_obs = next_obs + noise[:, : next_obs.shape[-1]]
+                if std.shape[-1] > next_obs.shape[-1]:
+                    reward = reward + noise[:, -1]
         unknown = (
             ~torch.isfinite(next_obs).all(-1)
             | ~torch.isfinite(reward)

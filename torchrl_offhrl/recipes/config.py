@@ -404,7 +404,7 @@ LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01
                                                           "bc_init_batch_size": 256, "head_gain": 1.0,
                                                           "terminal_on_success": True},
                                                  "ensemble": {"reward_hidden_sizes": None, "num_elites": None, "learn_reward": True},
-                                                 "cvae": {"goal_key": None}, "model_env": {"reward_penalty": 0.0, "latent_origin": "zero"},
+                                                 "cvae": {"goal_key": None}, "model_env": {"reward_penalty": 0.0, "latent_origin": "zero", "sample": False},
                                                  "selection": {"guard": False, "return_cap": "none", "fallback": "start"}}
 
 

@@ -283,7 +283,7 @@ def apply_latent_origin(cfg: Mapping, data: OfflineDataset, cvae: ConditionalVAE
 
 
 #: the ``cfg["env"]`` keys :func:`make_model_env` hands to the model env's constructor when they are set
-MODEL_ENV_KEYS = ("penalty", "reward_penalty", "discrepancy", "quantile", "fraction", "horizon", "member_mode", "reset_states")
+MODEL_ENV_KEYS = ("penalty", "reward_penalty", "discrepancy", "quantile", "fraction", "horizon", "member_mode", "sample", "reset_states")
 
 
 def make_model_env(
@@ -297,6 +297,8 @@ def make_model_env(
     reset_states: str | None = None,
     member_draw: str = "random",
     horizon: int | None = None,
+    member_mode: str | None = None,
+    sample: bool | None = None,
 ) -> TransformedEnv:
     """``TransformedEnv(PessimisticModelEnv(...), LatentActionTransform(...))``.
 
@@ -307,7 +309,8 @@ def make_model_env(
     ``cfg.env.reset_states`` (``"initial"``, the default: episodes start where
     the data's episodes start; ``"any"``: at any dataset state).
     ``member_draw="cyclic"`` gives env ``i`` member ``i % K`` (evaluations).
-    ``horizon`` overrides ``cfg.env.horizon`` (evaluations run real-episode lengths).
+    ``horizon`` overrides ``cfg.env.horizon`` (evaluations run real-episode lengths); ``member_mode`` and ``sample``
+    override ``cfg.env``'s (evaluations: one member per episode, its mean).
     """
     env_cfg = cfg["env"]
     if threshold is None:
@@ -315,7 +318,9 @@ def make_model_env(
     stacking = task_of(data.env_id).goal_conditioned  # goal-conditioned: the tasks' goals and rewards on the predicted states
     # the keys the config gives; the rest keep PessimisticModelEnv's own defaults (declared there, once)
     given = {key: env_cfg[key] for key in MODEL_ENV_KEYS if key in env_cfg}
-    given.update({key: value for key, value in (("horizon", horizon), ("reset_states", reset_states)) if value})
+    given.update({key: value for key, value in (("horizon", horizon), ("reset_states", reset_states), ("member_mode", member_mode)) if value})
+    if sample is not None:
+        given["sample"] = bool(sample)
     if "horizon" in given:
         given["horizon"] = int(given["horizon"])
     base = (BlockStackModelEnv if stacking else PessimisticModelEnv)(
@@ -339,9 +344,10 @@ def make_eval_model_env(cfg: Mapping, ensemble: DynamicsEnsemble, cvae: Conditio
     """The model env of the evaluations (:func:`make_model_env`): ``episodes`` episodes of ``max_steps`` steps from the data's
     start states, member ``i % K`` for episode ``i``. Two policies evaluated in envs built alike with the same seed start
     every episode from the same state under the same member, so their returns pair up (the guard's comparisons: the
-    agent, its start and the percentile BC, in latent or real actions)."""
+    agent, its start and the percentile BC, in latent or real actions). Whatever training uses, each episode keeps its
+    member and steps with its mean (``member_mode="episode"``, ``sample=False``): the guard's bound is per member."""
     return make_model_env(cfg, ensemble, cvae, data, batch_size=int(episodes), latent=latent, threshold=threshold, reset_states="initial",
-                          member_draw="cyclic", horizon=int(max_steps))
+                          member_draw="cyclic", horizon=int(max_steps), member_mode="episode", sample=False)
 
 
 def make_real_env(env_id: str, cvae: ConditionalVAE | None = None, num_envs: int = 1, latent_bound: float = DEFAULT_LATENT_BOUND, device="cpu",

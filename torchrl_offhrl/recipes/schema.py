@@ -236,6 +236,7 @@ class ModelEnvConfig:
 
     horizon: int | str = _setting(_auto(_int(1)), "auto")
     member_mode: str = _setting(_choice("episode", "step", "mean"), "episode")
+    sample: bool = _setting(_bool(), False)
     reset_states: str = _setting(_choice("initial", "any", "auto"), "auto")
     discrepancy: str = _setting(_choice(*DISCREPANCIES), "variance")
     latent_bound: float | str = _setting(_auto(_num(0, lo_open=True)), "auto")
