@@ -300,8 +300,9 @@ class ModelEnvSetting:
         # the offline rules: every `auto` setting of the P-MDP from the data and the fitted models (envs.rules; the calibration report)
         rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
         env_settings, pess = model_env_config(cfg, p.level, p.data, rules=rules)
-        if rules is not None:  # the calibration report says which of the rules' values this run sets otherwise
-            rules.info["not_used"] = rules_not_used(cfg, env_settings, rules)
+        not_used = rules_not_used(cfg, env_settings, rules) if rules is not None else None
+        if not_used:  # the calibration report says which of the rules' values this run sets otherwise (none: nothing added)
+            rules.info["not_used"] = not_used
         # the run's config.json keeps what the rules resolved
         p = p.with_model_env(env_settings, rules=rules, resolved={k: env_settings[k] for k in RULE_KEYS if k in env_settings})
         if cvae is not None:  # model_env.latent_origin: where an agent's latent 0 decodes to (best: the best episodes' action at each state)
