@@ -36,10 +36,11 @@ class MOPOAgent(SACAgent):
     ``rollout_batch_size`` (50,000) dataset states with the current policy,
     and its replay keeps the last ``model_retain_rollouts`` (5) rollouts.
     With ``rollout_freq`` set, each batch the agent collects is one rollout
-    of every env of the model env (``collector.num_envs`` is MOPO's rollout
-    batch, ``algo.rollout_batch_size`` in a run's config, which builds the
-    model env with that many envs): ``frames_per_batch`` is the envs times the env's ``horizon``,
-    each batch is followed by ``rollout_freq`` gradient steps (``utd_ratio``
+    of every env of the model env, whose envs are MOPO's rollout batch (a
+    run's config gives their count as ``algo.rollout_batch_size`` and the run
+    builds the model env with that many; without it, ``collector.num_envs``):
+    ``frames_per_batch`` is the envs times the env's ``horizon``, each batch
+    is followed by ``rollout_freq`` gradient steps (``utd_ratio``
     is set from them), and the replay holds ``model_retain_rollouts``
     batches (``buffer_size`` is set from it). No random-action frames come
     first (``init_random_frames`` must be 0): MOPO rolls out its policy from
