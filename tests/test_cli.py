@@ -251,6 +251,7 @@ def test_the_robustness_variants_rerun_what_their_archived_runs_ran():
     assert again["selection"]["guard"] is False and again["ensemble"]["fit"]["rel_tol"] == 0.0
     # latent_origin came later (origin_share with it, unused under zero); its "zero" decodes as the archived runs did (no key)
     again["model_env"].pop("origin_share")
+    assert again["model_env"].pop("sample") is False  # came later (MOPO's sampled step): off, the model env as it was
     assert again["model_env"].pop("latent_origin") == "zero" and again["model_env"] == archived["model_env"]
     assert pessimism_for(again["env"], "medium", table=pessimism_table(again)) == archived["resolved_pessimism"]
     old = to_plain(compose("demo", mod.overrides("shipped")))

@@ -702,7 +702,9 @@ def test_train_seeds_batches_off_policy_agents_on_one_model_env(hopper_file, cac
     from torchrl_offhrl.recipes.train import train
 
     def cfg(out, *extra):
+        # SAC's schedule (algo.rollout_freq=null): frames and updates counted as below; MOPO's own is tested in test_recipes
         return compose("offline_train", ["algo=mopo", f"dataset={hopper_file}", f"out_root={out}", "algo.hidden_sizes=[16,16]",
+                                         "algo.rollout_freq=null", "algo.rollout_batch_size=null",
                                          "algo.frames_per_batch=8", "algo.batch_size=16", "algo.init_random_frames=16",
                                          "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16,16]",
                                          "cvae.fit.max_steps=20", "collector.num_envs=4", "train.total_frames=48", "eval.every_frames=24",
@@ -727,3 +729,27 @@ def test_train_seeds_batches_off_policy_agents_on_one_model_env(hopper_file, cac
     assert [s["frames"] for s in more] == [72, 72]
     r = json.loads((Path(more[1]["run_dir"]) / "evals.json").read_text())
     assert [x["frames"] for x in r] == [0, 24, 48, 72] and r[-1]["updates"] == 64  # resumed with its buffer: no random frames again
+
+
+def test_seeds_batched_on_mopos_rollout_schedule_count_as_separate_runs(hopper_file, cache, tmp_path):
+    """algo=mopo on its code's schedule, two seeds batched: the shared model env has 2 x rollout_batch_size envs, and each
+    seed's run takes rollout_freq steps after each of its rollouts (4 envs x horizon 5 = 20 frames, 6 steps), as a
+    separate run does."""
+    import json
+    from pathlib import Path
+
+    from torchrl_offhrl.recipes.config import compose
+    from torchrl_offhrl.recipes.seed_runs import train_seeds
+    from torchrl_offhrl.recipes.train import train
+
+    def cfg(out, *extra):
+        return compose("offline_train", ["algo=mopo", f"dataset={hopper_file}", f"out_root={out}", "algo.hidden_sizes=[16,16]",
+                                         "algo.rollout_batch_size=4", "algo.rollout_freq=6", "algo.batch_size=16", "model_env.horizon=5",
+                                         "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20", "cvae.hidden_sizes=[16,16]",
+                                         "cvae.fit.max_steps=20", "train.total_frames=40", "eval.every_frames=20", "eval.episodes=2",
+                                         "eval.max_steps=20", *extra])
+
+    separate = json.loads((Path(train(cfg(tmp_path / "sep", "seed=4"), progress=False)["run_dir"]) / "evals.json").read_text())
+    for b in train_seeds(cfg(tmp_path / "bat"), [4, 5], progress=False):
+        runs = json.loads((Path(b["run_dir"]) / "evals.json").read_text())
+        assert [(x["frames"], x["updates"]) for x in runs] == [(x["frames"], x["updates"]) for x in separate] == [(0, 0), (20, 6), (40, 12)]
