@@ -91,7 +91,8 @@ def test_the_mopo_side_by_side_reads_both_sides_runs_and_compares_them_at_the_sa
         (d / "summary.json").write_text(json.dumps({"seed": seed, "final": {"normalized_d4rl": last, "updates": 204800},
                                                     "selected": {"normalized_d4rl": ret}, "behaviour_normalized_d4rl": 35.9}))
         (d / "evals.json").write_text(json.dumps([{"step": 0, "normalized_d4rl": 99.0}]  # the untrained start: not "best"
-                                                 + [{"step": 10_250_000 * (i + 1), "normalized_d4rl": v} for i, v in enumerate(evals)]))
+                                                 + [{"step": 10_250_000 * (i + 1), "updates": 41_000 * (i + 1), "normalized_d4rl": v}
+                                                    for i, v in enumerate(evals)]))
     (ours / "mopo-hopper-medium-seed6").mkdir()  # unfinished: no summary, left out
     for seed, final in {4: 12.0, 6: 18.0}.items():
         d = kit / "hopper-medium" / f"seed{seed}"
@@ -99,13 +100,16 @@ def test_the_mopo_side_by_side_reads_both_sides_runs_and_compares_them_at_the_sa
         rec.mkdir(parents=True)
         (d / "final_eval.json").write_text(json.dumps({"seed": seed, "normalized_mean": final, "episodes": 30}))
         # its own evaluations every epoch of 1024 updates: epochs 40 and 80 are the nearest to our points (41,000 and 82,000
-        # updates; the other three points' nearest is epoch 80 too), epochs 1 and 79 are not
+        # updates; the third point's, 123,000, is epoch 80 too), epochs 1 and 79 are not
         rows = [(1024, 70.0), (40960, 15.0 + seed), (79 * 1024, 90.0), (81920, 5.0)]
         (rec / "policy_training_progress.csv").write_text("eval/normalized_episode_reward,timestep\n"
                                                            + "".join(f"{v},{t}\n" for t, v in rows))
     (kit / "hopper-medium" / "seed5").mkdir()  # unfinished: no final evaluation, left out
-    o, k = our_runs(ours, "hopper-medium"), kit_runs(kit, "hopper-medium")
-    assert sorted(o) == [4, 5] and o[4] == {"last": 30.0, "returned": 40.0, "best": 50.0, "data": 35.9, "updates": 204800}
+    o = our_runs(ours, "hopper-medium")
+    k = kit_runs(kit, "hopper-medium", sorted({p for r in o.values() for p in r["points"]}))
+    assert sorted(o) == [4, 5] and o[4] == {"last": 30.0, "returned": 40.0, "best": 50.0, "data": 35.9, "updates": 204800,
+                                            "points": [41_000, 82_000, 123_000]}
+    assert kit_runs(kit, "hopper-medium")[4]["own_best"] is None  # no points of ours: no "best" at them
     assert sorted(k) == [4, 6] and k[4] == {"last": 12.0, "own_last": 5.0, "own_best": 19.0, "updates": 81920, "episodes": 30}
     assert k[6]["own_best"] == 21.0  # the best at our points only (90 at epoch 79 and 70 at epoch 1 are not)
     out = tmp_path / "page.md"

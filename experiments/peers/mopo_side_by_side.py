@@ -10,8 +10,8 @@ Reads what the two runs left, runs nothing:
   best of its evaluations (``evals.json``, the initial one aside) and the data's own score;
 * the kit's: ``<kit>/<dataset>/seed<N>/`` (``experiments/peers/offlinerlkit_mopo.py``): our evaluation of its last
   policy (``final_eval.json``, 30 episodes as ours), and its own per-epoch evaluations (its progress CSV, 10 episodes
-  each: the last, and the best of those nearest to our five evaluation points, every 41,000 updates, so that "best"
-  picks from as many evaluations on both sides).
+  each: the last, and the best of those nearest to our runs' evaluation points, so that "best" picks from as many
+  evaluations on both sides).
 
 Each row: IQM [95% bootstrap CI] over seeds and the per-seed values, D4RL-normalised on the data's reference returns.
 Writes the page and a JSON of the rows beside it (``.json``).
@@ -21,14 +21,12 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 from torchrl_offhrl.stats import iqm_ci
 from torchrl_offhrl.utils import atomic_write, write_json
 
-#: our evaluation points in gradient steps (MOPO's schedule: every 41 rollouts of 1,000 steps), where the kit's own
-#: evaluations (one per epoch of 1,024 steps) are read for "best": at each point, the kit's evaluation nearest to it
-POINTS = tuple(41_000 * k for k in range(1, 6))
 
 
 def our_runs(root: Path, dataset: str) -> dict[int, dict]:
@@ -43,12 +41,15 @@ def our_runs(root: Path, dataset: str) -> dict[int, dict]:
         trained = [e["normalized_d4rl"] for e in evals if e.get("step", 0) > 0 and "normalized_d4rl" in e]
         out[int(s["seed"])] = {"last": s["final"]["normalized_d4rl"], "returned": (s.get("selected") or s["final"])["normalized_d4rl"],
                                "best": max(trained) if trained else None, "data": s.get("behaviour_normalized_d4rl"),
-                               "updates": s["final"].get("updates")}
+                               "updates": s["final"].get("updates"),
+                               "points": [e["updates"] for e in evals if e.get("step", 0) > 0 and "updates" in e]}
     return out
 
 
-def kit_runs(root: Path, dataset: str, points=POINTS) -> dict[int, dict]:
-    """Seed -> the scores of the kit's finished MOPO runs on ``dataset`` (those with our final evaluation)."""
+def kit_runs(root: Path, dataset: str, points: Sequence[int] = ()) -> dict[int, dict]:
+    """Seed -> the scores of the kit's finished MOPO runs on ``dataset`` (those with our final evaluation); ``points``: our
+    runs' evaluation points in gradient steps, where the kit's own evaluations (one per epoch) are read for "best" (at
+    each point the kit's evaluation nearest to it; none without points)."""
     out = {}
     for d in sorted((root / dataset).glob("seed*")):
         final = d / "final_eval.json"
@@ -60,7 +61,7 @@ def kit_runs(root: Path, dataset: str, points=POINTS) -> dict[int, dict]:
             with open(path, newline="") as fh:
                 rows = [r for r in csv.DictReader(fh) if r.get("eval/normalized_episode_reward")]
         own = [(int(float(r["timestep"])), float(r["eval/normalized_episode_reward"])) for r in rows]
-        at_ours = [min(own, key=lambda tv: abs(tv[0] - p))[1] for p in points] if own else []
+        at_ours = [min(own, key=lambda tv: abs(tv[0] - p))[1] for p in points] if own else []  # nearest to each of ours
         out[int(f["seed"])] = {"last": f["normalized_mean"], "own_last": own[-1][1] if own else None,
                                "own_best": max(at_ours) if at_ours else None, "updates": own[-1][0] if own else None,
                                "episodes": f["episodes"]}
@@ -82,13 +83,14 @@ def _seeds(runs: dict[int, dict], key: str) -> str:
 def rows(ours_root: Path, kit_root: Path, datasets) -> list[dict]:
     out = []
     for ds in datasets:
-        ours, kit = our_runs(ours_root, ds), kit_runs(kit_root, ds)
+        ours = our_runs(ours_root, ds)
+        kit = kit_runs(kit_root, ds, sorted({p for r in ours.values() for p in r["points"]}))
         data = next((r["data"] for r in ours.values() if r.get("data") is not None), None)
         for who, runs, what in (("ours", ours, (("last", "last policy, 30 episodes"), ("best", "best evaluation (5, 30 episodes each)"),
                                                   ("returned", "returned by the run (the guard)"))),
                                 ("OfflineRL-Kit", kit, (("last", "last policy, 30 episodes (our evaluation)"),
                                                         ("own_last", "last policy, its own evaluation (10 episodes)"),
-                                                        ("own_best", "best of its own evaluations at our 5 points (10 episodes each)")))):
+                                                        ("own_best", "best of its own evaluations at our evaluation points (10 episodes each)")))):
             for key, label in what:
                 vals = [runs[s].get(key) for s in sorted(runs)]
                 out.append({"dataset": ds, "who": who, "what": label, "key": key, "seeds": sorted(runs), "values": vals,

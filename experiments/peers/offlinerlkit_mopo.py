@@ -37,6 +37,7 @@ import numpy as np
 
 from torchrl_offhrl.data import load_dataset
 from torchrl_offhrl.recipes.setting import eval_seed
+from torchrl_offhrl.scores import normalized_score
 from torchrl_offhrl.utils import write_json
 
 
@@ -46,7 +47,7 @@ class OldApiEnv:
     def __init__(self, env_id: str, ref: tuple[float, float]):
         import gymnasium
 
-        self._env = gymnasium.make(env_id)
+        self._env, self._env_id = gymnasium.make(env_id), env_id
         self.observation_space, self.action_space = self._env.observation_space, self._env.action_space
         self._ref, self._next_seed = ref, None
 
@@ -63,8 +64,7 @@ class OldApiEnv:
         return obs, reward, bool(terminated or truncated), info
 
     def get_normalized_score(self, ret: float) -> float:
-        low, high = self._ref
-        return (ret - low) / (high - low)
+        return normalized_score(self._env_id, ret, self._ref) / 100.0  # D4RL's API: a fraction
 
 
 def transitions(data) -> dict[str, np.ndarray]:
@@ -103,9 +103,8 @@ def final_evaluation(policy, env_id: str, ref: tuple[float, float], seed: int, e
             total, steps, done = total + float(reward), steps + 1, terminated or truncated
         returns.append(total)
         lengths.append(steps)
-    low, high = ref
     return {"env": env_id, "seed": seed, "episodes": episodes, "returns": returns, "lengths": lengths,
-            "normalized_mean": 100.0 * (float(np.mean(returns)) - low) / (high - low)}
+            "normalized_mean": normalized_score(env_id, float(np.mean(returns)), ref)}
 
 
 def main(argv=None) -> int:

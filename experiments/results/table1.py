@@ -246,15 +246,14 @@ def run(scale: str, envs: list[str], algos: list[str], seeds: list[int], dataset
                 print(f"{where} {env}-{dataset} {algo}{'_' + tag if tag else ''} seed {seed}: final {s['final']['normalized_d4rl']:.1f}", flush=True)
 
 
-def rollout_budget(cfg, updates: int = 204_800, evaluations: int = 5) -> list[str]:
-    """The frame budget of an agent on MOPO's rollout schedule (``algo.rollout_freq`` gradient steps after each rollout of
-    ``algo.rollout_batch_size`` x ``model_env.horizon`` frames): ``updates`` gradient steps rounded up to whole rollouts
-    (204,800 -> 205 rollouts of 1,000), evaluated ``evaluations`` times at equal numbers of rollouts (every 41)."""
-    per = int(cfg.algo.rollout_freq)
-    rollouts = -(-updates // per)
-    rollouts = -(-rollouts // evaluations) * evaluations
-    frames = int(cfg.algo.rollout_batch_size) * int(cfg.model_env.horizon)
-    return [f"train.total_frames={rollouts * frames}", f"eval.every_frames={rollouts // evaluations * frames}"]
+def rollout_budget(algo: str, env: str, dataset: str) -> list[str]:
+    """The budget an agent on MOPO's rollout schedule states in its own config (``configs/algo/mopo.yaml``: whole rollouts,
+    205 of them, 205,000 gradient steps, evaluated every 41), for a scale whose config sets a frame budget of its own
+    (the demo's 81,920 frames would be a third of one rollout)."""
+    from torchrl_offhrl.recipes.config import compose
+
+    own = compose("offline_train", [f"algo={algo}", f"env={env}", f"dataset={dataset}"])
+    return [f"train.total_frames={own.train.total_frames}", f"eval.every_frames={own.eval.every_frames}"]
 
 
 def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed: int, speed: list[str],
@@ -271,7 +270,7 @@ def _run_config(scale: str, where: str, env: str, dataset: str, algo: str, seed:
     if "minibatch_size" in cfg.algo and ON_POLICY_MINIBATCH[scale]:
         overrides.append(f"algo.minibatch_size={ON_POLICY_MINIBATCH[scale]}")
     if cfg.algo.get("rollout_freq"):  # MOPO's schedule: its budget in whole rollouts, as its config (configs/algo/mopo.yaml)
-        overrides += rollout_budget(cfg)
+        overrides += rollout_budget(algo, env, dataset)
     if tag:
         overrides += [*changes, f"++algo.label={name}"]  # after the scale's own: the variant's settings win
     cfg = to_plain(compose(CONFIG[scale], overrides))

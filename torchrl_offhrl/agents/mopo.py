@@ -74,7 +74,6 @@ class MOPOAgent(SACAgent):
             kwargs.update(frames_per_batch=rollout, utd_ratio=int(rollout_freq) / rollout, buffer_size=int(model_retain_rollouts) * rollout,
                           init_random_frames=0)
         super().__init__(env, **kwargs)
-        self.rollout_freq = None if rollout_freq is None else int(rollout_freq)
         if not 0.0 <= float(real_ratio) < 1.0:
             raise ValueError(f"algo.real_ratio must be in [0, 1) (the share of each minibatch drawn from the dataset), got {real_ratio}")
         self.real_ratio = float(real_ratio)

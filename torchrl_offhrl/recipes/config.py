@@ -41,7 +41,7 @@ _register_resolvers()
 
 __all__ = [
     "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "fit_as_before", "model_config", "model_env_config",
-    "data_label", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "rules_not_used", "transfer_config", "transfer_label",
+    "data_label", "model_env_batch", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "rules_not_used", "transfer_config", "transfer_label",
 ]
 
 #: Settings that may change between a run and its resumption; anything else must match the checkpoint.
@@ -227,6 +227,12 @@ def model_env_config(cfg: Mapping, level: str | None, data: OfflineDataset | Non
     return {**menv, **pess}, pess
 
 
+def model_env_batch(cfg: Mapping) -> int:
+    """How many envs a run's model env steps at once: the agent's own rollout batch where its config names one (MOPO's
+    ``algo.rollout_batch_size``, 50,000 branched rollouts), else ``collector.num_envs``."""
+    return int((cfg.get("algo") or {}).get("rollout_batch_size") or cfg["collector"]["num_envs"])
+
+
 def rules_not_used(cfg: Mapping, settings: Mapping, rules) -> dict[str, str]:
     """What the calibration report states that the run does not use, and why: ``{"pessimism" | "horizon" | "reset_states" |
     "latent_bound": reason}``. ``settings``: :func:`model_env_config`'s env settings for ``cfg`` with ``rules``. A report
@@ -236,7 +242,8 @@ def rules_not_used(cfg: Mapping, settings: Mapping, rules) -> dict[str, str]:
     if cfg.get("ablation", {}).get("no_pessimism", False):
         out["pessimism"] = "ablation.no_pessimism: no episode ends on the members' disagreement, no penalty"
     elif (settings.get("threshold"), settings.get("penalty")) != (rules.threshold, rules.penalty):
-        given = ", ".join(f"{k} {settings[k]:.4g}" for k in ("threshold", "penalty") if k in settings and isinstance(settings[k], (int, float)))
+        given = ", ".join(f"{k} {settings[k]:.4g}" for k in ("threshold", "penalty")
+                          if isinstance(settings.get(k), (int, float)) and settings[k] != getattr(rules, k))
         source = "the paper preset's table" if pessimism_table(cfg) is not None else "model_env.pessimism"
         out["pessimism"] = f"{source} gives " + (given or "a calibration of its own")
     menv = cfg.get("model_env") or {}

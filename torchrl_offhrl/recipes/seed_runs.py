@@ -44,7 +44,7 @@ import torch
 
 from ..agents.seeds import SeedBatch
 from ..utils import to_plain
-from .config import learns_from_dataset
+from .config import learns_from_dataset, model_env_batch
 from .schema import validate_config
 from .sources import dataset_replay_buffer
 
@@ -328,7 +328,7 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=N
     kind = OffPolicySeedBatch if p.cfg["algo"]["name"] in OFF_POLICY else OnPolicySeedBatch
     batch = kind(agents, generators=[lane.rng for lane in lanes])
     latent = acts_in_latent_space(p.cfg)
-    per_seed = int(p.cfg["algo"].get("rollout_batch_size") or p.rc.collector.num_envs)  # as each run's own model env (recipes.setting)
+    per_seed = model_env_batch(p.cfg)  # as each run's own model env (recipes.setting)
     env = make_model_env(p.pcfg, p.ensemble, p.cvae if latent else None, p.data, batch_size=n * per_seed, latent=latent,
                          threshold=lanes[0].r.setting.threshold)  # the runs' own threshold, not calibrated again
     p.add_reward_transforms(agents[0].attach(env))

@@ -27,8 +27,8 @@ from torchrl.envs import RewardScaling, RewardSum
 from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
 from ..blockstack import goals as G
 from ..registry import task_of
-from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_config, offline_rules_for, resolve_dataset, rules_not_used,
-                     data_label, resolve_reward_scale, transfer_config)
+from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_batch, model_env_config, offline_rules_for,
+                     resolve_dataset, rules_not_used, data_label, resolve_reward_scale, transfer_config)
 from .evaluation import Evaluator, GoalEvaluator
 from .loop import OfflinePhase, OnlinePhase, Phase
 from .pipeline import (DEFAULT_ORIGIN_SHARE, apply_latent_origin, fit_or_load_models, make_eval_model_env, make_model_env, make_real_env,
@@ -309,9 +309,7 @@ class ModelEnvSetting:
             _, origin_info = apply_latent_origin(p.pcfg, p.data, cvae, p.model_info.get("model_dir"), progress=p.progress)
             if origin_info is not None and rules is not None:  # in the calibration report
                 rules.info["latent_origin"] = origin_info
-        # the model env's batch: the collector's envs, or the agent's own rollout batch (MOPO's 50,000 branched rollouts)
-        n_envs = p.cfg["algo"].get("rollout_batch_size") or p.rc.collector.num_envs
-        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=n_envs, latent=latent)
+        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=model_env_batch(cfg), latent=latent)
         threshold = env.base_env.threshold
         agent = p.make_agent(env, latent=latent)
         p.add_reward_transforms(agent.attach(env))
