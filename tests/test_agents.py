@@ -324,3 +324,48 @@ def test_an_agent_naming_its_losss_hyperparameters_takes_those_with_the_losss_de
         loss_arguments(Typo)
     agent = make_agent("iql", make_gym_env("Pendulum-v1"), {"expectile": 0.9, "hidden_sizes": [8]})
     assert isinstance(agent.loss, IQLLoss) and agent.loss.expectile == 0.9 and agent.loss.temperature == 3.0
+
+
+def test_ppo_and_sac_pass_their_losss_hyperparameters_under_the_losss_names():
+    """PPO's coefficients and trust region reach TorchRL's loss as it names them (Stable-Baselines3's vf_coef / ent_coef
+    are critic_coeff / entropy_coeff), the knob of the loss the run does not train is left out, a name no loss takes is
+    the loss's TypeError; SAC's alpha_init reaches SACLoss (log alpha = log alpha_init)."""
+    import math
+
+    from torchrl.objectives import ClipPPOLoss, KLPENPPOLoss
+
+    from torchrl_offhrl.agents.registry import loss_arguments, loss_kwargs_for
+    from torchrl_offhrl.data import make_gym_env
+
+    ppo = AGENTS["ppo"]
+    assert loss_arguments(ppo) == {"clip_epsilon": 0.2, "dtarg": 0.01, "entropy_coeff": 0.0, "critic_coeff": 0.5}
+    assert loss_arguments(ppo, ClipPPOLoss) == {"clip_epsilon": 0.2, "entropy_coeff": 0.0, "critic_coeff": 0.5}
+    # the KL penalty's target is not given to the clipped loss, nor the clip to the KL penalty; an unknown name goes on
+    assert loss_kwargs_for(ppo, ClipPPOLoss, {"dtarg": 0.5, "clip_epsilon": 0.1}) == {"clip_epsilon": 0.1, "entropy_coeff": 0.0,
+                                                                                      "critic_coeff": 0.5}
+    assert loss_kwargs_for(ppo, ppo.loss_classes["kl"], {"clip_epsilon": 0.1, "beta_typo": 1})["beta_typo"] == 1
+    env = make_gym_env("Pendulum-v1")
+    clip = make_agent("ppo", env, {"hidden_sizes": [8], "clip_epsilon": 0.1, "critic_coeff": 0.8, "entropy_coeff": 0.002, "dtarg": 0.5},
+                      action_key="action")
+    assert type(clip.loss) is ClipPPOLoss
+    assert (float(clip.loss.clip_epsilon), float(clip.loss.critic_coeff)) == pytest.approx((0.1, 0.8))
+    assert float(clip.loss.entropy_coeff) == pytest.approx(0.002)
+    kl = make_agent("ppo", env, {"hidden_sizes": [8], "loss_type": "kl", "dtarg": 0.03, "clip_epsilon": 0.1}, action_key="action")
+    assert isinstance(kl.loss, KLPENPPOLoss) and kl.loss.dtarg == pytest.approx(0.03)
+    with pytest.raises(TypeError, match="beta_typo"):
+        make_agent("ppo", env, {"hidden_sizes": [8], "loss_type": "kl", "beta_typo": 1.0}, action_key="action")
+    assert "alpha_init" in agent_defaults("sac") and "alpha_init" in agent_defaults("mopo") and "alpha_init" in agent_defaults("sac_her")
+    sac = make_agent("sac", env, {"hidden_sizes": [8], "alpha_init": 0.2}, action_key="action")
+    assert float(sac.loss.log_alpha.detach()) == pytest.approx(math.log(0.2))
+
+
+def test_a_run_written_under_ppos_old_key_names_reads_and_fingerprints_as_today():
+    """config.json files written before PPO took its loss's names (vf_coef, ent_coef, kl_target) are read under the new
+    names, and fingerprint as the same run (so they resume and archive as before); other values are untouched."""
+    from torchrl_offhrl.recipes.config import config_fingerprint, upgrade_config
+
+    old = {"algo": {"name": "ppo", "vf_coef": 0.8, "ent_coef": 0.002, "kl_target": 0.01, "lr": 1e-4}, "seed": 3}
+    new = {"algo": {"name": "ppo", "critic_coeff": 0.8, "entropy_coeff": 0.002, "dtarg": 0.01, "lr": 1e-4}, "seed": 3}
+    assert upgrade_config(old) == new and old["algo"]["vf_coef"] == 0.8  # the caller's dict is left as it was
+    assert config_fingerprint(old) == config_fingerprint(new)
+    assert config_fingerprint(old) != config_fingerprint({**new, "algo": {**new["algo"], "critic_coeff": 0.5}})

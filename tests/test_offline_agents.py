@@ -686,7 +686,7 @@ def test_morel_is_one_named_config():
     assert cfg["ablation"]["no_cvae"] is True and cfg["model_env"]["discrepancy"] == "max_pairwise"
     assert cfg["model_env"]["pessimism"] == {"fraction": 3.0, "penalty": 0.0}
     assert (cfg["model_env"]["horizon"], cfg["model_env"]["reset_states"]) == (700, "initial")
-    assert (cfg["algo"]["loss_type"], cfg["algo"]["kl_target"], cfg["algo"]["gamma"], cfg["algo"]["lmbda"]) == ("kl", 0.01, 0.999, 0.97)
+    assert (cfg["algo"]["loss_type"], cfg["algo"]["dtarg"], cfg["algo"]["gamma"], cfg["algo"]["lmbda"]) == ("kl", 0.01, 0.999, 0.97)
     assert cfg["algo"]["bc_init_steps"] > 0
     # the command line still wins over the named config, and the other algorithms keep the defaults
     assert to_plain(compose("offline_train", ["algo=morel", "model_env.discrepancy=variance"]))["model_env"]["discrepancy"] == "variance"

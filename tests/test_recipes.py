@@ -205,7 +205,7 @@ def test_paper_hyperparameters_in_configs():
         ppo_c = compose("offline_train", overrides=["algo=ppo", "env=halfcheetah"]).algo
     assert (moc.lr, moc.clip_epsilon, moc.eta, moc.gamma, moc.lmbda) == (1e-4, 0.2, 0.7, 0.99, 0.95)
     assert (ppo_h.lr, ppo_h.clip_epsilon, ppo_c.lr, ppo_c.clip_epsilon) == (9.80828e-05, 0.1, 3e-4, 0.2)
-    assert (ppo_h.frames_per_batch, ppo_h.vf_coef, ppo_h.ent_coef) == (2048, 0.835671, 0.00229519)
+    assert (ppo_h.frames_per_batch, ppo_h.critic_coeff, ppo_h.entropy_coeff) == (2048, 0.835671, 0.00229519)
 
 
 def test_aggregate_seeds(tmp_path):

@@ -322,7 +322,7 @@ def test_train_seeds_gives_each_seed_the_records_of_its_own_run(hopper_file, cac
 E_ON, T_ON = 2, 16
 ON_POLICY = {"ppo": {"max_grad_norm": 0.5}, "moc": {"max_grad_norm": 0.5, "eta": 0.5},
              # MOReL's trust region: PPO's adaptive KL penalty, a target low enough that the coefficient moves in these updates
-             "ppo_kl": {"max_grad_norm": 0.5, "loss_type": "kl", "kl_target": 1e-4}}
+             "ppo_kl": {"max_grad_norm": 0.5, "loss_type": "kl", "dtarg": 1e-4}}
 
 
 def build_on_policy(env, name, seed, dtype=torch.float32):
@@ -538,7 +538,7 @@ def test_train_seeds_batches_morel(hopper_file, cache, tmp_path):
 
     cfg = compose("offline_train", ["algo=morel", f"dataset={hopper_file}", f"out_root={tmp_path}", "algo.hidden_sizes=[16,16]",
                                     "algo.frames_per_batch=64", "algo.minibatch_size=32", "algo.epochs=2", "algo.bc_init_steps=20",
-                                    "algo.kl_target=1e-5", "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20",
+                                    "algo.dtarg=1e-5", "ensemble.hidden_sizes=[16,16]", "ensemble.fit.max_steps=20",
                                     "cvae.hidden_sizes=[16,16]", "cvae.fit.max_steps=20", "collector.num_envs=4",
                                     "train.total_frames=128", "eval.every_frames=64", "eval.episodes=2", "eval.max_steps=20"])
     runs = train_seeds(cfg, [4, 5], progress=False)
@@ -548,7 +548,7 @@ def test_train_seeds_batches_morel(hopper_file, cache, tmp_path):
         assert json.loads((path / "pretrain.json").read_text())["bc_init_steps"] == 20
         assert [x["frames"] for x in json.loads((path / "evals.json").read_text())] == [0, 64, 128]
         betas.append(float(torch.load(path / "checkpoint.pt", weights_only=True)["agent"]["loss"]["beta"]))
-    assert all(b != 1.0 for b in betas)  # each seed's coefficient adapted (kl_target 1e-5 is below any update's KL)
+    assert all(b != 1.0 for b in betas)  # each seed's coefficient adapted (dtarg 1e-5 is below any update's KL)
 
 
 def test_train_seeds_batches_moc_on_one_model_env(hopper_file, cache, tmp_path, monkeypatch):

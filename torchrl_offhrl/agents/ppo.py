@@ -15,7 +15,7 @@ from torchrl.objectives import BCLoss, ClipPPOLoss, KLPENPPOLoss, PPOLoss
 
 from ..nets import NormalizedMLP, tanh_gaussian_actor
 from .base import OnPolicyAgent, action_box, adam
-from .registry import register_agent
+from .registry import loss_kwargs_for, register_agent
 
 __all__ = ["BatchableKLPENPPOLoss", "PPOAgent"]
 
@@ -100,9 +100,14 @@ class PPOAgent(OnPolicyAgent):
     :class:`~torchrl.objectives.ClipPPOLoss`) or ``"kl"`` (PPO's adaptive KL
     penalty, TorchRL's :class:`~torchrl.objectives.KLPENPPOLoss` as
     :class:`BatchableKLPENPPOLoss`, which seeds can batch, with target
-    ``kl_target``: a trust region on the policy's KL divergence per batch,
+    ``dtarg``: a trust region on the policy's KL divergence per batch,
     this library's stand-in for MOReL's natural policy gradient, whose step
     is also bounded in KL).
+
+    The losses' hyper-parameters (:attr:`loss_hyperparameters`) are not
+    arguments of the agent: they reach the loss unchanged (``**loss_kwargs``),
+    under the loss's names and documented there; the one of the loss the run
+    does not train is left out (:func:`~torchrl_offhrl.agents.registry.loss_kwargs_for`).
 
     ``head_gain`` (1.0: the initialisation TorchRL's PPO actor has) scales
     the actor's last layer at initialisation (its bias zeroed): at 0.01 (the
@@ -120,6 +125,15 @@ class PPOAgent(OnPolicyAgent):
     (``ablation.no_cvae=true``); the critic starts untrained.
     """
 
+    #: ``loss_type`` -> the TorchRL loss the agent trains
+    loss_classes: dict = {"clip": ClipPPOLoss, "kl": BatchableKLPENPPOLoss}
+    loss_class = ClipPPOLoss
+    #: the losses' knobs a config sets, under the losses' names: the clipped ratio's ``clip_epsilon``, the KL penalty's
+    #: target ``dtarg``, and both losses' ``entropy_coeff`` / ``critic_coeff`` (Stable-Baselines3's ``ent_coef`` / ``vf_coef``)
+    loss_hyperparameters: tuple = ("clip_epsilon", "dtarg", "entropy_coeff", "critic_coeff")
+    #: Stable-Baselines3's values (TorchRL's losses default to 0.01 and 1.0)
+    loss_defaults: dict = {"entropy_coeff": 0.0, "critic_coeff": 0.5}
+
     def __init__(
         self,
         env,
@@ -131,9 +145,6 @@ class PPOAgent(OnPolicyAgent):
         hidden_sizes: Sequence[int] = (64, 64),
         activation: str = "tanh",
         lr: float = 3e-4,
-        clip_epsilon: float = 0.2,
-        vf_coef: float = 0.5,
-        ent_coef: float = 0.0,
         gamma: float = 0.99,
         lmbda: float = 0.95,
         frames_per_batch: int = 2048,
@@ -145,11 +156,11 @@ class PPOAgent(OnPolicyAgent):
         compile: bool | str = False,
         anneal_lr: bool = False,
         loss_type: str = "clip",
-        kl_target: float = 0.01,
         bc_init_steps: int = 0,
         bc_init_lr: float = 1e-3,
         bc_init_batch_size: int = 256,
         head_gain: float = 1.0,
+        **loss_kwargs,
     ):
         super().__init__(frames_per_batch=frames_per_batch, epochs=epochs, minibatch_size=minibatch_size, max_grad_norm=max_grad_norm, compile=compile, anneal_lr=anneal_lr)
         obs_dim = env.observation_spec["observation"].shape[-1]
@@ -166,21 +177,19 @@ class PPOAgent(OnPolicyAgent):
         net = nn.Sequential(body, AddStateIndependentNormalScale(act_dim, scale_lb=1e-4))
         self.policy = tanh_gaussian_actor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]), low, high, action_key)
         critic = ValueOperator(NormalizedMLP(obs_dim, 0, 1, hidden, activation, obs_loc, obs_scale), in_keys=["observation"])
-        if loss_type not in ("clip", "kl"):
+        if loss_type not in self.loss_classes:
             raise ValueError(f"algo.loss_type must be 'clip' (PPO's clipped ratio) or 'kl' (its adaptive KL penalty), got {loss_type!r}")
         if int(bc_init_steps) < 0:
             raise ValueError(f"algo.bc_init_steps must be >= 0 (0: no behaviour-cloning start), got {bc_init_steps}")
         self.bc_init = {"steps": int(bc_init_steps), "lr": float(bc_init_lr), "batch_size": int(bc_init_batch_size)}
-        loss_class, trust = (ClipPPOLoss, {"clip_epsilon": clip_epsilon}) if loss_type == "clip" else (BatchableKLPENPPOLoss, {"dtarg": float(kl_target)})
+        loss_class = self.loss_classes[loss_type]
         self.loss = loss_class(
             self.policy,
             critic,
-            **trust,
-            entropy_coeff=ent_coef,
-            critic_coeff=vf_coef,
             loss_critic_type="l2",  # squared error, as SB3 (whose values the paper took) and as MOC's critic
             normalize_advantage=True,
             functional=functional,  # False: the networks are called directly, not through a copy of their parameters (faster, same maths)
+            **loss_kwargs_for(type(self), loss_class, loss_kwargs),  # the trust region and the coefficients, as the loss names them
         )
         self.loss.set_keys(action=action_key, sample_log_prob=f"{action_key}_log_prob")
         self.loss.make_value_estimator(gamma=gamma, lmbda=lmbda)

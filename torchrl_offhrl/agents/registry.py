@@ -5,7 +5,7 @@ import inspect
 
 from .base import Agent
 
-__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "loss_arguments", "register_agent", "requires_goal", "unknown_hyperparameters"]
+__all__ = ["AGENTS", "agent_class", "agent_defaults", "goal_conditioned", "loss_arguments", "loss_kwargs_for", "register_agent", "requires_goal", "unknown_hyperparameters"]
 
 #: Registered agent classes by name.
 AGENTS: dict[str, type[Agent]] = {}
@@ -69,23 +69,38 @@ def _init_chain(cls):
 
 def loss_arguments(cls, loss=None) -> dict:
     """The keyword arguments (with defaults) an agent class forwarding ``**loss_kwargs`` takes for its loss: ``loss`` (a
-    class, a dotted path, or None for ``cls.loss_class``), walking up the loss's own ``**kwargs`` chain. A dotted path
-    is imported and checked against ``cls.loss_base`` (the class every loss of the agent derives from) as the agent does."""
+    class, a dotted path, or None for the agent's losses), walking up the loss's own ``**kwargs`` chain. A dotted path
+    is imported and checked against ``cls.loss_base`` (the class every loss of the agent derives from) as the agent does.
+    An agent choosing among several losses (``loss_classes``, e.g. PPO's clipped ratio or KL penalty) takes the union of
+    theirs (``loss=None``); ``loss``, one of them, gives that one's."""
     if isinstance(loss, str):
         from ..utils import import_class
 
         loss = import_class(loss, getattr(cls, "loss_base", cls.loss_class), "algo.loss")
     set_by_agent, deviations = getattr(cls, "loss_set_by_agent", ()), getattr(cls, "loss_defaults", {})
     only = getattr(cls, "loss_hyperparameters", None)
+    classes = [loss] if loss is not None else list(getattr(cls, "loss_classes", {}).values()) or [cls.loss_class]
     out: dict = {}
-    for params in _init_chain(loss or cls.loss_class):
-        for k, p in params.items():
-            if k != "self" and k not in set_by_agent and (only is None or k in only) and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
-                out.setdefault(k, deviations.get(k, p.default))
-    if only is not None and set(only) - set(out):
+    for klass in classes:
+        for params in _init_chain(klass):
+            for k, p in params.items():
+                if k != "self" and k not in set_by_agent and (only is None or k in only) and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
+                    out.setdefault(k, deviations.get(k, p.default))
+    if only is not None and loss is None and set(only) - set(out):
         raise TypeError(f"{cls.__name__}.loss_hyperparameters names {sorted(set(only) - set(out))}, which "
-                        f"{(loss or cls.loss_class).__name__} does not take")
+                        f"{' nor '.join(c.__name__ for c in classes)} does not take")
     return out
+
+
+def loss_kwargs_for(cls, loss_class, loss_kwargs: dict) -> dict:
+    """The arguments an agent of class ``cls`` gives ``loss_class``, one of its ``loss_classes``: the config's
+    ``loss_kwargs`` over the agent's ``loss_defaults``, less the hyper-parameters only its other losses take (a config
+    holds every loss's, as ``configs/algo/ppo.yaml`` holds the clipped ratio's ``clip_epsilon`` and the KL penalty's
+    ``dtarg``: the run's loss reads its own). A name no loss of the agent takes reaches the loss, whose ``TypeError``
+    names it."""
+    takes, every = loss_arguments(cls, loss_class), loss_arguments(cls)
+    kwargs = {**getattr(cls, "loss_defaults", {}), **loss_kwargs}
+    return {k: v for k, v in kwargs.items() if k in takes or k not in every}
 
 
 def unknown_hyperparameters(name: str, cfg) -> list[str]:

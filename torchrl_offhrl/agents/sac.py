@@ -7,7 +7,7 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.modules import ValueOperator
-from torchrl.objectives import group_optimizers
+from torchrl.objectives import SACLoss, group_optimizers
 
 from ..nets import NormalizedMLP, tanh_gaussian_actor
 from .base import Agent, MetricMeans, action_box, adam, backward, compile_setting, sum_losses
@@ -16,7 +16,7 @@ from .registry import register_agent
 __all__ = ["SACAgent", "make_sac_loss", "sac_optimizer", "sac_step"]
 
 
-def make_sac_loss(actor, qvalue, action_spec, gamma: float = 0.99, tau: float = 0.005, alpha_init: float = 1.0, action_key: str = "action"):
+def make_sac_loss(actor, qvalue, action_spec, gamma: float = 0.99, tau: float = 0.005, action_key: str = "action", **loss_kwargs):
     """TorchRL's :class:`~torchrl.objectives.SACLoss` as this project uses it, and its Polyak target updater.
 
     Two Q networks, squared-error critic loss, target critics (not a target
@@ -25,13 +25,14 @@ def make_sac_loss(actor, qvalue, action_spec, gamma: float = 0.99, tau: float = 
     by :class:`SACAgent`, :class:`~torchrl_offhrl.agents.sac_her.SACHERAgent`
     and the behaviour-policy learner
     (:class:`~torchrl_offhrl.agents.behaviour.BehaviourLearner`). Returns
-    ``(loss, target_updater)``.
+    ``(loss, target_updater)``. ``loss_kwargs``: the loss's hyper-parameters
+    (``alpha_init``, ...), passed to it as they are.
     """
-    from torchrl.objectives import SACLoss, SoftUpdate
+    from torchrl.objectives import SoftUpdate
 
     loss = SACLoss(
         actor, qvalue, num_qvalue_nets=2, loss_function="l2", delay_actor=False, delay_qvalue=True,
-        alpha_init=alpha_init, action_spec=action_spec,
+        action_spec=action_spec, **loss_kwargs,
     )
     loss.set_keys(action=action_key)
     loss.make_value_estimator(gamma=gamma)
@@ -75,7 +76,15 @@ class SACAgent(Agent):
     ``init_random_frames`` frames were collected (uniformly random actions),
     every collected frame buys ``utd_ratio`` gradient steps on minibatches of
     ``batch_size``, each followed by the Polyak update of the target critics.
+
+    The loss's hyper-parameter (:attr:`loss_hyperparameters`: the entropy
+    temperature's start ``alpha_init``) is not an argument of the agent: it
+    reaches TorchRL's :class:`~torchrl.objectives.SACLoss` unchanged
+    (``**loss_kwargs``), documented there.
     """
+
+    loss_class = SACLoss
+    loss_hyperparameters: tuple = ("alpha_init",)
 
     def __init__(
         self,
@@ -94,9 +103,9 @@ class SACAgent(Agent):
         init_random_frames: int = 5000,
         utd_ratio: float = 1.0,
         frames_per_batch: int = 64,
-        alpha_init: float = 1.0,
         fused_adam: bool = True,
         compile: bool | str = False,
+        **loss_kwargs,
     ):
         self.compile = compile_setting(compile)
         obs_dim = env.observation_spec["observation"].shape[-1]
@@ -108,7 +117,7 @@ class SACAgent(Agent):
         qvalue = ValueOperator(qnet, in_keys=["observation", action_key], out_keys=["state_action_value"])
         # the unbatched spec: the default target entropy is -(action elements), per env
         self.loss, self.target_updater = make_sac_loss(
-            self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau, alpha_init=alpha_init, action_key=action_key,
+            self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau, action_key=action_key, **loss_kwargs,
         )
         self.optimizer = sac_optimizer(self.loss, lr, fused_adam)
         self.action_key = action_key

@@ -57,18 +57,18 @@ class SACHERAgent(SACAgent):
         init_random_frames: int = 100,
         utd_ratio: float = 1.0,
         frames_per_batch: int = 400,
-        alpha_init: float = 1.0,
         her_ratio: float = 0.8,
         her_per_option: bool = False,
         terminal_on_success: bool = False,
         fused_adam: bool = True,
+        **loss_kwargs,
     ):
         if goal_key != "sub_goal":
             raise ValueError(f"SAC + HER relabels the low-level goal: goal_key must be 'sub_goal', got {goal_key!r}")
         self.policy, qvalue = goal_networks(env, action_key, goal_key, hidden_sizes, obs_loc, obs_scale, clip=None, last_layer_init=None,
                                             stochastic_actor=True)
         self.loss, self.target_updater = make_sac_loss(self.policy, qvalue, env.full_action_spec_unbatched[action_key], gamma=gamma, tau=tau,
-                                                       alpha_init=alpha_init, action_key=action_key)
+                                                       action_key=action_key, **loss_kwargs)  # SACLoss's alpha_init, ... (SACAgent)
         self.loss.set_keys(reward=LOW_REWARD[1], done=LOW_DONE[1], terminated=LOW_DONE[1])
         self.optimizer = sac_optimizer(self.loss, lr, fused_adam)
         self.action_key = action_key

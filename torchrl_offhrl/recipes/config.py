@@ -40,8 +40,8 @@ def _register_resolvers() -> None:
 _register_resolvers()
 
 __all__ = [
-    "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "fit_as_before", "model_config", "model_env_config",
-    "data_label", "model_env_batch", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "rules_not_used", "transfer_config", "transfer_label",
+    "RENAMED_KEYS", "RESUMABLE_KEYS", "acts_in_latent_space", "algo_label", "auto_reward_scale", "latent_bound", "learns_from_dataset", "resolve_reward_scale", "return_range_reward_scale", "compose", "config_dir", "config_fingerprint", "default_run_dir", "fingerprints_match", "fit_as_before", "model_config", "model_env_config",
+    "data_label", "model_env_batch", "needs_rules", "offline_rules_for", "pessimism_for", "pessimism_table", "resolve_dataset", "rules_not_used", "transfer_config", "transfer_label", "upgrade_config",
 ]
 
 #: Settings that may change between a run and its resumption; anything else must match the checkpoint.
@@ -407,12 +407,32 @@ def algo_label(algo_cfg: Mapping) -> str:
 #: (``reward_hidden_sizes: null``: the reward model takes the transition model's widths)
 LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01, "loss": None, "policy_ema": None, "log_std_lr": None, "final_log_std": None, "prior_coef": 0.0,
                                                           "termination_coef": 1.0, "option_coef": 1.0, "normalize_advantage": True,
-                                                          "loss_type": "clip", "kl_target": 0.01, "bc_init_steps": 0, "bc_init_lr": 1e-3,
+                                                          "loss_type": "clip", "dtarg": 0.01, "bc_init_steps": 0, "bc_init_lr": 1e-3,
                                                           "bc_init_batch_size": 256, "head_gain": 1.0,
                                                           "terminal_on_success": True},
                                                  "ensemble": {"reward_hidden_sizes": None, "num_elites": None, "learn_reward": True},
                                                  "cvae": {"goal_key": None}, "model_env": {"reward_penalty": 0.0, "latent_origin": "zero", "sample": False},
                                                  "selection": {"guard": False, "return_cap": "none", "fallback": "start"}}
+
+
+#: config keys renamed since runs were written under the old names: section -> {old: new}. PPO's coefficients and KL
+#: target took its losses' names when the agent stopped restating them (TorchRL's ``critic_coeff``, ``entropy_coeff``,
+#: ``dtarg``). A run's config read back (:func:`upgrade_config`) and its fingerprint use the new names, so an older run
+#: still resumes, archives and evaluates as the run it is.
+RENAMED_KEYS: dict[str, dict[str, str]] = {"algo": {"vf_coef": "critic_coeff", "ent_coef": "entropy_coeff", "kl_target": "dtarg"}}
+
+
+def upgrade_config(cfg: Mapping) -> dict:
+    """``cfg`` (a run's ``config.json``, however old) under today's key names (:data:`RENAMED_KEYS`); the values unchanged.
+
+    >>> upgrade_config({"algo": {"name": "ppo", "vf_coef": 0.5, "lr": 3e-4}, "seed": 1})
+    {'algo': {'name': 'ppo', 'critic_coeff': 0.5, 'lr': 0.0003}, 'seed': 1}
+    """
+    out = dict(cfg)
+    for section, renamed in RENAMED_KEYS.items():
+        if isinstance(out.get(section), Mapping):
+            out[section] = {renamed.get(k, k): v for k, v in out[section].items()}
+    return out
 
 
 def fit_as_before(model_cfg: Mapping) -> dict:
@@ -430,7 +450,7 @@ def fit_as_before(model_cfg: Mapping) -> dict:
 
 def config_fingerprint(cfg: Mapping) -> str:
     """The config minus :data:`RESUMABLE_KEYS`, as canonical JSON: a checkpoint resumes only under the same fingerprint."""
-    kept = {k: v for k, v in cfg.items() if k not in RESUMABLE_KEYS}
+    kept = {k: v for k, v in upgrade_config(cfg).items() if k not in RESUMABLE_KEYS}
     if isinstance(kept.get("env"), Mapping) and "mopo" in kept["env"]:
         # a lookup table (MOPO's settings per dataset): what a run uses of it is in its model_env, resolved
         kept["env"] = {k: v for k, v in kept["env"].items() if k != "mopo"}

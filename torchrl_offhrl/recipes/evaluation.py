@@ -16,7 +16,8 @@ from ..models import ClonedPolicy, ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
 from ..scores import normalized_score
 from ..utils import load_torch_file
-from .config import acts_in_latent_space, latent_bound, model_config, model_env_config, offline_rules_for, resolve_dataset, transfer_config
+from .config import (acts_in_latent_space, latent_bound, model_config, model_env_config, offline_rules_for, resolve_dataset, transfer_config,
+                     upgrade_config)
 from .pipeline import apply_latent_origin, fit_or_load_models, make_eval_model_env, make_real_env, origin_path, origin_share
 from .runs import read_json
 
@@ -310,7 +311,7 @@ def run_models(run_dir, data=None) -> RunModels:
         model_env = agent.attach(run_models(run).model_env(cvae))  # the model episodes its evaluations ran
         returns = rollouts.evaluate_policy(model_env, agent.eval_policy, 50, max_steps=1000)
     """
-    cfg = read_json(Path(run_dir) / "config.json")
+    cfg = upgrade_config(read_json(Path(run_dir) / "config.json"))  # today's key names
     data = resolve_dataset(cfg) if data is None else data
     pcfg = model_config(cfg)
     ensemble, cvae, info = fit_or_load_models(pcfg, data, progress=False)
@@ -343,7 +344,7 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
                                     "of `offhrl train`")
         if not p.is_file():
             raise FileNotFoundError(f"{p} is missing: {run} is not a (checkpointed) run directory of `offhrl train`")
-    cfg = read_json(cfg_path)
+    cfg = upgrade_config(read_json(cfg_path))  # today's key names, whatever version wrote it
     env_id = cfg["env"]["env_id"]
     latent = acts_in_latent_space(cfg)
     state = load_torch_file(ckpt_path, "run checkpoint", f"its previous checkpoint is {run / 'checkpoint.prev.pt'} (rename it to evaluate that one)")
