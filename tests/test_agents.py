@@ -369,3 +369,7 @@ def test_a_run_written_under_ppos_old_key_names_reads_and_fingerprints_as_today(
     assert upgrade_config(old) == new and old["algo"]["vf_coef"] == 0.8  # the caller's dict is left as it was
     assert config_fingerprint(old) == config_fingerprint(new)
     assert config_fingerprint(old) != config_fingerprint({**new, "algo": {**new["algo"], "critic_coeff": 0.5}})
+    from torchrl_offhrl.recipes.schema import validate_config  # an old name on the command line says what it is called now
+
+    with pytest.raises(ValueError, match=r"algo.vf_coef: renamed algo.critic_coeff .*write algo.critic_coeff=0.8"):
+        validate_config({"algo": {"name": "ppo", "vf_coef": 0.8}})

@@ -430,8 +430,12 @@ def _algo_problems(algo: Mapping) -> list[str]:
         return [str(err)]
     if not unknown:
         return []
+    from .config import RENAMED_KEYS
+
     takes = ", ".join(sorted(agent_defaults(name, loss=algo.get("loss"))))  # the loss imported above: it cannot fail here
-    return [f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown]
+    renamed = RENAMED_KEYS["algo"]
+    return [f"algo.{k}: renamed algo.{renamed[k]} (the name its loss gives it); write algo.{renamed[k]}={algo[k]}" if renamed.get(k) in
+            agent_defaults(name) else f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown]
 
 
 def _get(cfg: Mapping, path: str):
