@@ -373,3 +373,7 @@ def test_a_run_written_under_ppos_old_key_names_reads_and_fingerprints_as_today(
 
     with pytest.raises(ValueError, match=r"algo.vf_coef: renamed algo.critic_coeff .*write algo.critic_coeff=0.8"):
         validate_config({"algo": {"name": "ppo", "vf_coef": 0.8}})
+    from torchrl_offhrl.recipes.config import compose
+
+    with pytest.raises(ValueError, match=r"algo.ent_coef: renamed algo.entropy_coeff .*write algo.entropy_coeff=0.01"):
+        compose("offline_train", ["algo=ppo", "algo.ent_coef=0.01"])
