@@ -373,6 +373,8 @@ def test_a_run_written_under_ppos_old_key_names_reads_and_fingerprints_as_today(
 
     with pytest.raises(ValueError, match=r"algo.vf_coef: renamed algo.critic_coeff .*write algo.critic_coeff=0.8"):
         validate_config({"algo": {"name": "ppo", "vf_coef": 0.8}})
+    with pytest.raises(ValueError, match=r"algo.critic_coeff: expected a number >= 0, got -1.*\n.*algo.dtarg: expected a number > 0, got 0"):
+        validate_config({"algo": {"name": "ppo", "critic_coeff": -1, "dtarg": 0}})  # the renamed keys keep their range checks
     from torchrl_offhrl.recipes.config import compose
 
     with pytest.raises(ValueError, match=r"algo.ent_coef: renamed algo.entropy_coeff .*write algo.entropy_coeff=0.01"):

@@ -377,6 +377,7 @@ ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "batch_size": _int(1),
     "epochs": _int(1),
     "clip_epsilon": _num(0, lo_open=True),
+    "dtarg": _num(0, lo_open=True),                   # PPO's KL penalty's target (TorchRL's KLPENPPOLoss)
     "max_grad_norm": _num(0, lo_open=True, optional=True),
     "hidden_sizes": _sizes(),
     "adam_eps": _num(0, lo_open=True),
@@ -490,7 +491,7 @@ def validate_config(cfg: Mapping) -> None:
         rule = ALGO_RULES.get(key)
         if rule is None and key.endswith("_lr"):  # a head's own step size (null: the agent's lr)
             rule = _num(0, lo_open=True, optional=True)
-        if rule is None and key.endswith("_coef"):
+        if rule is None and key.endswith(("_coef", "_coeff")):  # a loss term's weight (MOC's *_coef, TorchRL's PPO *_coeff)
             rule = _num(0)
         if rule is not None and not rule[1](value):
             problems.append(f"algo.{key}: expected {rule[0]}, got {value!r}")
