@@ -28,6 +28,7 @@ import argparse
 import time
 
 import torch
+from flops import leaf_flops
 
 
 def main():
@@ -94,7 +95,7 @@ def main():
                 with profile(with_flops=True) as prof:  # the matrix products' FLOPs (mm, addmm, bmm), forward and backward
                     agent.update(draw())
                     agent.update(draw())  # TD3+BC: one critic-only and one critic + actor update
-                flops = sum(e.flops for e in prof.key_averages() if e.flops) / 2
+                flops = leaf_flops(prof) / 2  # each product once, not again at the vmap levels above it (flops.py)
             sync()
             t = time.perf_counter()
             for _ in range(n):

@@ -1,6 +1,6 @@
 """Our IQL and TD3+BC updates next to a minimal plain-PyTorch update of the same networks, in one process (issue 75).
 
-    python benchmarks/peer_updates.py [--updates 1000] [--threads 1] [--algos iql td3bc]
+    python benchmarks/peer_updates.py [--updates 1000] [--threads 1] [--algos iql iql_stock td3bc]
 
 "Plain" is what a single-file implementation does (CORL's style, written here from the papers, not copied): the
 networks as ``nn.Sequential`` MLPs of the same widths (256 x 256, Hopper-v5's 11 observations and 3 actions), twin
@@ -20,6 +20,7 @@ import math
 import time
 
 import torch
+from flops import leaf_flops
 from torch import nn
 
 OBS, ACT, WIDTH, BATCH = 11, 3, 256, 256
@@ -127,7 +128,7 @@ def flops_of(step) -> float:
     with profile(with_flops=True) as prof:
         step()
         step()  # TD3+BC: one critic-only and one critic + actor update
-    return sum(e.flops for e in prof.key_averages() if e.flops) / 2
+    return leaf_flops(prof) / 2  # each product once, not again at the vmap levels above it (flops.py)
 
 
 def main():
@@ -135,7 +136,9 @@ def main():
     p.add_argument("--updates", type=int, default=1000)
     p.add_argument("--blocks", type=int, default=4, help="alternating blocks per implementation")
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--algos", nargs="+", default=["iql", "td3bc"])
+    p.add_argument("--algos", nargs="+", default=["iql", "iql_stock", "td3bc"],
+                   help="iql_stock: our IQL agent on TorchRL's IQLLoss as it ships, instead of SharedPassIQLLoss; "
+                        "<algo>_compiled: with algo.compile=true (torch.compile of the loss)")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     from tensordict import TensorDict
@@ -157,10 +160,19 @@ def main():
     print("| algo | plain PyTorch updates/s | ours updates/s | ours / plain | GFLOP per update, plain / ours | GFLOP/s, plain / ours |")
     print("|---|---|---|---|---|---|", flush=True)
     for algo in a.algos:
-        cfg = to_plain(compose("offline_train", [f"algo={algo}"]))["algo"]
+        name = algo.removesuffix("_stock").removesuffix("_compiled")
+        cfg = to_plain(compose("offline_train", [f"algo={name}"] + (["algo.compile=true"] if algo.endswith("_compiled") else [])))["algo"]
         cfg.pop("reward_scale", None)
-        ours = make_agent(algo, env, cfg, action_key="action")
-        plain = PLAIN[algo]()
+        if algo == "iql_stock":  # the agent on TorchRL's IQLLoss as it ships (each term's own forward passes)
+            from torchrl.objectives import IQLLoss
+
+            from torchrl_offhrl.agents import AGENTS
+
+            stock = type("StockIQLAgent", (AGENTS["iql"],), {"loss_class": IQLLoss})
+            ours = stock(env, action_key="action", **{k: v for k, v in cfg.items() if k != "name"})
+        else:
+            ours = make_agent(name, env, cfg, action_key="action")
+        plain = PLAIN[name]()
         steps = {"plain": lambda: plain.update(plain_batch), "ours": lambda: ours.update(ours_batch.clone())}
         for step in steps.values():
             for _ in range(20):

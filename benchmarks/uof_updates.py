@@ -21,6 +21,7 @@ import argparse
 import time
 
 import torch
+from flops import leaf_flops
 
 UOF_UPDATES = 602_000  # UOF's own low-level updates per seed on task 1: 301 epochs x 50 cycles x 40 updates
 
@@ -115,7 +116,7 @@ def update_flops(agent) -> float:
             low, high = agent.low(low_level_done(agent.replay_buffer["low"].sample())), agent.high(agent.replay_buffer["high"].sample())
             agent.optimizer.zero_grad()
             (low["loss_actor"] + low["loss_qvalue"] + high["loss_qvalue"]).backward()
-    return sum(e.flops for e in prof.key_averages() if e.flops) / 5
+    return leaf_flops(prof) / 5  # each product once, not again at the vmap levels above it (flops.py)
 
 
 def main():

@@ -4,9 +4,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from torchrl.modules import ValueOperator
-from torchrl.objectives import IQLLoss, SoftUpdate, group_optimizers
+from torchrl.objectives import SoftUpdate, group_optimizers
 
 from ..nets import NormalizedMLP
+from ..objectives import SharedPassIQLLoss
 from .base import (DatasetAgent, adam, backward, compile_setting, gaussian_actor, q_network, scalar_metrics, sum_losses,
                    tanh_mean_gaussian_actor)
 from .registry import register_agent
@@ -40,8 +41,9 @@ class IQLAgent(DatasetAgent):
         ['actor_network_params.module.0.module.0.net.0.weight']
     """
 
-    #: the loss the agent trains, and the arguments of it a config sets (the rest are TorchRL's plumbing, left at its defaults)
-    loss_class = IQLLoss
+    #: the loss the agent trains (TorchRL's IQLLoss, each network pass computed once: the same losses and gradients), and
+    #: the arguments of it a config sets (the rest are TorchRL's plumbing, left at its defaults)
+    loss_class = SharedPassIQLLoss
     loss_hyperparameters: tuple = ("expectile", "temperature", "loss_function")
     #: the IQL paper's locomotion values and TorchRL's sota script's loss (the loss's defaults: 0.5, 1.0, smooth_l1)
     loss_defaults: dict = {"expectile": 0.7, "temperature": 3.0, "loss_function": "l2"}
