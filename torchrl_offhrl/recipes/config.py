@@ -17,7 +17,7 @@ from ..data.catalog import named_dataset
 from ..envs.latent import DEFAULT_LATENT_BOUND
 from ..registry import LEVELS
 from ..utils import to_plain
-from .schema import section_defaults
+from .schema import RENAMED_KEYS, section_defaults
 
 
 def _register_resolvers() -> None:
@@ -418,13 +418,6 @@ LATER_DEFAULTS: dict[str, dict[str, object]] = {"algo": {"intra_head_gain": 0.01
                                                  "ensemble": {"reward_hidden_sizes": None, "num_elites": None, "learn_reward": True},
                                                  "cvae": {"goal_key": None}, "model_env": {"reward_penalty": 0.0, "latent_origin": "zero", "sample": False},
                                                  "selection": {"guard": False, "return_cap": "none", "fallback": "start"}}
-
-
-#: config keys renamed since runs were written under the old names: section -> {old: new}. PPO's coefficients and KL
-#: target took its losses' names when the agent stopped restating them (TorchRL's ``critic_coeff``, ``entropy_coeff``,
-#: ``dtarg``). A run's config read back (:func:`upgrade_config`) and its fingerprint use the new names, so an older run
-#: still resumes, archives and evaluates as the run it is.
-RENAMED_KEYS: dict[str, dict[str, str]] = {"algo": {"vf_coef": "critic_coeff", "ent_coef": "entropy_coeff", "kl_target": "dtarg"}}
 
 
 def upgrade_config(cfg: Mapping) -> dict:

@@ -36,7 +36,7 @@ from ..models import DISCREPANCIES
 from .selection import CRITERIA
 
 __all__ = ["AblationConfig", "CVAEConfig", "CollectorConfig", "EnsembleConfig", "EvalConfig", "FitConfig", "LoggerConfig", "ModelEnvConfig",
-           "RunConfig", "SECTIONS", "parse_section", "SelectionConfig", "TrainConfig", "TransferConfig", "UNITS", "section_defaults",
+           "RENAMED_KEYS", "RunConfig", "SECTIONS", "parse_section", "SelectionConfig", "TrainConfig", "TransferConfig", "UNITS", "section_defaults",
            "validate_config"]
 
 _MISSING = object()
@@ -367,6 +367,13 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     **TOP_LEVEL, **{f"{path}.{f.name}": f.metadata["rule"] for key, section in SECTIONS.items() for path, cls in _typed(key, section)
                     for f in fields(cls)}}
 
+#: config keys renamed since runs were written under the old names: section -> {old: new}. PPO's coefficients and KL
+#: target took its losses' names when the agent stopped restating them (TorchRL's ``critic_coeff``, ``entropy_coeff``,
+#: ``dtarg``). A run's config read back (:func:`~torchrl_offhrl.recipes.config.upgrade_config`) and its fingerprint use the new names, so an older run
+#: still resumes, archives and evaluates as the run it is.
+RENAMED_KEYS: dict[str, dict[str, str]] = {"algo": {"vf_coef": "critic_coeff", "ent_coef": "entropy_coeff", "kl_target": "dtarg"}}
+
+
 #: rules for an algorithm's keys, by name (whatever the algorithm)
 ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "gamma": _num(0, 1, lo_open=True),
@@ -431,8 +438,6 @@ def _algo_problems(algo: Mapping) -> list[str]:
         return [str(err)]
     if not unknown:
         return []
-    from .config import RENAMED_KEYS
-
     takes = ", ".join(sorted(agent_defaults(name, loss=algo.get("loss"))))  # the loss imported above: it cannot fail here
     renamed = RENAMED_KEYS["algo"]
     return [f"algo.{k}: renamed algo.{renamed[k]} (the name its loss gives it); write algo.{renamed[k]}={algo[k]}" if renamed.get(k) in
