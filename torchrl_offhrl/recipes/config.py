@@ -17,7 +17,7 @@ from ..data.catalog import named_dataset
 from ..envs.latent import DEFAULT_LATENT_BOUND
 from ..registry import LEVELS
 from ..utils import to_plain
-from .schema import RENAMED_KEYS, section_defaults
+from .schema import RENAMED_KEYS, renamed_key, section_defaults
 
 
 def _register_resolvers() -> None:
@@ -70,11 +70,9 @@ def compose(config_name: str, overrides: list[str], command: str | None = None):
     bad = [o for o in overrides if "=" not in o and not o.startswith("~")]  # ~key: hydra's deletion of a key
     if bad:
         raise SystemExit(f"error: overrides must look like key=value (or ~key to delete one), got {bad}; see `offhrl {command or 'train'} --help`")
-    renamed = [(o.split("=", 1)[0].lstrip("+~"), o.split("=", 1)[-1]) for o in overrides]
-    renamed = [(k, v) for k, v in renamed if k.startswith("algo.") and k[5:] in RENAMED_KEYS["algo"]]
+    renamed = [m for o in overrides if "=" in o and (m := renamed_key(o.split("=", 1)[0].lstrip("+~"), o.split("=", 1)[1]))]
     if renamed:  # a key of an older version: say what it is called now rather than hydra's "could not override"
-        raise ValueError("; ".join(f"{k}: renamed algo.{RENAMED_KEYS['algo'][k[5:]]} (the name its loss gives it); write "
-                                   f"algo.{RENAMED_KEYS['algo'][k[5:]]}={v}" for k, v in renamed))
+        raise ValueError("; ".join(renamed))
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
             cfg = hcompose(config_name, overrides=overrides)

@@ -36,7 +36,7 @@ from ..models import DISCREPANCIES
 from .selection import CRITERIA
 
 __all__ = ["AblationConfig", "CVAEConfig", "CollectorConfig", "EnsembleConfig", "EvalConfig", "FitConfig", "LoggerConfig", "ModelEnvConfig",
-           "RENAMED_KEYS", "RunConfig", "SECTIONS", "parse_section", "SelectionConfig", "TrainConfig", "TransferConfig", "UNITS", "section_defaults",
+           "RENAMED_KEYS", "RunConfig", "SECTIONS", "parse_section", "renamed_key", "SelectionConfig", "TrainConfig", "TransferConfig", "UNITS", "section_defaults",
            "validate_config"]
 
 _MISSING = object()
@@ -374,6 +374,18 @@ RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
 RENAMED_KEYS: dict[str, dict[str, str]] = {"algo": {"vf_coef": "critic_coeff", "ent_coef": "entropy_coeff", "kl_target": "dtarg"}}
 
 
+def renamed_key(path: str, value) -> str | None:
+    """The problem to report for ``path`` (e.g. ``"algo.vf_coef"``) set to ``value`` when it is a key of an older version
+    (:data:`RENAMED_KEYS`): its new name and the setting to write instead; None for any other key.
+
+    >>> renamed_key("algo.vf_coef", 0.5)
+    'algo.vf_coef: renamed algo.critic_coeff (the name its loss gives it); write algo.critic_coeff=0.5'
+    """
+    section, _, key = path.partition(".")
+    new = RENAMED_KEYS.get(section, {}).get(key)
+    return None if new is None else f"{path}: renamed {section}.{new} (the name its loss gives it); write {section}.{new}={value}"
+
+
 #: rules for an algorithm's keys, by name (whatever the algorithm)
 ALGO_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "gamma": _num(0, 1, lo_open=True),
@@ -438,10 +450,10 @@ def _algo_problems(algo: Mapping) -> list[str]:
         return [str(err)]
     if not unknown:
         return []
-    takes = ", ".join(sorted(agent_defaults(name, loss=algo.get("loss"))))  # the loss imported above: it cannot fail here
-    renamed = RENAMED_KEYS["algo"]
-    return [f"algo.{k}: renamed algo.{renamed[k]} (the name its loss gives it); write algo.{renamed[k]}={algo[k]}" if renamed.get(k) in
-            agent_defaults(name) else f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown]
+    accepted = agent_defaults(name, loss=algo.get("loss"))  # the loss imported above: it cannot fail here
+    takes = ", ".join(sorted(accepted))
+    return [(RENAMED_KEYS["algo"].get(k) in accepted and renamed_key(f"algo.{k}", algo[k]))
+            or f"algo.{k}: unknown hyper-parameter of algo={name}; it takes {takes}" for k in unknown]
 
 
 def _get(cfg: Mapping, path: str):
