@@ -118,3 +118,61 @@ def test_the_mopo_side_by_side_reads_both_sides_runs_and_compares_them_at_the_sa
     row = next(r for r in table if r["who"] == "OfflineRL-Kit" and r["key"] == "last")
     assert row["seeds"] == [4, 6] and row["values"] == [12.0, 18.0] and row["iqm_ci"][0] == iqm([12.0, 18.0])
     assert "| ours | last policy, 30 episodes | 4 5 | 25.0 [" in out.read_text() and "the data: 35.9" in out.read_text()
+
+
+def test_the_kit_runs_on_our_data_and_schedule_fit_once_resume_by_seed_and_are_archived(tmp_path, monkeypatch):
+    """``mopo_side_by_side.py run --who kit``: the kit's arguments are our config's (hand-checked against configs/algo/mopo.yaml
+    and the env tables: hopper-medium h 5 lambda 5, halfcheetah-medium h 1 lambda 1, 205 rollouts of 50,000 states, one per
+    1,000 updates), the first seed fits the dynamics and the others load them, a finished seed is skipped, an unfinished
+    one starts again, and each finished run's page files are archived."""
+    import json
+
+    from experiments.peers import mopo_side_by_side as sbs
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))  # the data file below is made there, not in a real cache
+    hop, hc = sbs.kit_settings("hopper-medium"), sbs.kit_settings("halfcheetah-medium")
+    assert hop["file"].is_relative_to(tmp_path / "cache")
+    arg = lambda s, name: s["args"][s["args"].index(name) + 1]  # noqa: E731
+    assert (arg(hop, "--rollout-length"), arg(hop, "--penalty-coef")) == ("5", "5.0")
+    assert (arg(hc, "--rollout-length"), arg(hc, "--penalty-coef")) == ("1", "1.0")
+    for s in (hop, hc):
+        assert (arg(s, "--epoch"), arg(s, "--step-per-epoch"), arg(s, "--rollout-freq")) == ("205", "1000", "1000")
+        assert (arg(s, "--rollout-batch-size"), arg(s, "--real-ratio"), arg(s, "--model-retain-epochs")) == ("50000", "0.05", "5")
+    assert hop["file"].name.startswith("hopper-medium-100000-seed0") and hop["task"] == "hopper-medium-v2"
+
+    checkout = tmp_path / "kit"
+    (checkout / "run_example").mkdir(parents=True)
+    (checkout / "run_example" / "run_mopo.py").write_text("")
+    hop["file"].parent.mkdir(parents=True, exist_ok=True)
+    hop["file"].touch()  # the data exist: nothing is generated
+    root, archive = tmp_path / "runs", tmp_path / "archive"
+    (root / "hopper-medium" / "seed5" / "log").mkdir(parents=True)  # seed 5: an unfinished run, started again from nothing
+    (root / "hopper-medium" / "seed5" / "log" / "stale.txt").write_text("x")
+    done = root / "hopper-medium" / "seed6"
+    done.mkdir(parents=True)
+    (done / "final_eval.json").write_text("{}")  # seed 6: finished, skipped
+    calls = []
+
+    def fake_kit(cmd, check):  # what offlinerlkit_mopo.py leaves: its logs (the fitted dynamics on a fitting run) and our evaluation
+        out, seed = Path(cmd[cmd.index("--out") + 1]), int(cmd[cmd.index("--seed") + 1])
+        calls.append((seed, cmd[cmd.index("--load-dynamics-path") + 1] if "--load-dynamics-path" in cmd else None, sorted(p.name for p in out.rglob("*"))))
+        run = out / "log" / "hopper-medium-v2" / "mopo&x" / f"seed_{seed}&t"
+        (run / "record").mkdir(parents=True)
+        (run / "record" / "policy_training_progress.csv").write_text("eval/normalized_episode_reward,timestep\n1.0,1000\n")
+        if "--load-dynamics-path" not in cmd:
+            (run / "model").mkdir()
+            (run / "model" / "dynamics.pth").write_text("weights")
+        (out / "final_eval.json").write_text(json.dumps({"seed": seed}))
+
+    monkeypatch.setattr(sbs.subprocess, "run", fake_kit)
+    sbs.run(checkout, ["hopper-medium"], [4, 5, 6], "kit", root, archive)
+    fitted = root / "hopper-medium" / "seed4" / "log" / "hopper-medium-v2" / "mopo&x" / "seed_4&t" / "model"
+    assert calls == [(4, None, []), (5, str(fitted), [])]  # seed 5's stale folder was removed first; seed 6 not run
+    for seed in (4, 5):
+        kept = archive / "hopper-medium" / f"seed{seed}"
+        assert json.loads((kept / "final_eval.json").read_text()) == {"seed": seed}
+        assert len(list(kept.glob("log/*/*/*/record/policy_training_progress.csv"))) == 1
+        assert not list(kept.rglob("dynamics.pth"))  # the page's files only
+    assert (archive / "hopper-medium" / "seed6" / "final_eval.json").is_file()  # a run finished before is archived too
+    with pytest.raises(SystemExit, match="not a checkout of OfflineRL-Kit"):
+        sbs.run(tmp_path / "nowhere", ["hopper-medium"], [4], "kit", root, archive)

@@ -1,9 +1,25 @@
 """MOPO, ours and OfflineRL-Kit's, on the same data at the same budget: one table per dataset (issue 72).
 
-    python experiments/peers/mopo_side_by_side.py [--ours outputs/results/demo] [--kit outputs/peers/offlinerlkit_mopo]
+    python experiments/peers/mopo_side_by_side.py run --checkout PATH/TO/OfflineRL-Kit [--who ours|kit|both] [--kit DIR]
+        [--datasets hopper-medium halfcheetah-medium] [--seeds 4 5 6]
+    python experiments/peers/mopo_side_by_side.py [report] [--ours docs/results/demo/runs] [--kit docs/results/mopo_side_by_side_runs]
         [--datasets hopper-medium halfcheetah-medium] [--out docs/results/mopo_side_by_side.md]
 
-Reads what the two runs left, runs nothing:
+``run`` makes every run the page needs that is not finished yet, and can be stopped and started again (across sessions:
+hours of CPU per seed) without losing more than the run in progress's last stretch:
+
+* ours: ``offhrl results table1 run --scale demo --algos mopo`` for each dataset and seed (the scale's 100,000
+  transitions, its model fit cached once per dataset, every run resuming from its checkpoint and archived when done);
+* the kit's: ``experiments/peers/offlinerlkit_mopo.py`` on the same HDF5 file, with our config's rollout length, penalty,
+  rollouts, rollout size, updates between rollouts and real-data share (read from ``algo=mopo``'s composed config, so the
+  two budgets cannot drift apart); the kit's own dynamics fit runs once per dataset (its first seed) and the other seeds
+  load it (``--load-dynamics-path``), as ours share one fit. A seed with ``final_eval.json`` is done; an unfinished one
+  starts again (the kit keeps no checkpoint of its policy).
+
+``--who ours`` and ``--who kit`` split the work into two background jobs, one core each.
+
+``report`` (the default) reads what the two runs left (by default their committed archives: ours in
+``docs/results/demo/runs/``, the kit's in ``docs/results/mopo_side_by_side_runs/``), runs nothing:
 
 * ours: ``<ours>/mopo-<dataset>-seed<N>/`` (``offhrl results table1 run --scale demo --algos mopo``): the last
   policy's evaluation (``summary.json``: ``final``), the policy the run returns (``selected``: the guard's choice), the
@@ -21,12 +37,21 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import shutil
+import subprocess
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from torchrl_offhrl.stats import iqm_ci
 from torchrl_offhrl.utils import atomic_write, write_json
 
+
+
+#: where ``run`` keeps what the page reads of each finished kit run (committed; the runs' folders stay on the machine)
+KIT_ARCHIVE = Path("docs/results/mopo_side_by_side_runs")
+#: where ``table1 run`` archives ours (the demo scale's finished runs)
+OURS_ARCHIVE = Path("docs/results/demo/runs")
 
 
 def our_runs(root: Path, dataset: str) -> dict[int, dict]:
@@ -106,9 +131,10 @@ def page(table: list[dict]) -> str:
              "7 Gaussian members fitted by likelihood with learned log-variance bounds, 5 elites, MOPO's penalty on the "
              "largest norm of their predicted standard deviations, SAC with MOPO's rollout schedule: every 1,000 steps a rollout "
              "from 50,000 dataset states, the last 5 kept; 205 rollouts, 205,000 updates). The kit's: "
-             "its `run_example/run_mopo.py` unchanged (`experiments/peers/offlinerlkit_mopo.py`), on the same HDF5 file, "
-             "MOPO's rollout length and penalty for the dataset, 200 epochs of 1,024 updates (the same 204,800), its own "
-             "model fit and evaluations. Scores: D4RL-normalised on the data's reference returns; IQM [95% bootstrap CI] over "
+             "its `run_example/run_mopo.py` unchanged (`experiments/peers/offlinerlkit_mopo.py`), on the same HDF5 file, with "
+             "our config's rollout length, penalty, rollout size, real-data share and schedule (205 epochs of 1,000 updates, "
+             "a rollout per epoch: the same 205 rollouts and 205,000 updates; `mopo_side_by_side.py run` passes them), its own "
+             "model fit (once per dataset, loaded by the later seeds, as ours) and evaluations. Scores: D4RL-normalised on the data's reference returns; IQM [95% bootstrap CI] over "
              "seeds, then the per-seed values in seed order.", ""]
     for ds in dict.fromkeys(r["dataset"] for r in table):
         sub = [r for r in table if r["dataset"] == ds]
@@ -121,14 +147,93 @@ def page(table: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def kit_settings(dataset: str) -> dict:
+    """What the kit's run takes from ours for ``dataset`` (``hopper-medium``): our demo-scale MOPO config's data (file
+    name, size, seed) and schedule, as the kit's arguments."""
+    from torchrl_offhrl.data.catalog import dataset_path
+    from torchrl_offhrl.recipes.config import compose
+
+    env, level = dataset.split("-", 1)
+    cfg = compose("demo", ["algo=mopo", f"env={env}", f"dataset={level}"])
+    own = compose("offline_train", ["algo=mopo", f"env={env}", f"dataset={level}"])  # the rollout budget MOPO's config states
+    horizon, size, freq = int(cfg.model_env.horizon), int(cfg.algo.rollout_batch_size), int(cfg.algo.rollout_freq)
+    rollouts = int(own.train.total_frames) // (size * horizon)
+    args = ["--rollout-length", str(horizon), "--penalty-coef", str(float(cfg.model_env.reward_penalty)),
+            "--rollout-batch-size", str(size), "--rollout-freq", str(freq), "--real-ratio", str(float(cfg.algo.real_ratio)),
+            "--model-retain-epochs", str(int(cfg.algo.model_retain_rollouts)), "--epoch", str(rollouts), "--step-per-epoch", str(freq)]
+    return {"env": env, "level": level, "num_transitions": int(cfg.num_transitions), "dataset_seed": int(cfg.dataset_seed),
+            "file": dataset_path(dataset, int(cfg.num_transitions), seed=int(cfg.dataset_seed)), "args": args,
+            "task": f"{dataset}-v2"}
+
+
+def _kit_dynamics(root: Path) -> Path | None:
+    """The kit's fitted dynamics under ``root`` (``<seed>/log/<task>/<algo>/<run>/model/dynamics.pth``), if a seed left one."""
+    found = sorted(root.glob("seed*/log/*/*/*/model/dynamics.pth"))
+    return found[0].parent if found else None
+
+
+def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_root: Path, archive: Path = KIT_ARCHIVE) -> None:
+    """Every missing run of the page, ours then the kit's per dataset (``who``: ``ours``, ``kit`` or ``both``); each finished
+    kit run is archived under ``archive`` (:func:`archive_kit_run`), ours are by ``table1 run``."""
+    if who in ("kit", "both") and not (kit / "run_example" / "run_mopo.py").is_file():
+        raise SystemExit(f"--checkout {kit}: not a checkout of OfflineRL-Kit (no run_example/run_mopo.py); fetch "
+                         "https://github.com/yihaosun1124/OfflineRL-Kit and pass its folder")
+    for ds in datasets:
+        s = kit_settings(ds)
+        if who in ("ours", "both"):
+            for seed in seeds:
+                subprocess.run([sys.executable, "-m", "experiments.results", "table1", "run", "--scale", "demo", "--envs", s["env"],
+                                "--datasets", s["level"], "--algos", "mopo", "--seeds", str(seed)], check=True)
+        if who in ("kit", "both"):
+            if not s["file"].is_file():  # the same data as ours: generated (and cached) as our runs generate it
+                from torchrl_offhrl.data import named_dataset
+
+                named_dataset(ds, s["num_transitions"], seed=s["dataset_seed"])
+            for seed in seeds:
+                out = kit_root / ds / f"seed{seed}"
+                if (out / "final_eval.json").is_file():
+                    print(f"kit {ds} seed {seed}: done ({out / 'final_eval.json'})", flush=True)
+                    archive_kit_run(out, archive / ds / f"seed{seed}")  # (again: a run finished by an earlier call or by hand)
+                    continue
+                fitted = _kit_dynamics(kit_root / ds)
+                if out.exists():  # an unfinished run (no checkpoint to resume from)
+                    shutil.rmtree(out)
+                load = ["--load-dynamics-path", str(fitted)] if fitted is not None else []
+                print(f"kit {ds} seed {seed}: {'loading its dynamics from ' + str(fitted) if load else 'fitting its dynamics'}", flush=True)
+                subprocess.run([sys.executable, str(Path(__file__).with_name("offlinerlkit_mopo.py")), "--kit", str(kit),
+                                "--dataset", str(s["file"]), "--task", s["task"], "--out", str(out), "--",
+                                "--seed", str(seed), *s["args"], *load], check=True)
+                archive_kit_run(out, archive / ds / f"seed{seed}")
+
+
+def archive_kit_run(run: Path, to: Path) -> None:
+    """Keep what the page reads of a finished kit run (``final_eval.json`` and the kit's per-epoch progress CSV, a few
+    kB, at their paths in the run) under ``to``, to commit: the run's own folder (logs, models) stays on the machine."""
+    for f in [run / "final_eval.json", *run.glob("log/*/*/*/record/policy_training_progress.csv")]:
+        dest = to / f.relative_to(run)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(f, dest)
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = argv.pop(0) if argv and argv[0] in ("run", "report") else "report"
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ours", type=Path, default=Path("outputs/results/demo"))
-    ap.add_argument("--kit", type=Path, default=Path("outputs/peers/offlinerlkit_mopo"))
+    ap.add_argument("--ours", type=Path, default=OURS_ARCHIVE, help="our runs (report; default: their archive)")
+    ap.add_argument("--kit", type=Path, default=None,
+                    help="the kit's runs (run: where they are made, default outputs/peers/offlinerlkit_mopo; report: where "
+                         "they are read, default their archive, docs/results/mopo_side_by_side_runs)")
     ap.add_argument("--datasets", nargs="+", default=["hopper-medium", "halfcheetah-medium"])
     ap.add_argument("--out", type=Path, default=Path("docs/results/mopo_side_by_side.md"))
+    if command == "run":
+        ap.add_argument("--checkout", type=Path, default=None, help="a checkout of OfflineRL-Kit (needed with --who kit|both)")
+        ap.add_argument("--who", choices=("ours", "kit", "both"), default="both")
+        ap.add_argument("--seeds", type=int, nargs="+", default=[4, 5, 6])
     a = ap.parse_args(argv)
-    table = rows(a.ours, a.kit, a.datasets)
+    if command == "run":
+        run(a.checkout or Path("."), a.datasets, a.seeds, a.who, a.kit or Path("outputs/peers/offlinerlkit_mopo"))
+        return 0
+    table = rows(a.ours, a.kit or KIT_ARCHIVE, a.datasets)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(a.out) as tmp:
         Path(tmp).write_text(page(table))
