@@ -174,5 +174,12 @@ def test_the_kit_runs_on_our_data_and_schedule_fit_once_resume_by_seed_and_are_a
         assert len(list(kept.glob("log/*/*/*/record/policy_training_progress.csv"))) == 1
         assert not list(kept.rglob("dynamics.pth"))  # the page's files only
     assert (archive / "hopper-medium" / "seed6" / "final_eval.json").is_file()  # a run finished before is archived too
+    # a run killed after its fit (the kit saves the dynamics before training the policy) is started again on that fit
+    for f in (root / "hopper-medium" / "seed4" / "final_eval.json", root / "hopper-medium" / "seed5" / "final_eval.json"):
+        f.unlink()
+    calls.clear()
+    sbs.run(checkout, ["hopper-medium"], [4, 5], "kit", root, archive)
+    kept = root / "hopper-medium" / "dynamics"
+    assert calls == [(4, str(kept), []), (5, str(kept), [])] and (kept / "dynamics.pth").read_text() == "weights"
     with pytest.raises(SystemExit, match="not a checkout of OfflineRL-Kit"):
         sbs.run(tmp_path / "nowhere", ["hopper-medium"], [4], "kit", root, archive)

@@ -14,7 +14,8 @@ hours of CPU per seed) without losing more than the run in progress's last stret
   rollouts, rollout size, updates between rollouts and real-data share (read from ``algo=mopo``'s composed config, so the
   two budgets cannot drift apart); the kit's own dynamics fit runs once per dataset (its first seed) and the other seeds
   load it (``--load-dynamics-path``), as ours share one fit. A seed with ``final_eval.json`` is done; an unfinished one
-  starts again (the kit keeps no checkpoint of its policy).
+  starts again (the kit keeps no checkpoint of its policy), on the fit it may have finished (saved before the policy's
+  training; moved to ``<kit>/<dataset>/dynamics/`` before the run's folder is cleared).
 
 ``--who ours`` and ``--who kit`` split the work into two background jobs, one core each.
 
@@ -167,7 +168,10 @@ def kit_settings(dataset: str) -> dict:
 
 
 def _kit_dynamics(root: Path) -> Path | None:
-    """The kit's fitted dynamics under ``root`` (``<seed>/log/<task>/<algo>/<run>/model/dynamics.pth``), if a seed left one."""
+    """The kit's fitted dynamics for a dataset's runs under ``root``: ``root/dynamics/`` (kept there when the run that fitted
+    them was started again), else a seed's (``<seed>/log/<task>/<algo>/<run>/model/dynamics.pth``); None before any fit."""
+    if (root / "dynamics" / "dynamics.pth").is_file():
+        return root / "dynamics"
     found = sorted(root.glob("seed*/log/*/*/*/model/dynamics.pth"))
     return found[0].parent if found else None
 
@@ -196,6 +200,9 @@ def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_
                     archive_kit_run(out, archive / ds / f"seed{seed}")  # (again: a run finished by an earlier call or by hand)
                     continue
                 fitted = _kit_dynamics(kit_root / ds)
+                if fitted is not None and out in fitted.parents:  # the fit (saved before the policy's training) outlives its run
+                    shutil.copytree(fitted, kit_root / ds / "dynamics", dirs_exist_ok=True)
+                    fitted = kit_root / ds / "dynamics"
                 if out.exists():  # an unfinished run (no checkpoint to resume from)
                     shutil.rmtree(out)
                 load = ["--load-dynamics-path", str(fitted)] if fitted is not None else []
