@@ -145,6 +145,10 @@ def page(table: list[dict]) -> str:
                   "| who | what | seeds | IQM [95% CI] | per seed |", "|---|---|---|---|---|"]
         lines += [f"| {r['who']} | {r['what']} | {' '.join(map(str, r['seeds'])) or '-'} | {r['cell']} | {r['per_seed']} |" for r in sub]
         lines.append("")
+        for who, flag in (("ours", "--who ours"), ("OfflineRL-Kit", "--checkout PATH/TO/OfflineRL-Kit --who kit")):
+            if not any(r["seeds"] for r in sub if r["who"] == who):
+                lines += [f"No finished run of {who} on {ds} yet: `python experiments/peers/mopo_side_by_side.py run "
+                          f"{flag} --datasets {ds}` makes them.", ""]
     return "\n".join(lines)
 
 
