@@ -16,7 +16,7 @@ import json
 from pathlib import Path
 
 from ..utils import to_plain
-from .config import compose
+from .config import algo_label, compose
 from .pipeline import DEFAULT_ORIGIN_SHARE
 from .summary import data_label, fmt_number
 from .train import train
@@ -75,11 +75,28 @@ def start_lines(cfg: dict) -> list[str]:
     return ["(before training the agent's latent 0 decodes to the CVAE decoder's prior-mean action, model_env.latent_origin=zero)"]
 
 
+def algo_names(cfg: dict, overrides=()) -> tuple[str, str]:
+    """``(name, group)``: how the demo's table names the agent (the config's label, upper-cased: ``algo=morel`` is PPO's
+    agent under MOReL's settings and reads MOREL, not PPO) and the ``algo=`` group its full-scale command takes (the one
+    the run was composed with; the demo's own when no override names one).
+
+        >>> from torchrl_offhrl.recipes.config import compose
+        >>> algo_names(to_plain(compose("demo", ["algo=morel"])), ["algo=morel"])
+        ('MOREL', 'morel')
+        >>> algo_names(to_plain(compose("demo", [])))
+        ('MOC', 'moc')
+    """
+    group = next((o.split("=", 1)[1] for o in overrides if o.startswith("algo=")), None)
+    return algo_label(cfg["algo"]).upper(), group or algo_label(cfg["algo"])
+
+
 def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
     """Run the demo with optional hydra ``overrides``; returns the training summary plus the printed table."""
-    cfg = to_plain(compose("demo", list(overrides or []), "demo"))
+    overrides = list(overrides or [])
+    cfg = to_plain(compose("demo", overrides, "demo"))
     s = train(cfg, progress=progress)
-    final, algo = s["final"], s["algo"].upper()
+    algo, group = algo_names(cfg, overrides)
+    final = s["final"]
     selected = s.get("selected") or final
     n_eval = int(cfg["eval"]["episodes"])
     rows = [
@@ -119,7 +136,7 @@ def run_demo(overrides: list[str] | None = None, progress: bool = True) -> dict:
         "",
         f"This is a short-budget run ({s['dataset_transitions']:,} transitions, small models, {s['frames']:,} {algo} frames) that shows",
         "the pipeline end to end; its score is not a full-scale result. The full-scale command (1M transitions, paper-size models):",
-        f"    offhrl train algo={s['algo']} env={cfg['env']['name']} dataset={cfg['dataset']}",
+        f"    offhrl train algo={group} env={cfg['env']['name']} dataset={cfg['dataset']}",
     ]
     text = "\n".join(lines)
     print(text)
