@@ -183,3 +183,18 @@ def test_the_kit_runs_on_our_data_and_schedule_fit_once_resume_by_seed_and_are_a
     assert calls == [(4, str(kept), []), (5, str(kept), [])] and (kept / "dynamics.pth").read_text() == "weights"
     with pytest.raises(SystemExit, match="not a checkout of OfflineRL-Kit"):
         sbs.run(tmp_path / "nowhere", ["hopper-medium"], [4], "kit", root, archive)
+
+
+def test_our_side_runs_only_the_seeds_not_yet_archived(tmp_path, monkeypatch):
+    """``run --who ours``: a seed archived by ``table1 run`` (its run folder may be gone with an earlier machine) is not run
+    again; the others go to ``offhrl results table1 run --scale demo --algos mopo``, one seed per call (resumable)."""
+    from experiments.peers import mopo_side_by_side as sbs
+
+    monkeypatch.setattr(sbs, "OURS_ARCHIVE", tmp_path / "runs")
+    (tmp_path / "runs" / "mopo-hopper-medium-seed4").mkdir(parents=True)
+    (tmp_path / "runs" / "mopo-hopper-medium-seed4" / "summary.json").write_text("{}")
+    calls = []
+    monkeypatch.setattr(sbs.subprocess, "run", lambda cmd, check: calls.append(cmd[cmd.index("-m") + 1:]))
+    sbs.run(tmp_path / "no-kit-needed", ["hopper-medium"], [4, 5], "ours", tmp_path / "kit")
+    assert calls == [["experiments.results", "table1", "run", "--scale", "demo", "--envs", "hopper", "--datasets", "medium",
+                      "--algos", "mopo", "--seeds", "5"]]

@@ -8,8 +8,9 @@
 ``run`` makes every run the page needs that is not finished yet, and can be stopped and started again (across sessions:
 hours of CPU per seed) without losing more than the run in progress's last stretch:
 
-* ours: ``offhrl results table1 run --scale demo --algos mopo`` for each dataset and seed (the scale's 100,000
-  transitions, its model fit cached once per dataset, every run resuming from its checkpoint and archived when done);
+* ours: ``offhrl results table1 run --scale demo --algos mopo`` for each dataset and seed not yet archived (the scale's
+  100,000 transitions, its model fit cached once per dataset, every run resuming from its checkpoint and archived in
+  ``docs/results/demo/runs/`` when done);
 * the kit's: ``experiments/peers/offlinerlkit_mopo.py`` on the same HDF5 file, with our config's rollout length, penalty,
   rollouts, rollout size, updates between rollouts and real-data share (read from ``algo=mopo``'s composed config, so the
   two budgets cannot drift apart); the kit's own dynamics fit runs once per dataset (its first seed) and the other seeds
@@ -49,10 +50,11 @@ from torchrl_offhrl.utils import atomic_write, write_json
 
 
 
+ROOT = Path(__file__).resolve().parents[2]
 #: where ``run`` keeps what the page reads of each finished kit run (committed; the runs' folders stay on the machine)
-KIT_ARCHIVE = Path("docs/results/mopo_side_by_side_runs")
+KIT_ARCHIVE = ROOT / "docs" / "results" / "mopo_side_by_side_runs"
 #: where ``table1 run`` archives ours (the demo scale's finished runs)
-OURS_ARCHIVE = Path("docs/results/demo/runs")
+OURS_ARCHIVE = ROOT / "docs" / "results" / "demo" / "runs"
 
 
 def our_runs(root: Path, dataset: str) -> dict[int, dict]:
@@ -190,6 +192,9 @@ def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_
         s = kit_settings(ds)
         if who in ("ours", "both"):
             for seed in seeds:
+                if (OURS_ARCHIVE / f"mopo-{ds}-seed{seed}" / "summary.json").is_file():  # finished (its folder may be gone)
+                    print(f"ours {ds} seed {seed}: done ({OURS_ARCHIVE / f'mopo-{ds}-seed{seed}'})", flush=True)
+                    continue
                 subprocess.run([sys.executable, "-m", "experiments.results", "table1", "run", "--scale", "demo", "--envs", s["env"],
                                 "--datasets", s["level"], "--algos", "mopo", "--seeds", str(seed)], check=True)
         if who in ("kit", "both"):
