@@ -194,7 +194,7 @@ def test_our_side_runs_only_the_seeds_not_yet_archived(tmp_path, monkeypatch):
     (tmp_path / "runs" / "mopo-hopper-medium-seed4").mkdir(parents=True)
     (tmp_path / "runs" / "mopo-hopper-medium-seed4" / "summary.json").write_text("{}")
     calls = []
-    monkeypatch.setattr(sbs.subprocess, "run", lambda cmd, check: calls.append(cmd[cmd.index("-m") + 1:]))
+    monkeypatch.setattr(sbs.subprocess, "run", lambda cmd, check, cwd: calls.append((cmd[cmd.index("-m") + 1:], cwd)))
     sbs.run(tmp_path / "no-kit-needed", ["hopper-medium"], [4, 5], "ours", tmp_path / "kit")
-    assert calls == [["experiments.results", "table1", "run", "--scale", "demo", "--envs", "hopper", "--datasets", "medium",
-                      "--algos", "mopo", "--seeds", "5"]]
+    assert calls == [(["experiments.results", "table1", "run", "--scale", "demo", "--envs", "hopper", "--datasets", "medium",
+                       "--algos", "mopo", "--seeds", "5"], sbs.ROOT)]  # from the checkout's root, wherever it is called from

@@ -196,7 +196,7 @@ def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_
                     print(f"ours {ds} seed {seed}: done ({OURS_ARCHIVE / f'mopo-{ds}-seed{seed}'})", flush=True)
                     continue
                 subprocess.run([sys.executable, "-m", "experiments.results", "table1", "run", "--scale", "demo", "--envs", s["env"],
-                                "--datasets", s["level"], "--algos", "mopo", "--seeds", str(seed)], check=True)
+                                "--datasets", s["level"], "--algos", "mopo", "--seeds", str(seed)], check=True, cwd=ROOT)
         if who in ("kit", "both"):
             if not s["file"].is_file():  # the same data as ours: generated (and cached) as our runs generate it
                 from torchrl_offhrl.data import named_dataset
