@@ -26,6 +26,7 @@ import argparse
 import time
 
 import torch
+from ensemble_training import matmul_rate, sync, timeit  # the benchmarks' one timing helper and dense-matmul reference
 from flops import leaf_flops
 from tensordict import TensorDict
 
@@ -70,20 +71,9 @@ def fit(m, data, steps: int) -> float:
     return time.perf_counter() - t
 
 
-def sync(device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-
-
 def rate(fn, flops: float, device, reps: int) -> float:
-    for _ in range(3):
-        fn()
-    sync(device)
-    t = time.perf_counter()
-    for _ in range(reps):
-        fn()
-    sync(device)
-    return flops * reps / (time.perf_counter() - t) / 1e9
+    """GFLOP/s of ``fn``, which computes ``flops``, over ``reps`` timed calls."""
+    return flops / timeit(fn, device, reps) / 1e9
 
 
 def layer_rate(kind: str, width: int, device) -> float:
@@ -133,9 +123,7 @@ def main():
         torch.set_num_threads(a.threads)
     device = torch.device(a.device)
     data = transitions(device)
-    n = 2048
-    x, y = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
-    mm = rate(lambda: x @ y, 2 * n ** 3, device, 10)
+    mm = matmul_rate(device, steps=10)
     print(f"torch {torch.__version__}, {device}, {torch.get_num_threads()} thread(s); dense matmul 2048^2: {mm:.1f} GFLOP/s "
           f"(this run)\n")
     print("| model | width | ms per step | GFLOP per step | GFLOP/s | vs dense matmul | widest layer's product alone, GFLOP/s | vs it |")
