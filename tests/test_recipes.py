@@ -813,7 +813,7 @@ def test_mopo_trains_end_to_end_with_the_dataset_in_its_minibatches(hopper_file,
 def test_a_killed_and_resumed_run_gives_the_records_of_an_uninterrupted_one(algo, hopper_file, cache, tmp_path, monkeypatch):
     """Interrupted after its checkpoint at 128 frames and resumed, a run's later evaluations equal, bit for bit, those of the
     same run made in one go: the checkpoint keeps the model envs where they stood (the collector's carrier, the env's RNG)
-    and the RNG is set again right before the first batch (recipes.sources.source_state / restore_source). The dataset
+    and the RNG is set again right before the first batch (recipes.loop.source_state / restore_source). The dataset
     agents' counterpart: test_offline_agents.py::test_an_interrupted_dataset_run_resumes_to_the_same_agent."""
     straight = train(_cfg(algo, hopper_file, tmp_path / "a"), progress=False)
     cfg = _cfg(algo, hopper_file, tmp_path / "b")

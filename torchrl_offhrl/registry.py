@@ -6,8 +6,8 @@ HalfCheetah, and any other Gymnasium id, read as one), or a goal-conditioned
 *stacking* task with its number of blocks. Code asks ``task_of(env_id)``
 instead of testing ids against lists.
 
-Reference scores live in :mod:`torchrl_offhrl.scores`, termination functions
-of the model env in :mod:`torchrl_offhrl.envs.termination`.
+Reference scores live in :mod:`torchrl_offhrl.scores`, the tasks' terminal
+states (where the model env ends episodes) in :mod:`torchrl_offhrl.envs.tasks`.
 """
 from __future__ import annotations
 

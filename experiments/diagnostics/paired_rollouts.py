@@ -23,7 +23,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from torchrl_offhrl.envs.termination import hopper_termination
+from torchrl_offhrl.envs.tasks import hopper_termination
 from torchrl_offhrl.recipes.config import model_config, resolve_dataset
 from torchrl_offhrl.recipes.evaluation import load_run_agent
 from torchrl_offhrl.recipes.pipeline import fit_or_load_models

@@ -4,7 +4,7 @@ from .goal_model import BlockStackModelEnv, SubGoalTracker
 from .latent import DEFAULT_LATENT_BOUND, AffineActionMap, LatentActionTransform
 from .pessimistic import PessimisticModelEnv
 from .tasks import TASKS, make_task_env, task_kwargs
-from .termination import TERMINATION_FNS, hopper_termination, never_terminates, termination_fn_for
+from .tasks import TERMINATION_FNS, hopper_termination, never_terminates, termination_fn_for
 
 __all__ = [
     "BlockStackModelEnv",

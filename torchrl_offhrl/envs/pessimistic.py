@@ -11,7 +11,7 @@ from torchrl.envs import EnvBase
 
 from ..models.dynamics import DISCREPANCIES
 from .calibration import CalibrationReport, calibrate_threshold, dataset_discrepancy
-from .termination import termination_fn_for
+from .tasks import termination_fn_for
 
 __all__ = ["PessimisticModelEnv"]
 

@@ -2,11 +2,12 @@
 
 * :mod:`.config`: hydra composition, dataset resolution, model and P-MDP settings, run naming;
 * :mod:`.pipeline`: fitted (cached) models, the composed model env, the real env;
-* :mod:`.sources`: where batches come from (a collector on the model env);
 * :mod:`.evaluation`: real-env evaluation during training and of saved runs;
 * :mod:`.rundir`: checkpoints, resumption, records and logs of a run;
 * :mod:`.report`: summaries, learning curves, multi-seed aggregation;
-* :mod:`.train`: ``train(cfg)``, the loop; :mod:`.demo`: the embedded demo.
+* :mod:`.setting`: what a run is made of (data, models, agent, envs, phases), one builder per setting;
+* :mod:`.loop`: the one training loop, and where its batches come from (a collector on an env, or the dataset);
+* :mod:`.train`: ``train(cfg)``; :mod:`.demo`: the embedded demo.
 
 ``from torchrl_offhrl.recipes.train import train`` (not re-exported here: the
 function would shadow its module).

@@ -156,7 +156,7 @@ class RunDirectory:
 
     def checkpoint(self, agent, source: dict | None = None) -> None:
         """Save the agent, its replay buffer (if any and not empty), the counters, the records, the RNG state and the batch
-        source's state (``source``: :func:`~torchrl_offhrl.recipes.sources.source_state`, the envs where they stand)."""
+        source's state (``source``: :func:`~torchrl_offhrl.recipes.loop.source_state`, the envs where they stand)."""
         new_replay = None
         rb = agent.replay_buffer
         if rb is not None and len(rb):  # an empty buffer (the evaluation before training) has nothing to save

@@ -46,7 +46,7 @@ from ..agents.seeds import SeedBatch
 from ..utils import to_plain
 from .config import learns_from_dataset, model_env_batch
 from .schema import validate_config
-from .sources import dataset_replay_buffer
+from .loop import dataset_replay_buffer
 
 __all__ = ["RunsApart", "batchable", "refusal", "seed_configs", "train_seed_configs", "train_seeds"]
 
@@ -314,7 +314,7 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=N
     from ..agents.seeds import OffPolicySeedBatch, OnPolicySeedBatch
     from .config import acts_in_latent_space
     from .pipeline import make_model_env
-    from .sources import env_collector
+    from .loop import env_collector
 
     n = len(lanes)
     hashes = {lane.r.run.data_hash for lane in lanes}

@@ -30,12 +30,11 @@ from ..registry import task_of
 from .config import (RULE_KEYS, acts_in_latent_space, latent_bound, learns_from_dataset, model_config, model_env_batch, model_env_config, offline_rules_for,
                      resolve_dataset, rules_not_used, data_label, resolve_reward_scale, transfer_config)
 from .evaluation import Evaluator, GoalEvaluator
-from .loop import OfflinePhase, OnlinePhase, Phase
+from .loop import OfflinePhase, OnlinePhase, Phase, dataset_batches, env_collector, model_env_metrics, online_metrics
 from .pipeline import (DEFAULT_ORIGIN_SHARE, apply_latent_origin, fit_or_load_models, make_eval_model_env, make_model_env, make_real_env,
                        origin_share)
 from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_transfer
 from .schema import RunConfig, TransferConfig
-from .sources import dataset_batches, env_collector, model_env_metrics, online_metrics
 
 __all__ = ["DatasetSetting", "ModelEnvSetting", "OnlineSetting", "ModelPart", "Parts", "SETTINGS", "Setting", "TransferSetting", "build_setting", "eval_seed", "setting_of"]
 
