@@ -709,7 +709,7 @@ def test_morel_trains_end_to_end(hopper_file, cache, tmp_path):
 
     ensemble = DynamicsEnsemble.load(Path(cfg["model_dir"]) / "ensemble.pt")
     from torchrl_offhrl.data import load_dataset
-    from torchrl_offhrl.envs.calibration import dataset_discrepancy
+    from torchrl_offhrl.envs import dataset_discrepancy
 
     d = dataset_discrepancy(ensemble, load_dataset(hopper_file), "max_pairwise")
     assert cfg["threshold"] == pytest.approx(float(d.max()) * 3, rel=1e-4)

@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     from torchrl_offhrl.data.stacking import SCRIPT_LEVELS, generate_stacking_dataset, scripted_success
     from torchrl_offhrl.registry import ENV_IDS
     from torchrl_offhrl.blockstack import goals as G
-    from torchrl_offhrl.envs.calibration import calibrate_threshold
+    from torchrl_offhrl.envs import calibrate_threshold
     from torchrl_offhrl.envs.goal_model import replay_open_loop
     from torchrl_offhrl.recipes.config import compose, model_config, resolve_dataset
     from torchrl_offhrl.recipes.pipeline import fit_or_load_models

@@ -1,10 +1,8 @@
 """Environments: the pessimistic model env, the latent action transform, terminations, the transfer tasks, block stacking."""
-from .calibration import CalibrationReport, calibrate_threshold, dataset_discrepancy
 from .goal_model import BlockStackModelEnv, SubGoalTracker
 from .latent import DEFAULT_LATENT_BOUND, AffineActionMap, LatentActionTransform
-from .pessimistic import PessimisticModelEnv
-from .tasks import TASKS, make_task_env, task_kwargs
-from .tasks import TERMINATION_FNS, hopper_termination, never_terminates, termination_fn_for
+from .pessimistic import CalibrationReport, PessimisticModelEnv, calibrate_threshold, dataset_discrepancy
+from .tasks import TASKS, TERMINATION_FNS, hopper_termination, make_task_env, never_terminates, task_kwargs, termination_fn_for
 
 __all__ = [
     "BlockStackModelEnv",

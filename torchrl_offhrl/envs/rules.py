@@ -43,7 +43,7 @@ import torch
 
 from ..models.cvae import encode_in_chunks
 from ..models.quality import decoder_sensitivity, ensemble_quality
-from .calibration import dataset_discrepancy
+from .pessimistic import dataset_discrepancy
 
 __all__ = ["OfflineRules", "horizon_rule", "latent_bound_rule", "offline_rules", "open_loop_errors", "penalty_rule", "threshold_rule"]
 
@@ -72,7 +72,7 @@ def threshold_rule(ensemble, held_out, kind: str = "variance", disc: torch.Tenso
     percentile and ended every untrained model episode after ~110 steps.
 
     ``disc``: the held-out pairs' discrepancies when the caller has them
-    (:func:`~torchrl_offhrl.envs.calibration.dataset_discrepancy`), else computed here.
+    (:func:`~torchrl_offhrl.envs.pessimistic.dataset_discrepancy`), else computed here.
 
     Returns ``(threshold, info)``; ``info`` has the held-out and training
     discrepancies' quantiles, and how the ensemble mean's held-out error

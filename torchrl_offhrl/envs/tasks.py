@@ -26,7 +26,10 @@ import torch
 
 from ..data import make_gym_env
 
-__all__ = ["TASKS", "TERMINATION_FNS", "hopper_termination", "make_task_env", "never_terminates", "task_kwargs", "termination_fn_for", "walker2d_termination"]
+__all__ = [
+    "TASKS", "TERMINATION_FNS", "hopper_termination", "make_task_env", "never_terminates", "task_kwargs", "termination_fn_for",
+    "walker2d_termination",
+]
 
 log = logging.getLogger(__name__)
 

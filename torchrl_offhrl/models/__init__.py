@@ -1,11 +1,9 @@
 """Learned models: vectorised ensembles, the dynamics ensemble, the CVAE, their trainer and their held-out quality."""
-from ._common import atomic_torch_save
 from .bc import ClonedPolicy, PercentileBC
 from .cvae import ConditionalVAE, CVAEDecoder, LatentOrigin
-from .dynamics import DISCREPANCIES, DynamicsEnsemble
-from .ensemble import EnsembleLinear, EnsembleMLP
+from .dynamics import DISCREPANCIES, DynamicsEnsemble, EnsembleLinear, EnsembleMLP
 from .quality import decoder_sensitivity, ensemble_quality
-from .trainer import SupervisedTrainer
+from .trainer import SupervisedTrainer, atomic_torch_save
 
 __all__ = [
     "CVAEDecoder",

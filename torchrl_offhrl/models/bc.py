@@ -9,7 +9,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from ..nets import mlp
-from ._common import FitMixin, buffer
+from .trainer import FitMixin, buffer
 
 
 class PercentileBC(FitMixin, nn.Module):

@@ -8,7 +8,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from ..nets import mlp
-from ._common import FitMixin, buffer
+from .trainer import FitMixin, buffer
 
 __all__ = ["ConditionalVAE", "CVAEDecoder", "LatentOrigin", "encode_in_chunks"]
 

@@ -33,7 +33,10 @@ import torch
 from ..utils import save_torch_file
 from .summary import fmt_number
 
-__all__ = ["OfflinePhase", "OnlinePhase", "Phase", "TrainingLoop", "dataset_batches", "dataset_replay_buffer", "env_collector", "model_env_metrics", "online_metrics", "restore_source", "source_state"]
+__all__ = [
+    "OfflinePhase", "OnlinePhase", "Phase", "TrainingLoop", "dataset_batches", "dataset_replay_buffer", "env_collector", "model_env_metrics",
+    "online_metrics", "restore_source", "source_state",
+]
 
 #: dataset agents (one gradient step per batch) log the mean of their metrics over this many updates
 LOG_EVERY_UPDATES = 100
