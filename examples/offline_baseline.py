@@ -13,7 +13,7 @@ outputs/runs/<algo>-<env>-<dataset>-seed<seed>/; running the same command again 
 The loop is the repository's one, :class:`torchrl_offhrl.recipes.loop.TrainingLoop`, run as ``offhrl train`` runs it;
 where the pieces live: the dataset's minibatches ``recipes.loop.dataset_batches``, the agents
 ``torchrl_offhrl.agents`` (iql.py, cql.py, td3bc.py, bc.py: TorchRL's losses), the evaluation
-``recipes.evaluation.Evaluator`` (put together by ``recipes.setting.build_setting``).
+``recipes.evaluation.Evaluator`` (put together by ``recipes.train.build_setting``).
 """
 import time
 

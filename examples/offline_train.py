@@ -19,7 +19,7 @@ lives, to read or to replace:
 * the P-MDP's settings from the data and the models: ``torchrl_offhrl.envs.rules`` (printed as the calibration report);
 * the latent origin, the composed env, the agent, its evaluators: ``recipes.pipeline.apply_latent_origin``,
   ``make_model_env``, ``torchrl_offhrl.agents.make_agent``, ``recipes.evaluation.Evaluator`` (put together by
-  ``recipes.setting.build_setting``);
+  ``recipes.train.build_setting``);
 * collect -> update -> evaluate -> checkpoint: ``recipes.loop.TrainingLoop.run_phase``;
 * the returned policy (the last one unless the offline guard finds no gain over the start): ``recipes.selection``.
 """

@@ -171,7 +171,7 @@ def test_fit_threads_sets_the_model_fits_thread_count_and_restores_it(cache, tmp
 
     import torch
 
-    from torchrl_offhrl.recipes import pipeline, setting
+    from torchrl_offhrl.recipes import pipeline, train as recipe
     from torchrl_offhrl.recipes.config import compose
     from torchrl_offhrl.utils import threads, to_plain
 
@@ -194,7 +194,7 @@ def test_fit_threads_sets_the_model_fits_thread_count_and_restores_it(cache, tmp
                                              f"run_dir={tmp_path}"]))
     with threads(2):
         with pytest.raises(Seen) as seen:
-            setting.build_setting(cfg, tmp_path, time.time(), progress=False)
+            recipe.build_setting(cfg, tmp_path, time.time(), progress=False)
         assert seen.value.args == (1,) and torch.get_num_threads() == 2
     from torchrl_offhrl.recipes.schema import validate_config
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from torchrl_offhrl.recipes import rundir
-from torchrl_offhrl.recipes import setting as setting_mod  # where the run builds its agent and models
+from torchrl_offhrl.recipes import train as recipe_mod  # where the run builds its agent and models (recipes.train)
 from torchrl_offhrl.recipes.config import compose, model_config, pessimism_for
 from torchrl_offhrl.recipes.report import aggregate
 from torchrl_offhrl.recipes.train import train
@@ -46,7 +46,7 @@ def _cfg(algo, data, out, extra=()):
 def _interrupt_at_update(cfg, n: int, monkeypatch) -> None:
     """Train ``cfg`` until its agent's ``n``-th update, interrupted there (KeyboardInterrupt, as a kill); the agent factory
     is restored afterwards, so the next ``train(cfg)`` resumes the run."""
-    real_make_agent = setting_mod.make_agent
+    real_make_agent = recipe_mod.make_agent
     calls = {"n": 0}
 
     def crashing_agent(*a, **k):
@@ -62,10 +62,10 @@ def _interrupt_at_update(cfg, n: int, monkeypatch) -> None:
         agent.update = update
         return agent
 
-    monkeypatch.setattr(setting_mod, "make_agent", crashing_agent)
+    monkeypatch.setattr(recipe_mod, "make_agent", crashing_agent)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, progress=False)
-    monkeypatch.setattr(setting_mod, "make_agent", real_make_agent)
+    monkeypatch.setattr(recipe_mod, "make_agent", real_make_agent)
 
 
 @pytest.mark.parametrize("algo", ["sac", "ppo", "moc"])
@@ -108,7 +108,7 @@ def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, m
     saved = torch.load(run / "checkpoint.pt", weights_only=True)["agent"]["loss"]
 
     loaded = {}
-    real_load = setting_mod.make_agent
+    real_load = recipe_mod.make_agent
 
     def spy_make_agent(*a, **k):
         agent = real_load(*a, **k)
@@ -121,7 +121,7 @@ def test_interrupted_run_resumes_from_checkpoint(hopper_file, cache, tmp_path, m
         agent.load_state_dict = load
         return agent
 
-    monkeypatch.setattr(setting_mod, "make_agent", spy_make_agent)
+    monkeypatch.setattr(recipe_mod, "make_agent", spy_make_agent)
     summary = train(cfg, progress=False)
     evals = json.loads((run / "evals.json").read_text())
     assert [e["frames"] for e in evals] == [128, 256]
@@ -567,7 +567,7 @@ def test_the_guard_returns_the_start_or_the_trained_policy_and_says_which(hopper
     # the run's evaluation model env rebuilt from its folder (recipes.evaluation.run_models, what the diagnostics use)
     # gives the start the model episodes its evaluation recorded
     from torchrl_offhrl.recipes.evaluation import load_run_agent, run_models
-    from torchrl_offhrl.recipes.setting import eval_seed
+    from torchrl_offhrl.recipes.train import eval_seed
     from torchrl_offhrl.rollouts import evaluate_policy
 
     _, env_r, agent_r, state_r, cvae_r = load_run_agent(run)
@@ -655,7 +655,7 @@ def test_bad_snapshot_frames_are_named_before_any_data_work(tmp_path):
 
 
 def test_each_config_is_exactly_one_setting():
-    from torchrl_offhrl.recipes.setting import DatasetSetting, ModelEnvSetting, OnlineSetting, TransferSetting, setting_of
+    from torchrl_offhrl.recipes.train import DatasetSetting, ModelEnvSetting, OnlineSetting, TransferSetting, setting_of
 
     def kind(*overrides):
         return type(setting_of(to_plain(compose("offline_train", list(overrides)))))
@@ -835,7 +835,7 @@ def test_a_percentile_bc_that_fails_leaves_the_start_as_the_guards_fallback(hopp
             raise RuntimeError("no complete episode among the best ones")
         return run
 
-    monkeypatch.setattr(setting_mod, "_fallback", broken)
+    monkeypatch.setattr(recipe_mod, "_fallback", broken)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         summary = train(_cfg("ppo", hopper_file, tmp_path, ["eval.at_start=true", "train.total_frames=128"]), progress=False)
@@ -869,7 +869,7 @@ def test_building_a_setting_leaves_the_config_and_its_parts_as_given(hopper_file
     import copy
     import time
 
-    from torchrl_offhrl.recipes.setting import build_setting
+    from torchrl_offhrl.recipes.train import build_setting
 
     cfg = to_plain(_cfg("ppo", hopper_file, tmp_path))
     given = copy.deepcopy(cfg)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchrl_offhrl.envs import AffineActionMap, make_task_env, task_kwargs
-from torchrl_offhrl.recipes import setting as setting_mod  # where the run builds its agent and models
+from torchrl_offhrl.recipes import train as recipe_mod  # where the run builds its agent and models (recipes.train)
 from torchrl_offhrl.recipes.config import config_fingerprint, transfer_config
 from torchrl_offhrl.recipes.report import aggregate, transfer_stats
 from torchrl_offhrl.recipes.schema import validate_config
@@ -167,7 +167,7 @@ def _killing_agents(monkeypatch, kills) -> dict:
     """Make the run's agents raise KeyboardInterrupt (a kill) at each of ``kills`` in turn: ``"switch"`` (at the task switch,
     after the offline phase's last checkpoint, before the online one) and ``"online"`` (the third online batch of 64 frames,
     after the online evaluation and checkpoint at 384). Returns the counts of switches and online updates."""
-    real_make_agent = setting_mod.make_agent
+    real_make_agent = recipe_mod.make_agent
     state = {"new_task": 0, "online_updates": 0, "kills": list(kills)}
 
     def killing_agent(*a, **k):
@@ -192,7 +192,7 @@ def _killing_agents(monkeypatch, kills) -> dict:
         agent.new_task, agent.update = new_task, update
         return agent
 
-    monkeypatch.setattr(setting_mod, "make_agent", killing_agent)
+    monkeypatch.setattr(recipe_mod, "make_agent", killing_agent)
     return state
 
 
@@ -237,7 +237,7 @@ def test_a_run_killed_in_its_online_phase_resumes_to_the_records_of_an_uninterru
 
 def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path, monkeypatch):
     seen = {}
-    real_make_agent = setting_mod.make_agent
+    real_make_agent = recipe_mod.make_agent
 
     def watching_agent(*a, **k):
         agent = real_make_agent(*a, **k)
@@ -251,7 +251,7 @@ def test_sac_starts_a_fresh_buffer_on_the_new_task(hopper_file, cache, tmp_path,
         agent.new_task = new_task
         return agent
 
-    monkeypatch.setattr(setting_mod, "make_agent", watching_agent)
+    monkeypatch.setattr(recipe_mod, "make_agent", watching_agent)
     short = ["train.total_frames=128", "transfer.online_frames=128"]
     s = train(_cfg("sac", hopper_file, tmp_path, [*TRANSFER, *short]), progress=False)
     assert seen["before"] == (128, 128) and seen["after"] == (0, 0)
@@ -262,7 +262,7 @@ def test_from_scratch_has_no_offline_phase_and_fits_no_model(hopper_file, cache,
     def no_models(*a, **k):
         raise AssertionError("a from-scratch run without the decoder fits no model")
 
-    monkeypatch.setattr(setting_mod, "fit_or_load_models", no_models)
+    monkeypatch.setattr(recipe_mod, "fit_or_load_models", no_models)
     s = train(_cfg("ppo", hopper_file, tmp_path, [*TRANSFER, "transfer.from_scratch=true"]), progress=False)
     evals = json.loads((Path(s["run_dir"]) / "evals.json").read_text())
     assert [(e["frames"], e["phase"]) for e in evals] == [(0, "online"), (128, "online"), (256, "online")]

@@ -26,7 +26,7 @@ from torchrl_offhrl.recipes.config import model_config, resolve_dataset
 from torchrl_offhrl.recipes.fallback import fit_or_load_bc
 from torchrl_offhrl.recipes.pipeline import DEFAULT_ORIGIN_SHARE, make_real_env
 from torchrl_offhrl.recipes.runs import read_json
-from torchrl_offhrl.recipes.setting import eval_seed
+from torchrl_offhrl.recipes.train import eval_seed
 from torchrl_offhrl.rollouts import evaluate_policy
 from torchrl_offhrl.scores import normalized_score
 

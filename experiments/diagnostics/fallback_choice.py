@@ -30,7 +30,7 @@ from torchrl_offhrl.recipes.evaluation import run_models
 from torchrl_offhrl.recipes.fallback import evaluate_fallback, fit_or_load_bc
 from torchrl_offhrl.recipes.pipeline import DEFAULT_ORIGIN_SHARE, origin_share
 from torchrl_offhrl.recipes.selection import data_return_cap, paired_gain_lcb
-from torchrl_offhrl.recipes.setting import eval_seed
+from torchrl_offhrl.recipes.train import eval_seed
 
 
 def probe(run: Path, bc_seed: str = "data") -> dict:

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 from torchrl_offhrl.recipes.evaluation import load_run_agent, run_models
-from torchrl_offhrl.recipes.setting import eval_seed
+from torchrl_offhrl.recipes.train import eval_seed
 from torchrl_offhrl.rollouts import evaluate_policy, first_episode_mask
 from torchrl_offhrl.utils import load_torch_file
 

@@ -28,7 +28,7 @@ from torchrl_offhrl.models import ConditionalVAE
 from torchrl_offhrl.recipes.evaluation import load_run_agent, run_models
 from torchrl_offhrl.recipes.pipeline import apply_latent_origin, make_real_env
 from torchrl_offhrl.recipes.selection import paired_gain_lcb
-from torchrl_offhrl.recipes.setting import eval_seed
+from torchrl_offhrl.recipes.train import eval_seed
 from torchrl_offhrl.rollouts import evaluate_policy
 from torchrl_offhrl.scores import normalized_score
 

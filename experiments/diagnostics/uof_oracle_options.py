@@ -27,7 +27,7 @@ def evaluate(run: Path, episodes: int) -> dict:
     from torchrl_offhrl.recipes.config import latent_bound
     from torchrl_offhrl.recipes.evaluation import GoalEvaluator, load_run_agent
     from torchrl_offhrl.recipes.pipeline import make_real_env
-    from torchrl_offhrl.recipes.setting import eval_seed
+    from torchrl_offhrl.recipes.train import eval_seed
 
     cfg, env, agent, _state, cvae = load_run_agent(run, num_envs=1, policy="last")
     n_goals = int(env.observation_spec["desired_goal"].shape[-1])  # one flag per goal

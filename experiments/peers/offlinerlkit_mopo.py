@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_offhrl.data import load_dataset
-from torchrl_offhrl.recipes.setting import eval_seed
+from torchrl_offhrl.recipes.train import eval_seed
 from torchrl_offhrl.scores import normalized_score
 from torchrl_offhrl.utils import write_json
 

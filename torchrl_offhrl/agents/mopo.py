@@ -54,7 +54,7 @@ class MOPOAgent(SACAgent):
                  model_retain_rollouts: int = 5, **kwargs):
         if rollout_batch_size is not None and int(rollout_batch_size) != int(env.batch_size.numel()):
             raise ValueError(f"algo.rollout_batch_size={rollout_batch_size}: the model env has {env.batch_size.numel()} envs; the run "
-                             "builds it with that many (recipes.setting), a model env of your own must have as many")
+                             "builds it with that many (recipes.train), a model env of your own must have as many")
         if rollout_freq is not None:
             horizon = getattr(getattr(env, "base_env", env), "horizon", None)
             if horizon is None:

@@ -5,9 +5,9 @@
 * :mod:`.evaluation`: real-env evaluation during training and of saved runs;
 * :mod:`.rundir`: checkpoints, resumption, records and logs of a run;
 * :mod:`.report`: summaries, learning curves, multi-seed aggregation;
-* :mod:`.setting`: what a run is made of (data, models, agent, envs, phases), one builder per setting;
+* :mod:`.train`: ``train(cfg)``, the run read top to bottom, and what it is made of (one builder per setting);
 * :mod:`.loop`: the one training loop, and where its batches come from (a collector on an env, or the dataset);
-* :mod:`.train`: ``train(cfg)``; :mod:`.demo`: the embedded demo.
+* :mod:`.demo`: the embedded demo.
 
 ``from torchrl_offhrl.recipes.train import train`` (not re-exported here: the
 function would shadow its module).

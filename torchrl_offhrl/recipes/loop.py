@@ -8,7 +8,7 @@ new task; or the online phase alone for its from-scratch baseline), an
 online run one (the real env). What differs between settings is in the
 phase (where its batches come from, its budget and evaluator, how it starts)
 and in the setting that builds the phases
-(:func:`~torchrl_offhrl.recipes.setting.build_setting`); the loop itself
+(:func:`~torchrl_offhrl.recipes.train.build_setting`); the loop itself
 has no mode: it updates the agent on every batch, logs, and every ``every``
 steps evaluates, keeps the snapshots asked for, offers the policy to the
 offline policy selection and checkpoints.

@@ -295,7 +295,7 @@ def _batch_seed(seeds: Sequence[int], step: int) -> int:
 
 
 def _model_env_batchable(cfg: Mapping) -> bool:
-    from .setting import ModelEnvSetting, setting_of
+    from .train import ModelEnvSetting, setting_of
 
     return cfg["algo"]["name"] in MODEL_ENV and isinstance(setting_of(cfg), ModelEnvSetting)
 
@@ -328,7 +328,7 @@ def _train_batched_on_model_env(lanes: list[_Lane], remaining: int, evaluation=N
     kind = OffPolicySeedBatch if p.cfg["algo"]["name"] in OFF_POLICY else OnPolicySeedBatch
     batch = kind(agents, generators=[lane.rng for lane in lanes])
     latent = acts_in_latent_space(p.cfg)
-    per_seed = model_env_batch(p.cfg)  # as each run's own model env (recipes.setting)
+    per_seed = model_env_batch(p.cfg)  # as each run's own model env (recipes.train)
     env = make_model_env(p.pcfg, p.ensemble, p.cvae if latent else None, p.data, batch_size=n * per_seed, latent=latent,
                          threshold=lanes[0].r.setting.threshold)  # the runs' own threshold, not calibrated again
     p.add_reward_transforms(agents[0].attach(env))

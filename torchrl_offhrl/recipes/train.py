@@ -23,12 +23,24 @@ itself, act in real actions, and their budget and evaluation period are
 counted in gradient steps (``train.total_updates``, ``eval.every_updates``).
 Their evaluation is the same: same real env, episodes and seeds.
 
-How: :func:`~torchrl_offhrl.recipes.setting.build_setting` builds the
-run's parts (data, models, agent, envs, evaluators) and its phases
-(:mod:`~torchrl_offhrl.recipes.loop`: one offline phase, or the transfer
-setting's offline and online phases); a
-:class:`~torchrl_offhrl.recipes.loop.TrainingLoop` runs each phase; then
-the returned policy (offline policy selection) and the report.
+How, in this module, in reading order: :func:`train` opens the run
+directory, :meth:`PreparedRun.prepare` builds the run and resumes it, a
+:class:`~torchrl_offhrl.recipes.loop.TrainingLoop` runs each phase,
+:meth:`PreparedRun.finish` returns the policy (offline policy selection,
+the guard) and writes the report. What a run is made of comes from
+:func:`build_setting`: the config's *setting* (:func:`setting_of`) is one
+of four, each a class with its own ``build``: :class:`ModelEnvSetting`
+(the paper's: on the composed model env, the block-stacking tasks
+included), :class:`DatasetSetting` (agents that learn from the dataset
+itself), :class:`OnlineSetting` (the real env from scratch) and
+:class:`TransferSetting` (offline, then online on a new task; or its
+online-only baseline). :func:`build_setting` checks the config's
+combination, loads what every setting starts from (:class:`Parts`: the
+data and, where the setting uses them, the models) and hands it to the
+setting, which builds the agent, its envs and evaluators and returns a
+:class:`Setting`: the agent and its phases, plus what the report needs.
+The loop does not know which setting it runs; a new setting is a new class
+in :data:`SETTINGS`.
 
 Nothing here names an algorithm.
 """
@@ -36,23 +48,36 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 
+import torch
+from torchrl.envs import RewardScaling, RewardSum
+
+from ..agents import AGENTS, agent_defaults, goal_conditioned, make_agent, requires_goal
+from ..blockstack import goals as G
+from ..registry import task_of
 from ..utils import checksum_path, save_torch_file, to_plain
-from .config import config_fingerprint, default_run_dir
-from .loop import TrainingLoop
-from .plots import plot_training_metrics
-from .summary import run_summary
+from .config import (RULE_KEYS, acts_in_latent_space, config_fingerprint, data_label, default_run_dir, latent_bound, learns_from_dataset, model_config,
+                     model_env_batch, model_env_config, offline_rules_for, resolve_dataset, resolve_reward_scale, rules_not_used, transfer_config)
+from .evaluation import Evaluator, GoalEvaluator
+from .loop import OfflinePhase, OnlinePhase, Phase, TrainingLoop, dataset_batches, env_collector, model_env_metrics, online_metrics
+from .pipeline import (DEFAULT_ORIGIN_SHARE, apply_latent_origin, fit_or_load_models, make_eval_model_env, make_model_env, make_real_env,
+                       origin_share)
+from .plots import UNIT_LABELS, plot_curve, plot_goal_success, plot_training_metrics, plot_transfer
 from .rundir import RunDirectory
 from .runs import read_json
-from .schema import RunConfig
+from .schema import RunConfig, TransferConfig
 from .selection import PolicySelector, data_return_cap
-from .setting import build_setting
+from .summary import run_summary
 
 TIMING_KEYS = ("frames_per_s", "updates_per_s", "update_time_s", "data_s", "models_s", "total_s")  # a run's summary: what it measured
 
-__all__ = ["PreparedRun", "run_directory", "train"]
+__all__ = [
+    "DatasetSetting", "ModelEnvSetting", "ModelPart", "OnlineSetting", "Parts", "PreparedRun", "SETTINGS", "Setting", "TransferSetting", "build_setting",
+    "eval_seed", "run_directory", "setting_of", "train",
+]
 
 
 def train(cfg: Mapping, progress: bool = True, on_record=None) -> dict:
@@ -215,3 +240,466 @@ class PreparedRun:
         plot_training_metrics(run.path / "logs", run.path / "training_metrics.png", xlabel=s.xlabel)
         s.close()
         return summary
+
+
+# ---- what a run is made of, built from its config: one builder per setting (data, models, agent, envs, phases) -----------
+
+def eval_seed(seed: int) -> int:
+    """The seed of a run's real-env evaluations, from the run's ``seed`` (every evaluation of a run starts from it)."""
+    return int(seed) * 1000 + 7
+
+
+@dataclass
+class Setting:
+    """A run's parts (:func:`build_setting`): the loop runs ``phases`` with ``agent``; the report reads the rest."""
+
+    cfg: dict
+    snapshots: set[int]         # the steps whose agent state is kept for good (train.snapshot_frames)
+    data: object
+    agent: object
+    phases: list[Phase]
+    unit: str                   # "frames" (collected) or "updates" (gradient steps: the dataset agents)
+    title: str                  # the evaluation plots' title
+    env_label: str              # the real env's id, in progress lines
+    selectable: bool            # whether the offline policy selection may pick another policy than the last
+    transfer: TransferConfig | None  # the transfer settings, or None
+    stacking: bool              # a goal-conditioned block-stacking task
+    n_goals: int
+    pessimism: dict | None
+    threshold: float | None
+    reward_scale: float
+    model_info: dict
+    ref: tuple | None
+    t_data: float
+    t_models: float
+    device: torch.device
+    closers: list = field(default_factory=list)  # the real envs to close at the end
+    parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
+    eval_env_for: Callable | None = None  # copies -> one real env holding `copies` evaluations' envs, the agent's transforms appended
+    fallback: Callable | None = None  # () -> (ClonedPolicy, its evaluation record): the guard's percentile BC (recipes.fallback)
+
+    @property
+    def rules(self):
+        """The OfflineRules that set the P-MDP (envs.rules; None: none ran): the run's calibration report."""
+        return None if self.parts is None else self.parts.rules
+
+    def close(self) -> None:
+        for e in self.closers:
+            if e is not None:
+                e.close()
+
+    @property
+    def xlabel(self) -> str:
+        """The x-axis of the run's curves and logs."""
+        return UNIT_LABELS["transfer" if self.transfer else self.unit]
+
+    def plot_curves(self, records: list[dict], folder: Path, behaviour_mean: float | None) -> None:
+        """The run's learning curve (``learning_curve.png``: both phases of a transfer run) and, on a goal-conditioned task, ``success.png``."""
+        algo = self.cfg["algo"]["name"]
+        title = f"{algo} on {self.cfg['env']['env_id']} ({self.cfg['dataset']})"
+        if self.stacking:
+            plot_goal_success([records], folder / "success.png", label=algo, title=title, xlabel=UNIT_LABELS[self.unit])
+        if self.transfer is None:
+            plot_curve([records], folder / "learning_curve.png", label=algo, title=title, behaviour=behaviour_mean, xlabel=UNIT_LABELS[self.unit])
+        else:
+            plot_transfer([records], folder / "learning_curve.png", label=algo, title=f"{title}, then {self.transfer.task} online")
+
+    def summary_extras(self, records: list[dict]) -> dict:
+        """What the setting adds to a run's summary: the data's per-goal success (block stacking), the switch (transfer)."""
+        out = {}
+        if self.stacking and self.data.metadata.get("goal_success"):  # the behaviour data's own per-goal success (its collection's horizon)
+            out["behaviour_success_per_goal"] = [self.data.metadata["goal_success"].get(str(k)) for k in range(self.n_goals)]
+        if self.transfer is not None:
+            out["transfer"] = {**asdict(self.transfer), "switch_frame": self.phases[-1].start}
+            out["offline_final"] = next((r for r in reversed(records) if r.get("phase") == "offline"), None)
+        return out
+
+
+def snapshot_steps(rc: RunConfig, unit: str) -> set[int]:
+    """``train.snapshot_frames`` as a set, checked: each falls on an evaluation and (one-phase runs) within the budget."""
+    snapshots = set(rc.train.snapshot_frames)
+    every, total = rc.eval.every(unit), rc.train.total(unit)
+    if any(x % every for x in snapshots):
+        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: a snapshot is taken at an evaluation, so each must be a multiple of "
+                         f"eval.every_{unit} ({every})")
+    if any(x > total for x in snapshots) and rc.transfer is None:
+        raise ValueError(f"train.snapshot_frames {sorted(snapshots)}: past the budget train.total_{unit}={total}")
+    return snapshots
+
+
+def _check_combination(cfg: dict) -> None:
+    """Refuse the config combinations no setting defines, each with what to do."""
+    algo, env_id = cfg["algo"]["name"], cfg["env"]["env_id"]
+    from_dataset, tcfg, online = learns_from_dataset(cfg), transfer_config(cfg), bool(cfg["train"].get("online", False))
+    ablations = [k for k, v in cfg.get("ablation", {}).items() if v]
+    stacking = task_of(env_id).goal_conditioned
+    if from_dataset and ablations:
+        raise ValueError(f"algo={algo} learns from the dataset itself, with no model env or CVAE: the ablations "
+                         f"{ablations} do not apply to it; leave them false")
+    if from_dataset and tcfg is not None:
+        raise ValueError(f"algo={algo} learns from the dataset itself; the transfer setting fine-tunes online an agent trained "
+                         "on the model env (moc, ppo, sac, ...): leave transfer.task null")
+    if stacking and not goal_conditioned(algo):
+        raise ValueError(f"algo={algo} is not goal-conditioned; on {env_id} use one of {sorted(n for n in AGENTS if goal_conditioned(n))}")
+    if not stacking and requires_goal(algo):
+        raise ValueError(f"algo={algo} acts on the goal-conditioned block-stacking tasks only (env=blockstack2|blockstack3), not {env_id}")
+    if stacking and tcfg is not None:
+        raise ValueError(f"the transfer setting is defined for the locomotion tasks (run backwards), not {env_id}: leave transfer.task null")
+    if online and (from_dataset or tcfg is not None):
+        raise ValueError(f"train.online=true trains an agent that collects (moc, ppo, sac, uof, ...) in the real env from scratch; "
+                         f"{'algo=' + algo + ' learns from the dataset itself' if from_dataset else 'the transfer setting has its own online phase'}: "
+                         "leave train.online false")
+    if online and ablations:
+        raise ValueError(f"train.online=true trains in the real env in real actions, with no models or CVAE: the ablations "
+                         f"{ablations} do not apply to it; leave them false")
+
+
+@dataclass
+class Parts:
+    """What every setting starts from (:func:`build_setting`): the config, the task, the data, the models it uses, timings."""
+
+    cfg: dict
+    rc: RunConfig               # the typed sections of cfg (train, eval, selection, collector, transfer, logger)
+    run_path: Path
+    device: torch.device
+    stacking: bool              # a goal-conditioned block-stacking task (task_of(env_id).goal_conditioned)
+    data: object
+    n_goals: int
+    level: str | None
+    pcfg: dict                  # model_config(cfg); with the env's settings under "env" once resolved (with_model_env)
+    ensemble: object
+    cvae: object
+    model_info: dict
+    t_data: float
+    t_models: float
+    snapshots: set[int]
+    rules: object = None        # the OfflineRules of the model env, once a setting computed them
+    progress: bool = True       # progress bars on long work (fits)
+    fallback: object = None     # the guard's percentile BC, fitted and evaluated on demand (Setting.fallback)
+
+    def with_model_env(self, env: dict, rules=None, resolved: dict | None = None) -> Parts:
+        """New parts whose env settings (``pcfg["env"]``: the reward scale, the model env's horizon, threshold, ...) are
+        ``env``, computed by a setting from these parts; ``rules``: the offline rules that resolved them; ``resolved``: what
+        the run's ``config.json`` keeps of them (``cfg["resolved_model_env"]``, which
+        :func:`~torchrl_offhrl.recipes.config.latent_bound` reads). These parts are left as they are."""
+        cfg = self.cfg if resolved is None else {**self.cfg, "resolved_model_env": resolved}
+        return replace(self, cfg=cfg, pcfg={**self.pcfg, "env": env}, rules=self.rules if rules is None else rules)
+
+    @property
+    def env_id(self) -> str:
+        return self.cfg["env"]["env_id"]
+
+    @property
+    def episodes(self) -> int:
+        return self.rc.eval.episodes
+
+    @property
+    def ref(self) -> tuple | None:
+        ref = (self.data.metadata.get("ref_min_return"), self.data.metadata.get("ref_max_return"))
+        return ref if None not in ref else None
+
+    @property
+    def eval_seed(self) -> int:
+        return eval_seed(self.rc.seed)
+
+    def make_agent(self, env, algo: dict | None = None, latent: bool = True):
+        """The config's agent, built for ``env``'s specs, acting in latent actions (``latent``) or real ones."""
+        stats = self.data.stats()
+        return make_agent((algo or self.cfg["algo"])["name"], env, algo or self.cfg["algo"], obs_loc=stats.obs_mean, obs_scale=stats.obs_std,
+                          action_key="latent_action" if latent else "action", device=self.device, goal_key="sub_goal" if self.stacking else None)
+
+    def eval_real_env(self, cvae, copies: int = 1):
+        """The real env of the evaluations, through ``cvae``'s decoder (or in real actions): per goal ``episodes`` copies on a stacking task.
+
+        ``copies``: that many evaluations' envs in one env, one block after the other (a seeds' batch evaluates its
+        runs together: :class:`~torchrl_offhrl.recipes.evaluation.SeedsEvaluation`)."""
+        bound = latent_bound(self.cfg)
+        if not self.stacking:
+            return make_real_env(self.env_id, cvae, num_envs=self.episodes * copies, latent_bound=bound)
+        goals = [k for _ in range(copies) for k in range(self.n_goals) for _ in range(self.episodes)]
+        return make_real_env(self.env_id, cvae, num_envs=len(goals), latent_bound=bound, goals=goals, max_episode_steps=self.rc.eval.max_steps)
+
+    def add_reward_transforms(self, env):
+        """Returns in the logs (``RewardSum``) and the reward scale the agent learns with; logged and evaluated returns stay unscaled."""
+        env.append_transform(RewardSum())
+        if self.pcfg["env"].get("reward_scale", 1.0) != 1.0:
+            env.append_transform(RewardScaling(loc=0.0, scale=float(self.pcfg["env"]["reward_scale"])))
+        return env
+
+    def evaluator(self, eval_env, model_eval_env=None, task: str | None = None, algo: dict | None = None):
+        """The evaluation of ``eval_env``: per goal on a stacking task (:class:`GoalEvaluator`), else returns (:class:`Evaluator`)."""
+        ev = self.rc.eval
+        if self.stacking:
+            return GoalEvaluator(eval_env, self.env_id, self.episodes, self.n_goals, int(self.pcfg["env"].get("horizon", 25)),
+                                 ev.max_steps, seed=self.eval_seed, model_env=model_eval_env)
+        return Evaluator(eval_env, self.env_id, self.episodes, ev.max_steps, seed=self.eval_seed, ref=self.ref, model_env=model_eval_env,
+                         task=task, gamma=float((algo or self.cfg["algo"]).get("gamma", 0.99)), sampled=ev.sampled)
+
+    def data_name(self) -> str:
+        """The data by name for a progress bar: a file's (or Minari id's) own name, else the generated level (``hopper-medium``)."""
+        label = data_label({"dataset": self.cfg["dataset"], "level": self.level, "env_id": self.env_id})
+        return Path(label).name if "/" in label else label
+
+    def offline_phase(self, evaluator, batches, unit: str, batch_metrics, seed_env, online: bool = False, transfer: bool = False) -> OfflinePhase:
+        """The phase from step 0 (the run's only one, or a transfer run's offline phase, ``"offline"``)."""
+        cfg, rc = self.cfg, self.rc
+        return OfflinePhase(
+            name="offline" if transfer else None, evaluator=evaluator, total=rc.train.total(unit), every=rc.eval.every(unit), batches=batches,
+            desc=f"{cfg['algo']['name']} on " + (f"{cfg['env']['name']} (online)" if online else self.data_name()),
+            final_dir=Path(self.run_path) / "offline" if transfer else Path(self.run_path),  # a transfer run's last files are its online phase's
+            batch_metrics=batch_metrics, seed_env=seed_env, seed=rc.seed, at_start=rc.eval.at_start,
+            done_when="online" if transfer else None,
+        )
+
+    def setting(self, agent, phases: list[Phase], unit: str = "frames", selectable: bool = False,
+                pessimism: dict | None = None, threshold: float | None = None, closers: tuple = (), eval_env_for: Callable | None = None) -> Setting:
+        """The :class:`Setting` of these parts, with what the setting built."""
+        return Setting(
+            cfg=self.cfg, snapshots=self.snapshots, data=self.data, agent=agent, phases=phases, unit=unit,
+            title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, transfer=self.rc.transfer, stacking=self.stacking,
+            n_goals=self.n_goals, pessimism=pessimism, threshold=threshold, reward_scale=self.pcfg["env"].get("reward_scale", 1.0),
+            model_info=self.model_info, ref=self.ref, t_data=self.t_data, t_models=self.t_models, device=self.device, closers=list(closers),
+            eval_env_for=eval_env_for, fallback=self.fallback if selectable else None, parts=self,
+        )
+
+
+def _fallback(p: Parts, evaluator, threshold: float) -> Callable:
+    """``() -> (policy, record)``: the guard's percentile BC of the episodes the latent origin clones (all of them with
+    ``latent_origin: behaviour``, the default share otherwise), fitted or loaded and evaluated as ``evaluator`` evaluates the agent."""
+    from ..models import ClonedPolicy
+    from .fallback import evaluate_fallback, fit_or_load_bc
+
+    share = origin_share(p.pcfg["env"]) or DEFAULT_ORIGIN_SHARE
+
+    def run():
+        bc = fit_or_load_bc(p.pcfg, p.data, p.model_info.get("model_dir"), share, p.rc.seed, progress=p.progress)
+        record = evaluate_fallback(bc, evaluator.env_id, evaluator.episodes, evaluator.max_steps, evaluator.seed, p.pcfg, p.ensemble, p.data, threshold,
+                                   model_episodes=evaluator.model_env.batch_size.numel(), ref=evaluator.ref, gamma=evaluator.gamma,
+                                   device=p.device)  # only built with a model eval env (ModelEnvSetting)
+        return ClonedPolicy(bc), {**record, "share": share}
+
+    return run
+
+
+class ModelEnvSetting:
+    """The paper's setting: the agent trains on ``TransformedEnv(PessimisticModelEnv, LatentActionTransform)`` (real actions
+    with ``ablation.no_cvae``), evaluated in the real env and in the model; its returned policy is chosen offline
+    (``selection.criterion``). The block-stacking tasks too: goals and rewards on the predicted states, per-goal evaluation."""
+
+    unit = "frames"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return True  # what is left when no other setting applies
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        return True
+
+    @staticmethod
+    def model_part(p: Parts, transfer: bool = False) -> ModelPart:
+        """The model env's agent and its offline phase, on new parts with the model env's settings resolved."""
+        cfg, latent = p.cfg, acts_in_latent_space(p.cfg)
+        cvae = p.cvae if latent else None
+        # the offline rules: every `auto` setting of the P-MDP from the data and the fitted models (envs.rules; the calibration report)
+        rules = offline_rules_for(cfg, p.data, p.ensemble, cvae)
+        env_settings, pess = model_env_config(cfg, p.level, p.data, rules=rules)
+        not_used = rules_not_used(cfg, env_settings, rules) if rules is not None else None
+        if not_used:  # the calibration report says which of the rules' values this run sets otherwise (none: nothing added)
+            rules.info["not_used"] = not_used
+        # the run's config.json keeps what the rules resolved
+        p = p.with_model_env(env_settings, rules=rules, resolved={k: env_settings[k] for k in RULE_KEYS if k in env_settings})
+        if cvae is not None:  # model_env.latent_origin: where an agent's latent 0 decodes to (best: the best episodes' action at each state)
+            _, origin_info = apply_latent_origin(p.pcfg, p.data, cvae, p.model_info.get("model_dir"), progress=p.progress)
+            if origin_info is not None and rules is not None:  # in the calibration report
+                rules.info["latent_origin"] = origin_info
+        env = make_model_env(p.pcfg, p.ensemble, cvae, p.data, batch_size=model_env_batch(cfg), latent=latent)
+        threshold = env.base_env.threshold
+        agent = p.make_agent(env, latent=latent)
+        p.add_reward_transforms(agent.attach(env))
+        agent.use_dataset(p.data, float(p.pcfg["env"].get("reward_scale", 1.0)))  # the rewards as the env's transforms scale them
+        eval_env = agent.attach(p.eval_real_env(cvae))  # after the agent: its spec check draws from the RNG, and the agent's initial weights must not move
+        model_eval_env = None
+        if p.rc.eval.model_env:  # the same evaluation in the model: the model-real gap
+            # the real env's start states, whatever training uses; every member rolls out the same number of episodes (the LCB over members)
+            # episodes as long as the real env's (eval.max_steps), whatever the training horizon: the model's verdict on a policy is
+            # only as long as its episodes, and the guard compares whole episodes (recipes.selection)
+            model_eval_env = agent.attach(make_eval_model_env(p.pcfg, p.ensemble, cvae, p.data, p.rc.eval.model_episodes or p.episodes,
+                                                              p.rc.eval.max_steps, threshold, latent=latent))
+        evaluator = p.evaluator(eval_env, model_eval_env, task="forward" if transfer else None)
+        if model_eval_env is not None and not p.stacking and not transfer and p.rc.selection.fallback != "start":
+            p = replace(p, fallback=_fallback(p, evaluator, threshold))
+        phase = p.offline_phase(evaluator, lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
+                                "frames", model_env_metrics, env, transfer=transfer)
+        # offline policy selection needs the model env's evaluation; block stacking returns its last policy
+        return ModelPart(p, agent, phase, eval_env, pess, threshold, model_eval_env is not None and not p.stacking)
+
+    def build(self, p: Parts) -> Setting:
+        m = self.model_part(p)
+        cvae = m.parts.cvae if acts_in_latent_space(m.parts.cfg) else None
+        return m.parts.setting(m.agent, [m.phase], selectable=m.selectable, pessimism=m.pessimism, threshold=m.threshold, closers=(m.eval_env,),
+                               eval_env_for=lambda copies: m.agent.attach(m.parts.eval_real_env(cvae, copies)))
+
+
+@dataclass
+class ModelPart:
+    """What :meth:`ModelEnvSetting.model_part` builds: the parts with the model env's settings resolved, the agent, its
+    offline phase, its real evaluation env, the resolved pessimism and threshold, and whether the returned policy may be
+    selected offline (the model env's evaluation ran)."""
+
+    parts: Parts
+    agent: object
+    phase: OfflinePhase
+    eval_env: object
+    pessimism: dict | None
+    threshold: float
+    selectable: bool
+
+
+class DatasetSetting:
+    """Model-free offline agents (``data_source = "dataset"``: IQL, CQL, TD3+BC, BC): minibatches of the dataset, real
+    actions, budget and evaluation period in gradient steps; no models, no model env; the last policy is returned."""
+
+    unit = "updates"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return learns_from_dataset(cfg)
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        return False
+
+    def build(self, p: Parts) -> Setting:
+        algo, env_settings = p.cfg["algo"], {}
+        if "reward_scale" in agent_defaults(algo["name"]):  # the rewards it learns from: a number, or a name resolved from the data
+            algo = {**algo, "reward_scale": resolve_reward_scale(algo.get("reward_scale", 1.0), p.data, float(algo.get("gamma", 0.99)))}
+            env_settings["reward_scale"] = algo["reward_scale"]
+        p = p.with_model_env(env_settings)
+        eval_env = p.eval_real_env(None)  # the env whose specs the agent is built for
+        agent = p.make_agent(eval_env, algo, latent=acts_in_latent_space(p.cfg))
+        agent.attach(eval_env)
+        # the sampling continues from the run's restored RNG state
+        phase = p.offline_phase(p.evaluator(eval_env, algo=algo), lambda remaining, frames_done: dataset_batches(p.data, agent, remaining, device=p.device),
+                                self.unit, None, None)
+        return p.setting(agent, [phase], unit=self.unit, closers=(eval_env,),
+                         eval_env_for=lambda copies: agent.attach(p.eval_real_env(None, copies)))
+
+
+class OnlineSetting:
+    """``train.online``: the agent trains in the real env from scratch, in real actions (no models, no CVAE); the dataset
+    gives only the input statistics and the reward scale. The paper's route to its block-stacking data."""
+
+    unit = "frames"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return bool(cfg["train"].get("online", False))
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        return False
+
+    def build(self, p: Parts) -> Setting:
+        cfg = p.cfg
+        settings, _ = model_env_config(cfg, p.level, p.data)  # the reward scale the agent learns with (resolved as on the model env) and the horizon
+        env_settings = {k: settings[k] for k in ("reward_scale", "horizon") if k in settings}
+        if p.stacking:  # goals drawn by the env at each reset
+            env_settings.setdefault("horizon", 25)
+        p = p.with_model_env(env_settings)
+        env = make_real_env(p.env_id, None, num_envs=p.rc.collector.num_envs,
+                            **({"max_episode_steps": int(p.pcfg["env"]["horizon"])} if p.stacking else {}))
+        agent = p.make_agent(env, latent=False)
+        p.add_reward_transforms(agent.attach(env))
+        eval_env = agent.attach(p.eval_real_env(None))
+        phase = p.offline_phase(p.evaluator(eval_env), lambda remaining, frames_done: env_collector(env, agent, remaining, frames_done=frames_done, device=p.device),
+                                "frames", online_metrics, env, online=True)
+        return p.setting(agent, [phase], closers=(eval_env,))
+
+
+class TransferSetting:
+    """The paper's second setting (``transfer.task``): the model env's offline phase, then online fine-tuning in the real
+    env on a new task, one x-axis of frames; ``transfer.from_scratch``: the online phase alone (the baseline)."""
+
+    unit = "frames"
+
+    @staticmethod
+    def applies(cfg: dict) -> bool:
+        return transfer_config(cfg) is not None
+
+    @staticmethod
+    def needs_models(cfg: dict) -> bool:
+        tcfg = transfer_config(cfg)  # from scratch without the decoder: no model
+        return not tcfg["from_scratch"] or (acts_in_latent_space(cfg) and tcfg["decoder"] == "keep")
+
+    def build(self, p: Parts) -> Setting:
+        cfg, tcfg = p.cfg, p.rc.transfer
+        latent = acts_in_latent_space(cfg)
+        keep_decoder = latent and tcfg.decoder == "keep"
+
+        def real_env(num_envs: int):  # the real env of the online phase, on the new task, in the action space the agent acts in
+            # (`p`: the parts as resolved below, whose config holds the latent box the offline rules chose)
+            return make_real_env(p.env_id, p.cvae if keep_decoder else None, num_envs=num_envs, latent_bound=latent_bound(p.cfg), task=tcfg.task,
+                                 discard_decoder=latent and not keep_decoder)
+
+        phases, eval_env, pess, threshold = [], None, None, None
+        if not tcfg.from_scratch:
+            m = ModelEnvSetting.model_part(p, transfer=True)
+            p, agent, eval_env, pess, threshold = m.parts, m.agent, m.eval_env, m.pessimism, m.threshold
+            phases.append(m.phase)
+            with torch.random.fork_rng():  # the offline phase of a transfer run is the offline run of the same seed, draw for draw
+                online_env = p.add_reward_transforms(agent.attach(real_env(tcfg.num_envs)))
+                online_eval_env = agent.attach(real_env(p.episodes))
+        else:  # the agent is built for the real env it trains in; no P-MDP
+            p = p.with_model_env(model_env_config(cfg, p.level, p.data)[0])  # the reward scale it learns with
+            online_env = real_env(tcfg.num_envs)
+            agent = p.make_agent(online_env, latent=latent)
+            p.add_reward_transforms(agent.attach(online_env))
+            with torch.random.fork_rng():
+                online_eval_env = agent.attach(real_env(p.episodes))
+        online_evaluator = Evaluator(online_eval_env, p.env_id, p.episodes, p.rc.eval.max_steps, seed=p.eval_seed, ref=p.ref, task=tcfg.task)
+        # random actions only for a run from scratch: after the offline phase frames_done > 0, and the agent acts from the start
+        phases.append(OnlinePhase(
+            name="online", evaluator=online_evaluator, total=tcfg.online_frames, every=tcfg.eval_every_frames,
+            batches=lambda remaining, frames_done: env_collector(online_env, agent, remaining, frames_done=frames_done, device=p.device),
+            desc=f"{cfg['algo']['name']} on {cfg['env']['name']} ({tcfg.task}, online)", final_dir=Path(p.run_path),
+            batch_metrics=online_metrics, seed_env=online_env, seed=p.rc.seed, selects=False, new_task=not tcfg.from_scratch,
+        ))
+        return p.setting(agent, phases, pessimism=pess, threshold=threshold, closers=(eval_env, online_eval_env, online_env))
+
+
+#: the settings a run can be, the first whose ``applies(cfg)`` holds is built (the model env's is the default)
+SETTINGS = (DatasetSetting(), TransferSetting(), OnlineSetting(), ModelEnvSetting())
+
+
+def setting_of(cfg: dict):
+    """The setting of a config (after refusing the combinations none defines)."""
+    _check_combination(cfg)
+    return next(s for s in SETTINGS if s.applies(cfg))
+
+
+def build_setting(cfg: dict, run_path: Path, t_start: float, progress: bool = True, rc: RunConfig | None = None) -> Setting:
+    """The :class:`Setting` of a config: data, models, agent, envs, evaluators and phases; files of the last
+    evaluation go to ``run_path``. ``t_start``: the run's start (the data and model timings). ``rc``: the config's
+    typed sections when the caller parsed them already (:meth:`RunConfig.parse`, which validates ``cfg``)."""
+    rc = RunConfig.parse(cfg) if rc is None else rc
+    kind = setting_of(cfg)
+    torch.manual_seed(rc.seed)
+    snapshots = snapshot_steps(rc, kind.unit)  # a bad value named before any data or model work
+    data = resolve_dataset(cfg)  # one dataset for every training seed (its own seed is dataset_seed)
+    stacking = task_of(cfg["env"]["env_id"]).goal_conditioned
+    n_goals = G.n_goals(G.check_blocks(G.blocks_for_obs_dim(data.observation_dim))) if stacking else 0
+    t_data = time.time() - t_start
+    pcfg = model_config(cfg)
+    ensemble = cvae = None
+    model_info = {"model_dir": None}
+    if kind.needs_models(cfg):
+        ensemble, cvae, model_info = fit_or_load_models(pcfg, data, progress=progress)  # at fit_threads threads
+    t_models = time.time() - t_start - t_data
+    if cfg.get("torch_threads"):
+        torch.set_num_threads(int(cfg["torch_threads"]))
+    torch.manual_seed(rc.seed)  # the agent's initial weights do not depend on whether the models were fitted or loaded
+    parts = Parts(cfg=cfg, rc=rc, run_path=Path(run_path), device=torch.device(cfg.get("device", "cpu")), stacking=stacking, data=data, n_goals=n_goals,
+                  level=data.metadata.get("level"), pcfg=pcfg, ensemble=ensemble, cvae=cvae, model_info=model_info, t_data=t_data, t_models=t_models,
+                  snapshots=snapshots, progress=progress)
+    return kind.build(parts)  # the setting keeps the parts it resolved (Setting.parts)
