@@ -1,9 +1,13 @@
 """Offline training on the pessimistic model env, for any registered agent: the steps of ``offhrl train``, in order.
 
+The model env's three settings run through this one script (the dataset agents through examples/offline_baseline.py):
+
     python examples/offline_train.py algo=moc env=hopper dataset=medium
     python examples/offline_train.py algo=ppo env=hopper dataset=/data/hopper_medium.hdf5
     python examples/offline_train.py algo=sac env=halfcheetah dataset=medium-expert seed=1
     python examples/offline_train.py algo=moc ablation.no_cvae=true      # the paper's ablations
+    python examples/offline_train.py algo=moc transfer.task=backward     # transfer: offline, then online on the backward task
+    python examples/offline_train.py algo=uof env=blockstack2 dataset=medium-expert   # goal-conditioned block stacking
 
 config -> data -> models -> offline rules (calibration report) -> latent origin -> composed env -> agent -> loop -> returned
 policy -> report. Every algorithm trains on the same TransformedEnv(PessimisticModelEnv, LatentActionTransform); only the
