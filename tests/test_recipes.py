@@ -1,5 +1,6 @@
 """The SAC / PPO / MOC offline recipes end to end on tiny settings, resumption, aggregation."""
 import json
+import math
 import os
 import re
 import subprocess
@@ -806,6 +807,17 @@ def test_mopo_trains_end_to_end_with_the_dataset_in_its_minibatches(hopper_file,
     run = Path(summary["run_dir"])
     assert run.name.startswith("mopo-hopper-hopper_random-") and run.name.endswith("-no_cvae-no_pessimism-seed0")
     assert summary["updates"] > 0 and summary["final"]["return_mean"] > 0
+    # `offhrl evaluate` rebuilds the agent to act in the real env, whose envs are not MOPO's rollout batch: its schedule's
+    # keys are left out (Agent.training_only_keys) and the last policy acts as it did in the run's final evaluation
+    from torchrl_offhrl.recipes.evaluation import evaluate_run, load_run_agent
+
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["algo"]["rollout_batch_size"] != 3 and cfg["algo"]["rollout_freq"] is not None
+    _, env, agent, state, _ = load_run_agent(run, num_envs=3, policy="last")
+    env.close()
+    assert type(agent).__name__ == "MOPOAgent" and state["frames"] == summary["frames"]
+    again = evaluate_run(run, episodes=2, policy="last")
+    assert math.isfinite(again["return_mean"])
 
 
 @pytest.mark.fault("resume")

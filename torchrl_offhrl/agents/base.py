@@ -141,6 +141,10 @@ class Agent:
     replay_buffer: Any = None
     #: files :meth:`save_evaluation` writes into the run directory (the loop re-evaluates when one is missing)
     evaluation_files: tuple[str, ...] = ()
+    #: config keys that only shape how the agent collects and trains on its env (a rollout schedule tied to the model
+    #: env's size): left out when a finished run's agent is rebuilt to act in the real env
+    #: (:func:`~torchrl_offhrl.recipes.evaluation.load_run_agent`); its policy and state load the same
+    training_only_keys: tuple[str, ...] = ()
     #: run the loss through ``torch.compile`` (:meth:`loss_fn`): a speed switch, the same computation. ``False``
     #: or a ``torch.compile`` mode (``True`` is ``"default"``; ``"reduce-overhead"`` adds CUDA graphs on a GPU)
     compile: bool | str = False

@@ -47,6 +47,9 @@ class MOPOAgent(SACAgent):
     the start.
     """
 
+    #: MOPO's rollout schedule is the model env's (its envs are the rollout batch, its horizon the rollout length): an
+    #: agent rebuilt to act in the real env (``offhrl evaluate``) takes SAC's schedule, which only collection reads
+    training_only_keys = ("rollout_freq", "rollout_batch_size", "model_retain_rollouts")
     #: the transition entries the SAC loss reads, taken from both sources
     TRANSITION_KEYS = ("observation", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"))
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from ..agents import make_agent
+from ..agents import agent_class, make_agent
 from ..registry import task_of
 from ..models import ClonedPolicy, ConditionalVAE
 from ..rollouts import evaluate_policy, first_episode_mask
@@ -377,6 +377,8 @@ def load_run_agent(run_dir, num_envs: int = 1, policy: str = "last"):
     if isinstance(algo.get("reward_scale"), str):  # a name resolved from the data at training time (e.g. IQL's return_range)
         algo["reward_scale"] = float(cfg.get("resolved_reward_scale") or 1.0)
     goal_key = "sub_goal" if task_of(env_id).goal_conditioned else None  # as the loop built it
+    # built to act in the real env, not to collect on the model env: its training schedule's keys are left out (MOPO's)
+    algo = {k: v for k, v in algo.items() if k not in agent_class(algo["name"]).training_only_keys}
     agent = make_agent(algo["name"], env, algo, action_key="latent_action" if latent else "action", goal_key=goal_key)
     agent.attach(env)
     if policy not in ("last", "selected"):

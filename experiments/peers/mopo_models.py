@@ -1,0 +1,168 @@
+"""Our MOPO model and OfflineRL-Kit's, fitted on the same data: how wrong each is where it matters, and whether MOPO's
+penalty says so (issue 72).
+
+    python experiments/peers/mopo_models.py --ours CACHE/models/<id>/ensemble.pt \\
+        [--kit-checkout PATH/TO/OfflineRL-Kit --kit-model DIR] [--run RUN_DIR] [--env hopper] [--transitions 20000] \\
+        [--seed 99] [--episodes 30] [--out FILE.json]
+
+``--ours``: our Gaussian ensemble (``algo=mopo``'s, ``ensemble.loss=nll``, elites kept); ``--kit-model``: the folder
+where the kit saved its dynamics (``dynamics.pth``, ``mu.npy``, ``std.npy``: ``<kit>/<dataset>/dynamics/`` as
+``mopo_side_by_side.py`` keeps it), rebuilt with the kit's own classes and its ``run_mopo.py`` defaults (7 members of
+4 x 200, 5 elites), imported from ``--kit-checkout``, nothing copied. Each model is scored on real transitions neither
+saw (a simulator is fine here: the question is asked while building the library, not by a user):
+
+* ``behaviour``: fresh ``medium`` transitions of ``--env`` from dataset seed ``--seed`` (no training set used it);
+* ``policy``: the real transitions of a trained policy (``--run``: a run's last policy, rolled out for ``--episodes``
+  first episodes in the real env), the states the policy leads to, where a MOPO policy that exploits its model goes.
+
+Per model and set it prints: the error of the elites' mean next state (L2 norm, the state's units), MOPO's penalty
+(the largest L2 norm over the elites of the predicted standard deviation of state and reward: the kit's ``aleatoric``
+mode, our ``model_env.discrepancy=aleatoric``), their rank correlation (Spearman), the share of transitions whose
+error exceeds the penalty, the reward's real mean with the elites' mean prediction's bias and absolute error, and on Hopper the share of the real falls (a next state the task ends on) that the elites'
+mean also predicts as a fall: a model that does not predict the falls keeps a falling policy up in its rollouts.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchrl_offhrl.envs import termination_fn_for
+from torchrl_offhrl.utils import write_json
+
+
+def _ours(path: str):
+    from torchrl_offhrl.models import DynamicsEnsemble
+
+    model = DynamicsEnsemble.load(path)
+
+    @torch.no_grad()
+    def predict(obs: torch.Tensor, act: torch.Tensor):
+        out = model.predict(obs, act, chunk=4096)
+        if out["std"] is None:
+            raise SystemExit(f"{path}: not a Gaussian ensemble (fitted with ensemble.loss={model.loss_type}); MOPO's penalty needs loss=nll")
+        return out["next_observation"], out["reward"], out["std"]
+
+    return predict
+
+
+def _kit(checkout: str, folder: str, obs_dim: int, act_dim: int):
+    sys.path.insert(0, str(Path(checkout).resolve()))
+    from offlinerlkit.modules import EnsembleDynamicsModel
+    from offlinerlkit.utils.scaler import StandardScaler
+
+    model = EnsembleDynamicsModel(obs_dim=obs_dim, action_dim=act_dim, hidden_dims=[200, 200, 200, 200], num_ensemble=7, num_elites=5,
+                                  weight_decays=[2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4], device="cpu")
+    model.load_state_dict(torch.load(Path(folder) / "dynamics.pth", map_location="cpu"))
+    model.eval()
+    scaler = StandardScaler()
+    scaler.load_scaler(folder)
+    elites = model.elites.data.cpu().long()
+
+    @torch.no_grad()
+    def predict(obs: torch.Tensor, act: torch.Tensor):
+        x = scaler.transform(np.concatenate([obs.numpy(), act.numpy()], -1))
+        mean, logvar = model(x)  # [E, N, obs + 1]: the state's change and the reward, raw units
+        mean, std = mean[elites].cpu(), (0.5 * logvar[elites]).exp().cpu()
+        return obs + mean[..., :-1], mean[..., -1], std
+
+    return predict
+
+
+def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
+    ra, rb = a.argsort().argsort().double(), b.argsort().argsort().double()
+    return float(torch.corrcoef(torch.stack([ra, rb]))[0, 1])
+
+
+def score(predict, obs, act, next_obs, reward, terminated, env_id: str) -> dict:
+    """The numbers of one model on one set of real transitions (see the module's docstring)."""
+    pred_next, pred_reward, std = predict(obs, act)
+    mean_next = pred_next.mean(0)
+    err = (mean_next - next_obs).norm(dim=-1)
+    pen = std.norm(dim=-1).amax(0)
+    r_err = pred_reward.mean(0) - reward
+    out = {"transitions": int(obs.shape[0]), "error_mean": float(err.mean()), "error_q90": float(err.quantile(0.9)),
+           "reward_bias": float(r_err.mean()), "reward_abs_error": float(r_err.abs().mean()), "reward_mean": float(reward.mean()),
+           "penalty_mean": float(pen.mean()), "penalty_q90": float(pen.quantile(0.9)), "spearman": _spearman(err, pen),
+           "error_above_penalty": float((err > pen).double().mean())}
+    falls = terminated.bool()
+    if falls.any():
+        predicted = termination_fn_for(env_id)(mean_next)
+        out.update(real_falls=int(falls.sum()), falls_predicted=float(predicted[falls].double().mean()),
+                   false_falls=float(predicted[~falls].double().mean()))
+    return out
+
+
+def behaviour_set(env: str, n: int, seed: int):
+    from torchrl_offhrl.data import generate_dataset
+
+    data = generate_dataset(env, "medium", num_transitions=n, seed=seed, progress=False)
+    td = data.data
+    return (td["observation"], td["action"], td["next", "observation"], td["next", "reward"].reshape(-1), td["next", "terminated"].reshape(-1),
+            data.metadata.get("env_id"))
+
+
+def policy_set(run: str, episodes: int):
+    from torchrl_offhrl.recipes.evaluation import load_run_agent
+    from torchrl_offhrl.rollouts import evaluate_policy, first_episode_mask
+
+    cfg, env, agent, _, _ = load_run_agent(run, num_envs=episodes, policy="last")
+    returns, ro = evaluate_policy(env, agent.eval_policy, episodes, max_steps=1000, seed=12345, return_rollout=True)
+    alive = first_episode_mask(ro["next", "done"].reshape(episodes, -1))
+    obs, act = ro["observation"][alive], ro["action"][alive]
+    env.close()
+    return (obs, act, ro["next", "observation"][alive], ro["next", "reward"].reshape(episodes, -1)[alive],
+            ro["next", "terminated"].reshape(episodes, -1)[alive], cfg["env"]["env_id"], returns)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--ours", required=True)
+    p.add_argument("--kit-checkout")
+    p.add_argument("--kit-model")
+    p.add_argument("--run")
+    p.add_argument("--env", default="hopper")
+    p.add_argument("--transitions", type=int, default=20000)
+    p.add_argument("--seed", type=int, default=99)
+    p.add_argument("--episodes", type=int, default=30)
+    p.add_argument("--out")
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+    sets = {}
+    obs, act, nxt, rew, term, env_id = behaviour_set(a.env, a.transitions, a.seed)
+    sets["behaviour"] = (obs, act, nxt, rew, term)
+    result = {"env_id": env_id, "sets": {"behaviour": f"{a.transitions} fresh medium transitions, dataset seed {a.seed}"}, "models": {}}
+    if a.run:
+        obs_p, act_p, nxt_p, rew_p, term_p, _, returns = policy_set(a.run, a.episodes)
+        sets["policy"] = (obs_p, act_p, nxt_p, rew_p, term_p)
+        result["sets"]["policy"] = f"{a.run}: last policy, {a.episodes} first episodes, mean return {float(returns.mean()):.1f}"
+    models = {"ours": _ours(a.ours)}
+    if a.kit_model:
+        if not a.kit_checkout:
+            raise SystemExit("--kit-model needs --kit-checkout (the kit's classes rebuild its model)")
+        models["kit"] = _kit(a.kit_checkout, a.kit_model, obs.shape[-1], act.shape[-1])
+    print("| model | set | transitions | state error (mean, q90) | penalty (mean, q90) | Spearman | error > penalty | reward: real mean, "
+          "model bias, abs error | real falls predicted | false falls |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for m, predict in models.items():
+        result["models"][m] = {}
+        for s, (o, ac, n, rw, t) in sets.items():
+            r = score(predict, o, ac, n, rw, t, env_id)
+            result["models"][m][s] = r
+            falls = f"{r['falls_predicted']:.2f} of {r['real_falls']}" if "real_falls" in r else "n/a"
+            false = f"{r['false_falls']:.3f}" if "false_falls" in r else "n/a"
+            print(f"| {m} | {s} | {r['transitions']} | {r['error_mean']:.3f}, {r['error_q90']:.3f} | {r['penalty_mean']:.3f}, {r['penalty_q90']:.3f} | "
+                  f"{r['spearman']:.2f} | {r['error_above_penalty']:.2f} | {r['reward_mean']:.2f}, {r['reward_bias']:+.3f}, "
+                  f"{r['reward_abs_error']:.3f} | {falls} | {false} |", flush=True)
+    for k, v in result["sets"].items():
+        print(f"{k}: {v}")
+    if a.out:
+        write_json(a.out, result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
