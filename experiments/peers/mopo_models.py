@@ -19,7 +19,9 @@ Per model and set it prints: the error of the elites' mean next state (L2 norm, 
 (the largest L2 norm over the elites of the predicted standard deviation of state and reward: the kit's ``aleatoric``
 mode, our ``model_env.discrepancy=aleatoric``), their rank correlation (Spearman), the share of transitions whose
 error exceeds the penalty, the reward's real mean with the elites' mean prediction's bias and absolute error, and on Hopper the share of the real falls (a next state the task ends on) that the elites'
-mean also predicts as a fall: a model that does not predict the falls keeps a falling policy up in its rollouts.
+mean also predicts as a fall: a model that does not predict the falls keeps a falling policy up in its rollouts. With
+``--run``, last, the policy closed loop in each model from the real episodes' start states (the elites' mean state and
+reward each step, the task's termination): how long the model keeps up what the real env lets fall.
 """
 from __future__ import annotations
 
@@ -114,8 +116,34 @@ def policy_set(run: str, episodes: int):
     alive = first_episode_mask(ro["next", "done"].reshape(episodes, -1))
     obs, act = ro["observation"][alive], ro["action"][alive]
     env.close()
+    lengths = alive.sum(1)
+    start = ro["observation"].reshape(episodes, -1, obs.shape[-1])[:, 0]
     return (obs, act, ro["next", "observation"][alive], ro["next", "reward"].reshape(episodes, -1)[alive],
-            ro["next", "terminated"].reshape(episodes, -1)[alive], cfg["env"]["env_id"], returns)
+            ro["next", "terminated"].reshape(episodes, -1)[alive], cfg["env"]["env_id"], returns, (agent.eval_policy, start, lengths))
+
+
+@torch.no_grad()
+def closed_loop(predict, policy, start: torch.Tensor, env_id: str, steps: int = 1000) -> dict:
+    """The policy rolled out in the model from the real episodes' start states: each step the elites' mean next state and
+    reward (no sampling), ended where the task's termination says; the lengths and returns, per episode."""
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    term = termination_fn_for(env_id)
+    obs, n = start.clone(), start.shape[0]
+    alive, length, ret = torch.ones(n, dtype=torch.bool), torch.zeros(n, dtype=torch.long), torch.zeros(n, dtype=torch.float64)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(steps):
+            act = policy(TensorDict(observation=obs, batch_size=[n]))["action"]
+            nxt, rew, _ = predict(obs, act)
+            nxt, rew = nxt.mean(0), rew.mean(0)
+            length += alive.long()
+            ret += torch.where(alive, rew.double(), torch.zeros_like(ret))
+            alive = alive & ~term(nxt)
+            if not alive.any():
+                break
+            obs = nxt
+    return {"lengths": length.tolist(), "returns": [round(float(r), 1) for r in ret]}
 
 
 def main(argv=None) -> int:
@@ -136,7 +164,8 @@ def main(argv=None) -> int:
     sets["behaviour"] = (obs, act, nxt, rew, term)
     result = {"env_id": env_id, "sets": {"behaviour": f"{a.transitions} fresh medium transitions, dataset seed {a.seed}"}, "models": {}}
     if a.run:
-        obs_p, act_p, nxt_p, rew_p, term_p, _, returns = policy_set(a.run, a.episodes)
+        obs_p, act_p, nxt_p, rew_p, term_p, _, returns, (policy, start, lengths) = policy_set(a.run, a.episodes)
+        result["real_episodes"] = {"lengths": lengths.tolist(), "returns": [round(float(r), 1) for r in returns]}
         sets["policy"] = (obs_p, act_p, nxt_p, rew_p, term_p)
         result["sets"]["policy"] = f"{a.run}: last policy, {a.episodes} first episodes, mean return {float(returns.mean()):.1f}"
     models = {"ours": _ours(a.ours)}
@@ -159,6 +188,17 @@ def main(argv=None) -> int:
                   f"{r['reward_abs_error']:.3f} | {falls} | {false} |", flush=True)
     for k, v in result["sets"].items():
         print(f"{k}: {v}")
+    if a.run:
+        real = result["real_episodes"]
+        print(f"\nthe last policy from the real episodes' start states, closed loop (elites' mean, no sampling): episode length and return")
+        print(f"| where | length, median [min, max] | return, median |")
+        print("|---|---|---|")
+        med = lambda xs: float(np.median(xs))
+        print(f"| real env | {med(real['lengths']):.0f} [{min(real['lengths'])}, {max(real['lengths'])}] | {med(real['returns']):.1f} |")
+        for m, predict in models.items():
+            c = closed_loop(predict, policy, start, env_id)
+            result["models"][m]["closed_loop"] = c
+            print(f"| {m}'s model | {med(c['lengths']):.0f} [{min(c['lengths'])}, {max(c['lengths'])}] | {med(c['returns']):.1f} |", flush=True)
     if a.out:
         write_json(a.out, result)
     return 0
