@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 from importlib import import_module
 from pathlib import Path
 
@@ -334,6 +335,8 @@ def test_online_uof_trains_in_the_real_env_and_its_shipped_policy_collects(stack
     assert cfg["model_dir"] is None and cfg["resolved_pessimism"] is None and not (tmp_path / "cache" / "models").exists()
     assert [e["step"] for e in json.loads((run / "evals.json").read_text())] == [0, 400, 800]
     assert (run / "snapshot-400.pt").is_file() and not (run / "snapshot-800.pt").exists()
+    from torchrl_offhrl.recipes.evaluation import evaluate_run  # `offhrl evaluate`: an online run acts in real actions, no decoder
+    assert math.isfinite(evaluate_run(run, episodes=2, policy="last")["return_mean"])
     snap = torch.load(run / "snapshot-400.pt", weights_only=False)
 
     pt = ship_uof_policy(run, 400, name="bs2-test", dest=tmp_path / "pol")

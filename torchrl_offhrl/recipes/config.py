@@ -356,8 +356,11 @@ def learns_from_dataset(cfg: Mapping) -> bool:
 
 
 def acts_in_latent_space(cfg: Mapping) -> bool:
-    """Whether the config's agent acts through the CVAE decoder: model-env agents unless ``ablation.no_cvae``; never a dataset agent."""
-    return not cfg.get("ablation", {}).get("no_cvae", False) and not learns_from_dataset(cfg)
+    """Whether the config's agent acts through the CVAE decoder: model-env agents unless ``ablation.no_cvae``; never a dataset
+    agent, nor one trained online in the real env from scratch (``train.online``: real actions, no models)."""
+    if cfg.get("ablation", {}).get("no_cvae", False) or learns_from_dataset(cfg):
+        return False
+    return not bool((cfg.get("train") or {}).get("online", False))
 
 
 def transfer_config(cfg: Mapping) -> dict | None:
