@@ -198,3 +198,26 @@ def test_our_side_runs_only_the_seeds_not_yet_archived(tmp_path, monkeypatch):
     sbs.run(tmp_path / "no-kit-needed", ["hopper-medium"], [4, 5], "ours", tmp_path / "kit")
     assert calls == [(["experiments.results", "table1", "run", "--scale", "demo", "--envs", "hopper", "--datasets", "medium",
                        "--algos", "mopo", "--seeds", "5"], sbs.ROOT)]  # from the checkout's root, wherever it is called from
+
+
+def test_the_side_by_side_page_shows_the_model_comparison_kept_beside_the_kits_runs(tmp_path):
+    """``<kit archive>/<dataset>/models.json`` (``mopo_models.py --out``) becomes the dataset's model section: one row per
+    model and set, falls as 'share of count', and the closed-loop lengths per policy; without it the page has none."""
+    import json
+
+    from experiments.peers.mopo_side_by_side import model_results, page, rows
+
+    r = {"transitions": 10, "error_mean": 0.5, "error_q90": 1.0, "penalty_mean": 0.25, "penalty_q90": 0.5, "spearman": 0.8,
+         "error_above_penalty": 0.4, "reward_bias": 0.1, "reward_abs_error": 0.2, "reward_mean": 1.0, "real_falls": 4,
+         "falls_predicted": 0.75, "false_falls": 0.0}
+    result = {"env_id": "Hopper-v5", "sets": {"behaviour": "fresh", "policy run-a": "a run"},
+              "models": {"ours": {"behaviour": r, "policy run-a": r, "closed_loop": {"policy run-a": {"lengths": [3, 5, 9], "returns": [1.0, 2.0, 3.0]}}}},
+              "real_episodes": {"policy run-a": {"lengths": [2, 4, 6], "returns": [1.0, 1.5, 2.0]}}}
+    (tmp_path / "kit" / "hopper-medium").mkdir(parents=True)
+    table = rows(tmp_path / "ours", tmp_path / "kit", ["hopper-medium"])
+    assert "the models on real transitions" not in page(table, model_results(tmp_path / "kit", ["hopper-medium"]))
+    (tmp_path / "kit" / "hopper-medium" / "models.json").write_text(json.dumps(result))
+    text = page(table, model_results(tmp_path / "kit", ["hopper-medium"]))
+    assert "### hopper-medium: the models on real transitions neither saw" in text
+    assert "| ours | policy run-a | 10 | 0.500, 1.000 | 0.250, 0.500 | 0.80 | 0.40 | 1.00, +0.100, 0.200 | 0.75 of 4 | 0.000 |" in text
+    assert "| policy run-a | 4 [2, 6], 1.5 | 5 [3, 9], 2.0 |" in text

@@ -146,12 +146,40 @@ def closed_loop(predict, policy, start: torch.Tensor, env_id: str, steps: int = 
     return {"lengths": length.tolist(), "returns": [round(float(r), 1) for r in ret]}
 
 
+def _markdown(result: dict) -> list[str]:
+    """The printed (and paged: ``mopo_side_by_side.py``) tables of a result."""
+    lines = ["| model | set | transitions | state error (mean, q90) | penalty (mean, q90) | Spearman | error > penalty | reward: real "
+             "mean, model bias, abs error | real falls predicted | false falls |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for m, by_set in result["models"].items():
+        for s in result["sets"]:
+            r = by_set[s]
+            falls = f"{r['falls_predicted']:.2f} of {r['real_falls']}" if "real_falls" in r else "n/a"
+            false = f"{r['false_falls']:.3f}" if "false_falls" in r else "n/a"
+            lines.append(f"| {m} | {s} | {r['transitions']} | {r['error_mean']:.3f}, {r['error_q90']:.3f} | {r['penalty_mean']:.3f}, "
+                         f"{r['penalty_q90']:.3f} | {r['spearman']:.2f} | {r['error_above_penalty']:.2f} | {r['reward_mean']:.2f}, "
+                         f"{r['reward_bias']:+.3f}, {r['reward_abs_error']:.3f} | {falls} | {false} |")
+    lines += [""] + [f"- `{k}`: {v}" for k, v in result["sets"].items()]
+    if result.get("real_episodes"):
+        med = lambda xs: float(np.median(xs))  # noqa: E731
+        lines += ["", "Each run's last policy from its real episodes' start states, closed loop (the elites' mean state and reward, no "
+                  "sampling, the task's termination): episode length, median [min, max], and median return.", "",
+                  "| policy | real env | " + " | ".join({'ours': 'our model', 'kit': "the kit's model"}.get(m, m) for m in result["models"]) + " |",
+                  "|---|---|" + "---|" * len(result["models"])]
+        for s, real in result["real_episodes"].items():
+            cells = [f"{med(real['lengths']):.0f} [{min(real['lengths'])}, {max(real['lengths'])}], {med(real['returns']):.1f}"]
+            for m in result["models"]:
+                c = result["models"][m]["closed_loop"][s]
+                cells.append(f"{med(c['lengths']):.0f} [{min(c['lengths'])}, {max(c['lengths'])}], {med(c['returns']):.1f}")
+            lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--ours", required=True)
     p.add_argument("--kit-checkout")
     p.add_argument("--kit-model")
-    p.add_argument("--run")
+    p.add_argument("--run", nargs="*", default=[], help="runs whose last policies give the 'policy' sets (one per run)")
     p.add_argument("--env", default="hopper")
     p.add_argument("--transitions", type=int, default=20000)
     p.add_argument("--seed", type=int, default=99)
@@ -159,46 +187,27 @@ def main(argv=None) -> int:
     p.add_argument("--out")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    sets = {}
+    sets, loops = {}, {}
     obs, act, nxt, rew, term, env_id = behaviour_set(a.env, a.transitions, a.seed)
     sets["behaviour"] = (obs, act, nxt, rew, term)
-    result = {"env_id": env_id, "sets": {"behaviour": f"{a.transitions} fresh medium transitions, dataset seed {a.seed}"}, "models": {}}
-    if a.run:
-        obs_p, act_p, nxt_p, rew_p, term_p, _, returns, (policy, start, lengths) = policy_set(a.run, a.episodes)
-        result["real_episodes"] = {"lengths": lengths.tolist(), "returns": [round(float(r), 1) for r in returns]}
-        sets["policy"] = (obs_p, act_p, nxt_p, rew_p, term_p)
-        result["sets"]["policy"] = f"{a.run}: last policy, {a.episodes} first episodes, mean return {float(returns.mean()):.1f}"
+    result = {"env_id": env_id, "sets": {"behaviour": f"{a.transitions} fresh medium transitions, dataset seed {a.seed}"}, "models": {},
+              "real_episodes": {}}
+    for run in a.run:
+        name = f"policy {Path(run).name}"
+        obs_p, act_p, nxt_p, rew_p, term_p, _, returns, loops[name] = policy_set(run, a.episodes)
+        lengths = loops[name][2]
+        result["real_episodes"][name] = {"lengths": lengths.tolist(), "returns": [round(float(r), 1) for r in returns]}
+        sets[name] = (obs_p, act_p, nxt_p, rew_p, term_p)
+        result["sets"][name] = f"the last policy of {Path(run).name}, {a.episodes} first episodes in the real env, mean return {float(returns.mean()):.1f}"
     models = {"ours": _ours(a.ours)}
     if a.kit_model:
         if not a.kit_checkout:
             raise SystemExit("--kit-model needs --kit-checkout (the kit's classes rebuild its model)")
         models["kit"] = _kit(a.kit_checkout, a.kit_model, obs.shape[-1], act.shape[-1])
-    print("| model | set | transitions | state error (mean, q90) | penalty (mean, q90) | Spearman | error > penalty | reward: real mean, "
-          "model bias, abs error | real falls predicted | false falls |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
     for m, predict in models.items():
-        result["models"][m] = {}
-        for s, (o, ac, n, rw, t) in sets.items():
-            r = score(predict, o, ac, n, rw, t, env_id)
-            result["models"][m][s] = r
-            falls = f"{r['falls_predicted']:.2f} of {r['real_falls']}" if "real_falls" in r else "n/a"
-            false = f"{r['false_falls']:.3f}" if "false_falls" in r else "n/a"
-            print(f"| {m} | {s} | {r['transitions']} | {r['error_mean']:.3f}, {r['error_q90']:.3f} | {r['penalty_mean']:.3f}, {r['penalty_q90']:.3f} | "
-                  f"{r['spearman']:.2f} | {r['error_above_penalty']:.2f} | {r['reward_mean']:.2f}, {r['reward_bias']:+.3f}, "
-                  f"{r['reward_abs_error']:.3f} | {falls} | {false} |", flush=True)
-    for k, v in result["sets"].items():
-        print(f"{k}: {v}")
-    if a.run:
-        real = result["real_episodes"]
-        print(f"\nthe last policy from the real episodes' start states, closed loop (elites' mean, no sampling): episode length and return")
-        print(f"| where | length, median [min, max] | return, median |")
-        print("|---|---|---|")
-        med = lambda xs: float(np.median(xs))
-        print(f"| real env | {med(real['lengths']):.0f} [{min(real['lengths'])}, {max(real['lengths'])}] | {med(real['returns']):.1f} |")
-        for m, predict in models.items():
-            c = closed_loop(predict, policy, start, env_id)
-            result["models"][m]["closed_loop"] = c
-            print(f"| {m}'s model | {med(c['lengths']):.0f} [{min(c['lengths'])}, {max(c['lengths'])}] | {med(c['returns']):.1f} |", flush=True)
+        result["models"][m] = {s: score(predict, o, ac, n, rw, t, env_id) for s, (o, ac, n, rw, t) in sets.items()}
+        result["models"][m]["closed_loop"] = {s: closed_loop(predict, policy, start, env_id) for s, (policy, start, _) in loops.items()}
+    print("\n".join(_markdown(result)))
     if a.out:
         write_json(a.out, result)
     return 0

@@ -127,7 +127,26 @@ def rows(ours_root: Path, kit_root: Path, datasets) -> list[dict]:
     return out
 
 
-def page(table: list[dict]) -> str:
+def model_results(kit_root: Path, datasets) -> dict[str, dict]:
+    """Dataset -> the model comparison kept beside the kit's runs (``<kit>/<dataset>/models.json``, written by
+    ``mopo_models.py --out``), where there is one."""
+    return {ds: json.loads((kit_root / ds / "models.json").read_text()) for ds in datasets if (kit_root / ds / "models.json").is_file()}
+
+
+def _models_section(ds: str, result: dict) -> list[str]:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from mopo_models import _markdown
+
+    who = " and the kit's" if "kit" in result["models"] else " (the kit's once its fit is kept: `--kit-model`)"
+    return [f"### {ds}: the models on real transitions neither saw", "",
+            f"Our Gaussian ensemble{who}, made by `python experiments/peers/mopo_models.py --ours ... --run ... --out "
+            f"docs/results/mopo_side_by_side_runs/{ds}/models.json` (see its docstring): the elites' next-state error (L2, "
+            "the state's units), MOPO's penalty (the largest norm of the elites' predicted std of state and reward), how well "
+            "the penalty ranks the error (Spearman), the share of transitions it under-states, the reward's bias, and the "
+            "share of the real falls the model predicts one step ahead.", "", *_markdown(result), ""]
+
+
+def page(table: list[dict], models: dict[str, dict] | None = None) -> str:
     lines = ["# MOPO: ours and OfflineRL-Kit's on the same data and budget", "",
              "Made by `python experiments/peers/mopo_side_by_side.py` from the runs' own files (nothing reruns). Ours: "
              "`offhrl results table1 run --scale demo --envs <env> --datasets medium --algos mopo` (the shipped `algo=mopo`: "
@@ -151,6 +170,8 @@ def page(table: list[dict]) -> str:
             if not any(r["seeds"] for r in sub if r["who"] == who):
                 lines += [f"No finished run of {who} on {ds} yet: `python experiments/peers/mopo_side_by_side.py run "
                           f"{flag} --datasets {ds}` makes them.", ""]
+        if models and ds in models:
+            lines += _models_section(ds, models[ds])
     return "\n".join(lines)
 
 
@@ -252,7 +273,7 @@ def main(argv=None) -> int:
     table = rows(a.ours, a.kit or KIT_ARCHIVE, a.datasets)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(a.out) as tmp:
-        Path(tmp).write_text(page(table))
+        Path(tmp).write_text(page(table, model_results(a.kit or KIT_ARCHIVE, a.datasets)))
     write_json(a.out.with_suffix(".json"), table)
     print(f"wrote {a.out} and {a.out.with_suffix('.json')}")
     return 0
