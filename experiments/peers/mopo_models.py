@@ -58,7 +58,7 @@ def _kit(checkout: str, folder: str, obs_dim: int, act_dim: int):
 
     model = EnsembleDynamicsModel(obs_dim=obs_dim, action_dim=act_dim, hidden_dims=[200, 200, 200, 200], num_ensemble=7, num_elites=5,
                                   weight_decays=[2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4], device="cpu")
-    model.load_state_dict(torch.load(Path(folder) / "dynamics.pth", map_location="cpu"))
+    model.load_state_dict(torch.load(Path(folder) / "dynamics.pth", map_location="cpu", weights_only=True))  # a state dict: tensors only
     model.eval()
     scaler = StandardScaler()
     scaler.load_scaler(folder)
