@@ -251,37 +251,40 @@ def eval_seed(seed: int) -> int:
 
 @dataclass
 class Setting:
-    """A run's parts (:func:`build_setting`): the loop runs ``phases`` with ``agent``; the report reads the rest."""
+    """What a setting built for a run (:func:`build_setting`): the loop runs ``phases`` with ``agent``; the report reads
+    the rest, and what the run started from (its config, data, models, timings) through :attr:`parts`."""
 
-    cfg: dict
-    snapshots: set[int]         # the steps whose agent state is kept for good (train.snapshot_frames)
-    data: object
+    parts: Parts                # what the setting was built from, with the env's settings it resolved (Parts.with_model_env)
     agent: object
     phases: list[Phase]
-    unit: str                   # "frames" (collected) or "updates" (gradient steps: the dataset agents)
-    title: str                  # the evaluation plots' title
-    env_label: str              # the real env's id, in progress lines
-    selectable: bool            # whether the offline policy selection may pick another policy than the last
-    transfer: TransferConfig | None  # the transfer settings, or None
-    stacking: bool              # a goal-conditioned block-stacking task
-    n_goals: int
-    pessimism: dict | None
-    threshold: float | None
-    reward_scale: float
-    model_info: dict
-    ref: tuple | None
-    t_data: float
-    t_models: float
-    device: torch.device
+    unit: str = "frames"        # "frames" (collected) or "updates" (gradient steps: the dataset agents)
+    selectable: bool = False    # whether the offline policy selection may pick another policy than the last
+    pessimism: dict | None = None
+    threshold: float | None = None
     closers: list = field(default_factory=list)  # the real envs to close at the end
-    parts: object = None        # the Parts it was built from (a seeds' batch builds its shared env from them)
     eval_env_for: Callable | None = None  # copies -> one real env holding `copies` evaluations' envs, the agent's transforms appended
     fallback: Callable | None = None  # () -> (ClonedPolicy, its evaluation record): the guard's percentile BC (recipes.fallback)
+
+    # what the run started from, read from its parts
+    cfg = property(lambda self: self.parts.cfg, doc="The run's config, with what the setting resolved (``resolved_model_env``).")
+    data = property(lambda self: self.parts.data)
+    snapshots = property(lambda self: self.parts.snapshots, doc="The steps whose agent state is kept for good (train.snapshot_frames).")
+    transfer = property(lambda self: self.parts.rc.transfer, doc="The transfer settings, or None.")
+    stacking = property(lambda self: self.parts.stacking, doc="A goal-conditioned block-stacking task.")
+    n_goals = property(lambda self: self.parts.n_goals)
+    model_info = property(lambda self: self.parts.model_info)
+    ref = property(lambda self: self.parts.ref)
+    t_data = property(lambda self: self.parts.t_data)
+    t_models = property(lambda self: self.parts.t_models)
+    device = property(lambda self: self.parts.device)
+    env_label = property(lambda self: self.parts.env_id, doc="The real env's id, in progress lines.")
+    title = property(lambda self: f"{self.parts.env_id}, {self.parts.cfg['dataset']}", doc="The evaluation plots' title.")
+    reward_scale = property(lambda self: self.parts.pcfg["env"].get("reward_scale", 1.0), doc="The reward scale the agent learns with.")
 
     @property
     def rules(self):
         """The OfflineRules that set the P-MDP (envs.rules; None: none ran): the run's calibration report."""
-        return None if self.parts is None else self.parts.rules
+        return self.parts.rules
 
     def close(self) -> None:
         for e in self.closers:
@@ -454,13 +457,8 @@ class Parts:
     def setting(self, agent, phases: list[Phase], unit: str = "frames", selectable: bool = False,
                 pessimism: dict | None = None, threshold: float | None = None, closers: tuple = (), eval_env_for: Callable | None = None) -> Setting:
         """The :class:`Setting` of these parts, with what the setting built."""
-        return Setting(
-            cfg=self.cfg, snapshots=self.snapshots, data=self.data, agent=agent, phases=phases, unit=unit,
-            title=f"{self.env_id}, {self.cfg['dataset']}", env_label=self.env_id, selectable=selectable, transfer=self.rc.transfer, stacking=self.stacking,
-            n_goals=self.n_goals, pessimism=pessimism, threshold=threshold, reward_scale=self.pcfg["env"].get("reward_scale", 1.0),
-            model_info=self.model_info, ref=self.ref, t_data=self.t_data, t_models=self.t_models, device=self.device, closers=list(closers),
-            eval_env_for=eval_env_for, fallback=self.fallback if selectable else None, parts=self,
-        )
+        return Setting(parts=self, agent=agent, phases=phases, unit=unit, selectable=selectable, pessimism=pessimism, threshold=threshold,
+                       closers=list(closers), eval_env_for=eval_env_for, fallback=self.fallback if selectable else None)
 
 
 def _fallback(p: Parts, evaluator, threshold: float) -> Callable:
