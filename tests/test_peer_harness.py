@@ -212,7 +212,9 @@ def test_the_side_by_side_page_shows_the_model_comparison_kept_beside_the_kits_r
          "falls_predicted": 0.75, "false_falls": 0.0}
     result = {"env_id": "Hopper-v5", "sets": {"behaviour": "fresh", "policy run-a": "a run"},
               "models": {"ours": {"behaviour": r, "policy run-a": r, "closed_loop": {"policy run-a": {"lengths": [3, 5, 9], "returns": [1.0, 2.0, 3.0]}}}},
-              "real_episodes": {"policy run-a": {"lengths": [2, 4, 6], "returns": [1.0, 1.5, 2.0]}}}
+              "real_episodes": {"policy run-a": {"lengths": [2, 4, 6], "returns": [1.0, 1.5, 2.0]}},
+              "critic": {"policy run-a": {"q_start": 200.0, "real_discounted_return_start": 14.0, "q_before_fall": 250.0, "reward_at_fall": 0.5,
+                                          "q_dataset_states": 260.0}}}
     (tmp_path / "kit" / "hopper-medium").mkdir(parents=True)
     table = rows(tmp_path / "ours", tmp_path / "kit", ["hopper-medium"])
     assert "the models on real transitions" not in page(table, model_results(tmp_path / "kit", ["hopper-medium"]))
@@ -221,3 +223,4 @@ def test_the_side_by_side_page_shows_the_model_comparison_kept_beside_the_kits_r
     assert "### hopper-medium: the models on real transitions neither saw" in text
     assert "| ours | policy run-a | 10 | 0.500, 1.000 | 0.250, 0.500 | 0.80 | 0.40 | 1.00, +0.100, 0.200 | 0.75 of 4 | 0.000 |" in text
     assert "| policy run-a | 4 [2, 6], 1.5 | 5 [3, 9], 2.0 |" in text
+    assert "| policy run-a | 200.0 | 14.0 | 250.0 | 0.50 | 260.0 |" in text

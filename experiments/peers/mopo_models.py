@@ -21,7 +21,9 @@ mode, our ``model_env.discrepancy=aleatoric``), their rank correlation (Spearman
 error exceeds the penalty, the reward's real mean with the elites' mean prediction's bias and absolute error, and on Hopper the share of the real falls (a next state the task ends on) that the elites'
 mean also predicts as a fall: a model that does not predict the falls keeps a falling policy up in its rollouts. With
 ``--run``, last, the policy closed loop in each model from the real episodes' start states (the elites' mean state and
-reward each step, the task's termination): how long the model keeps up what the real env lets fall.
+reward each step, the task's termination): how long the model keeps up what the real env lets fall; and what the run's
+own critic (twin Q, SAC's) says of its last policy at the real start states, one step before each real fall, and at
+dataset states, beside the real returns there.
 """
 from __future__ import annotations
 
@@ -114,12 +116,49 @@ def policy_set(run: str, episodes: int):
     cfg, env, agent, _, _ = load_run_agent(run, num_envs=episodes, policy="last")
     returns, ro = evaluate_policy(env, agent.eval_policy, episodes, max_steps=1000, seed=12345, return_rollout=True)
     alive = first_episode_mask(ro["next", "done"].reshape(episodes, -1))
+    critic = critic_probe(cfg, agent, ro, alive, episodes)
     obs, act = ro["observation"][alive], ro["action"][alive]
     env.close()
     lengths = alive.sum(1)
     start = ro["observation"].reshape(episodes, -1, obs.shape[-1])[:, 0]
     return (obs, act, ro["next", "observation"][alive], ro["next", "reward"].reshape(episodes, -1)[alive],
-            ro["next", "terminated"].reshape(episodes, -1)[alive], cfg["env"]["env_id"], returns, (agent.eval_policy, start, lengths))
+            ro["next", "terminated"].reshape(episodes, -1)[alive], cfg["env"]["env_id"], returns, (agent.eval_policy, start, lengths), critic)
+
+
+@torch.no_grad()
+def critic_probe(cfg: dict, agent, ro, alive: torch.Tensor, episodes: int, gamma: float = 0.99) -> dict | None:
+    """What a SAC-family run's critic says of its last policy, ``min_i Q_i(s, pi(s))`` (medians), where the real env shows the
+    answer: at the real episodes' start states (beside the real discounted return from there), one step before each real
+    fall (the real return from there: that step's reward), and at 2,000 of the dataset's states. None without twin Q."""
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from torchrl_offhrl.recipes.config import resolve_dataset
+
+    loss = agent.loss
+    if not hasattr(loss, "qvalue_network_params"):
+        return None
+
+    def q(obs):
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            act = agent.eval_policy(TensorDict(observation=obs, batch_size=[obs.shape[0]]))[agent.action_key]
+        td = TensorDict({"observation": obs, agent.action_key: act}, batch_size=[obs.shape[0]])
+        values = []
+        for i in range(loss.qvalue_network_params.shape[0]):
+            with loss.qvalue_network_params[i].to_module(loss.qvalue_network):
+                values.append(loss.qvalue_network(td.clone())["state_action_value"].squeeze(-1))
+        return torch.stack(values).min(0).values
+
+    obs = ro["observation"].reshape(episodes, -1, ro["observation"].shape[-1])
+    lengths = alive.sum(1)
+    rew = (ro["next", "reward"].reshape(episodes, -1) * alive).double()
+    discounted = (rew * gamma ** torch.arange(rew.shape[1], dtype=torch.float64)).sum(1)
+    data = resolve_dataset(cfg).data["observation"]
+    states = data[torch.randint(len(data), (2000,), generator=torch.Generator().manual_seed(0))]
+    before_fall = obs[torch.arange(episodes), lengths - 1]
+    return {"q_start": float(q(obs[:, 0]).median()), "real_discounted_return_start": float(discounted.median()),
+            "q_before_fall": float(q(before_fall).median()), "reward_at_fall": float(rew[torch.arange(episodes), lengths - 1].median()),
+            "q_dataset_states": float(q(states).median())}
 
 
 @torch.no_grad()
@@ -171,6 +210,14 @@ def _markdown(result: dict) -> list[str]:
                 c = result["models"][m]["closed_loop"][s]
                 cells.append(f"{med(c['lengths']):.0f} [{min(c['lengths'])}, {max(c['lengths'])}], {med(c['returns']):.1f}")
             lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    if result.get("critic"):
+        lines += ["", "What each run's critic says of its last policy (the smaller of its twin Q-values at the policy's action, median; "
+                  "gamma 0.99, the run's reward scale) where the real env gives the answer:", "",
+                  "| policy | Q at the real start states | the real discounted return from there | Q one step before the real fall "
+                  "| the real reward of that step | Q at 2,000 dataset states |", "|---|---|---|---|---|---|"]
+        for s, c in result["critic"].items():
+            lines.append(f"| {s} | {c['q_start']:.1f} | {c['real_discounted_return_start']:.1f} | {c['q_before_fall']:.1f} | "
+                         f"{c['reward_at_fall']:.2f} | {c['q_dataset_states']:.1f} |")
     return lines
 
 
@@ -194,7 +241,9 @@ def main(argv=None) -> int:
               "real_episodes": {}}
     for run in a.run:
         name = f"policy {Path(run).name}"
-        obs_p, act_p, nxt_p, rew_p, term_p, _, returns, loops[name] = policy_set(run, a.episodes)
+        obs_p, act_p, nxt_p, rew_p, term_p, _, returns, loops[name], critic = policy_set(run, a.episodes)
+        if critic is not None:
+            result.setdefault("critic", {})[name] = critic
         lengths = loops[name][2]
         result["real_episodes"][name] = {"lengths": lengths.tolist(), "returns": [round(float(r), 1) for r in returns]}
         sets[name] = (obs_p, act_p, nxt_p, rew_p, term_p)
