@@ -5,6 +5,7 @@ checkpoints and an evals.json, as scripts/train_behaviour.py writes them) is
 shipped into a temporary folder, which stands in for the policies folder.
 """
 import json
+import math
 import os
 import re
 
@@ -199,9 +200,19 @@ def test_shipped_cards_meet_the_d4rl_levels_and_match_their_weights(name):
         rets = pol.card_returns(actor, env, ev["seed"], ev["max_steps"])
     finally:
         env.close()
-    # same torch/mujoco builds give the same numbers; the tolerance allows for others
-    assert float(rets.mean()) == pytest.approx(ev["stochastic"]["mean"], rel=0.02)
-    assert float(rets.std()) == pytest.approx(ev["stochastic"]["std"], rel=0.25, abs=5.0)
+    # The same torch/MuJoCo builds on the same CPU give the card's numbers. On another CPU the actor's float rounding
+    # differs, MuJoCo's dynamics amplify it, and the seeded episodes are a fresh sample of the same policy (measured:
+    # HalfCheetah's cards on an Intel AVX-512 machine, mean within 0.3% of the card, std 0.55x of it). So the card and
+    # this run are compared as two samples of n episodes: the means within 2% or three standard errors of their
+    # difference, the variances within the 99% band of their ratio (log variance ratio ~ N(0, 4 / (n - 1)), the
+    # normal approximation of F(n - 1, n - 1); for n = 10 the stds within 0.42x-2.36x). Weights of another level, or a
+    # policy whose spread is not the card's, still fail.
+    n, mean, std = ev["episodes"], float(rets.mean()), float(rets.std())
+    card_mean, card_std = ev["stochastic"]["mean"], ev["stochastic"]["std"]
+    se_diff = math.sqrt((card_std ** 2 + std ** 2) / n)
+    assert abs(mean - card_mean) <= max(0.02 * abs(card_mean), 3 * se_diff), (name, mean, card_mean, se_diff)
+    log_var_ratio = 2 * math.log(max(std, 1e-6) / max(card_std, 1e-6))
+    assert abs(log_var_ratio) <= 2.576 * math.sqrt(4 / (n - 1)) or abs(std - card_std) <= 5.0, (name, std, card_std)
 
 
 # -------------------------------------------------------------- generation
