@@ -138,7 +138,11 @@ def main():
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--algos", nargs="+", default=["iql", "iql_stock", "td3bc"],
                    help="iql_stock: our IQL agent on TorchRL's IQLLoss as it ships, instead of SharedPassIQLLoss; "
-                        "<algo>_compiled: with algo.compile=true (torch.compile of the loss)")
+                        "<algo>_compiled: with algo.compile=true (torch.compile of the loss); <algo>_step_compiled: the "
+                        "whole update (losses, backward, Adam, targets) through torch.compile, as TorchRL's sota scripts "
+                        "compile theirs, with --backend")
+    p.add_argument("--backend", default="inductor", help="torch.compile backend of the _step_compiled variants (inductor, "
+                                                         "aot_eager, eager)")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     from tensordict import TensorDict
@@ -160,8 +164,9 @@ def main():
     print("| algo | plain PyTorch updates/s | ours updates/s | ours / plain | GFLOP per update, plain / ours | GFLOP/s, plain / ours |")
     print("|---|---|---|---|---|---|", flush=True)
     for algo in a.algos:
-        name = algo.removesuffix("_stock").removesuffix("_compiled")
-        cfg = to_plain(compose("offline_train", [f"algo={name}"] + (["algo.compile=true"] if algo.endswith("_compiled") else [])))["algo"]
+        name = algo.removesuffix("_stock").removesuffix("_compiled").removesuffix("_step")
+        loss_compiled = algo.endswith("_compiled") and not algo.endswith("_step_compiled")
+        cfg = to_plain(compose("offline_train", [f"algo={name}"] + (["algo.compile=true"] if loss_compiled else [])))["algo"]
         cfg.pop("reward_scale", None)
         if algo == "iql_stock":  # the agent on TorchRL's IQLLoss as it ships (each term's own forward passes)
             from torchrl.objectives import IQLLoss
@@ -172,6 +177,16 @@ def main():
             ours = stock(env, action_key="action", **{k: v for k, v in cfg.items() if k != "name"})
         else:
             ours = make_agent(name, env, cfg, action_key="action")
+        if algo.endswith("_step_compiled"):  # each form of the update (TD3+BC: with and without the actor) compiled once
+            eager_step = ours.step
+            compiled = {}
+
+            def step_fn(variant, eager_step=eager_step, compiled=compiled):
+                if variant not in compiled:
+                    compiled[variant] = torch.compile(lambda batch: eager_step(batch, variant), backend=a.backend)
+                return compiled[variant]
+
+            ours._step_fn = step_fn
         plain = PLAIN[name]()
         steps = {"plain": lambda: plain.update(plain_batch), "ours": lambda: ours.update(ours_batch.clone())}
         for step in steps.values():
@@ -187,7 +202,8 @@ def main():
                     step()
                 spent[name] += time.perf_counter() - t
         rate = {k: a.blocks * per_block / v for k, v in spent.items()}
-        print(f"| {algo} | {rate['plain']:.1f} | {rate['ours']:.1f} | {rate['ours'] / rate['plain']:.2f} | "
+        label = f"{algo} ({a.backend})" if algo.endswith("_step_compiled") else algo
+        print(f"| {label} | {rate['plain']:.1f} | {rate['ours']:.1f} | {rate['ours'] / rate['plain']:.2f} | "
               f"{flops['plain'] / 1e9:.3f} / {flops['ours'] / 1e9:.3f} | {rate['plain'] * flops['plain'] / 1e9:.1f} / "
               f"{rate['ours'] * flops['ours'] / 1e9:.1f} |", flush=True)
 

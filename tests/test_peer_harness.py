@@ -224,3 +224,13 @@ def test_the_side_by_side_page_shows_the_model_comparison_kept_beside_the_kits_r
     assert "| ours | policy run-a | 10 | 0.500, 1.000 | 0.250, 0.500 | 0.80 | 0.40 | 1.00, +0.100, 0.200 | 0.75 of 4 | 0.000 |" in text
     assert "| policy run-a | 4 [2, 6], 1.5 | 5 [3, 9], 2.0 |" in text
     assert "| policy run-a | 200.0 | 14.0 | 250.0 | 0.50 | 260.0 |" in text
+
+
+def test_the_critic_row_says_so_where_no_real_episode_fell():
+    """HalfCheetah never terminates: with no first episode ended by termination there is no 'one step before the fall',
+    and the row says so instead of printing the time limit's last step as a fall."""
+    from experiments.peers.mopo_models import _markdown
+
+    result = {"sets": {}, "models": {}, "critic": {"policy run-b": {"q_start": 90.0, "real_discounted_return_start": 300.0, "falls": 0,
+                                                                   "q_before_fall": None, "reward_at_fall": None, "q_dataset_states": 95.0}}}
+    assert "| policy run-b | 90.0 | 300.0 | n/a (no real fall) | n/a | 95.0 |" in _markdown(result)

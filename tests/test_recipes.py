@@ -808,7 +808,8 @@ def test_mopo_trains_end_to_end_with_the_dataset_in_its_minibatches(hopper_file,
     assert run.name.startswith("mopo-hopper-hopper_random-") and run.name.endswith("-no_cvae-no_pessimism-seed0")
     assert summary["updates"] > 0 and summary["final"]["return_mean"] > 0
     # `offhrl evaluate` rebuilds the agent to act in the real env, whose envs are not MOPO's rollout batch: its schedule's
-    # keys are left out (Agent.training_only_keys) and the last policy acts as it did in the run's final evaluation
+    # keys are left out (Agent.training_only_keys): the agent is rebuilt from the run's config, its last checkpoint
+    # loads (the run's frames), and it acts in the real env (was: ValueError before any episode)
     from torchrl_offhrl.recipes.evaluation import evaluate_run, load_run_agent
 
     cfg = json.loads((run / "config.json").read_text())

@@ -122,7 +122,8 @@ def policy_set(run: str, episodes: int):
     lengths = alive.sum(1)
     start = ro["observation"].reshape(episodes, -1, obs.shape[-1])[:, 0]
     return (obs, act, ro["next", "observation"][alive], ro["next", "reward"].reshape(episodes, -1)[alive],
-            ro["next", "terminated"].reshape(episodes, -1)[alive], cfg["env"]["env_id"], returns, (agent.eval_policy, start, lengths), critic)
+            ro["next", "terminated"].reshape(episodes, -1)[alive], cfg["env"]["env_id"], returns, (agent.eval_policy, start, lengths, agent.action_key),
+            critic)
 
 
 @torch.no_grad()
@@ -155,14 +156,20 @@ def critic_probe(cfg: dict, agent, ro, alive: torch.Tensor, episodes: int, gamma
     discounted = (rew * gamma ** torch.arange(rew.shape[1], dtype=torch.float64)).sum(1)
     data = resolve_dataset(cfg).data["observation"]
     states = data[torch.randint(len(data), (2000,), generator=torch.Generator().manual_seed(0))]
-    before_fall = obs[torch.arange(episodes), lengths - 1]
+    # one step before each real fall: the last step of the first episodes that ended by termination (not by the time limit)
+    last = lengths - 1
+    fell = ro["next", "terminated"].reshape(episodes, -1)[torch.arange(episodes), last].bool()
+    fall_rows = torch.arange(episodes)[fell]
+    before_fall = obs[fall_rows, last[fell]]
     return {"q_start": float(q(obs[:, 0]).median()), "real_discounted_return_start": float(discounted.median()),
-            "q_before_fall": float(q(before_fall).median()), "reward_at_fall": float(rew[torch.arange(episodes), lengths - 1].median()),
+            "falls": int(fell.sum()),
+            "q_before_fall": float(q(before_fall).median()) if len(fall_rows) else None,
+            "reward_at_fall": float(rew[fall_rows, last[fell]].median()) if len(fall_rows) else None,
             "q_dataset_states": float(q(states).median())}
 
 
 @torch.no_grad()
-def closed_loop(predict, policy, start: torch.Tensor, env_id: str, steps: int = 1000) -> dict:
+def closed_loop(predict, policy, start: torch.Tensor, env_id: str, steps: int = 1000, action_key: str = "action") -> dict:
     """The policy rolled out in the model from the real episodes' start states: each step the elites' mean next state and
     reward (no sampling), ended where the task's termination says; the lengths and returns, per episode."""
     from tensordict import TensorDict
@@ -173,7 +180,7 @@ def closed_loop(predict, policy, start: torch.Tensor, env_id: str, steps: int = 
     alive, length, ret = torch.ones(n, dtype=torch.bool), torch.zeros(n, dtype=torch.long), torch.zeros(n, dtype=torch.float64)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(steps):
-            act = policy(TensorDict(observation=obs, batch_size=[n]))["action"]
+            act = policy(TensorDict(observation=obs, batch_size=[n]))[action_key]
             nxt, rew, _ = predict(obs, act)
             nxt, rew = nxt.mean(0), rew.mean(0)
             length += alive.long()
@@ -216,8 +223,11 @@ def _markdown(result: dict) -> list[str]:
                   "| policy | Q at the real start states | the real discounted return from there | Q one step before the real fall "
                   "| the real reward of that step | Q at 2,000 dataset states |", "|---|---|---|---|---|---|"]
         for s, c in result["critic"].items():
-            lines.append(f"| {s} | {c['q_start']:.1f} | {c['real_discounted_return_start']:.1f} | {c['q_before_fall']:.1f} | "
-                         f"{c['reward_at_fall']:.2f} | {c['q_dataset_states']:.1f} |")
+            if c["q_before_fall"] is None:  # no first episode ended by termination (HalfCheetah never does)
+                fall = "n/a (no real fall) | n/a"
+            else:
+                fall = f"{c['q_before_fall']:.1f} | {c['reward_at_fall']:.2f}"
+            lines.append(f"| {s} | {c['q_start']:.1f} | {c['real_discounted_return_start']:.1f} | {fall} | {c['q_dataset_states']:.1f} |")
     return lines
 
 
@@ -255,7 +265,8 @@ def main(argv=None) -> int:
         models["kit"] = _kit(a.kit_checkout, a.kit_model, obs.shape[-1], act.shape[-1])
     for m, predict in models.items():
         result["models"][m] = {s: score(predict, o, ac, n, rw, t, env_id) for s, (o, ac, n, rw, t) in sets.items()}
-        result["models"][m]["closed_loop"] = {s: closed_loop(predict, policy, start, env_id) for s, (policy, start, _) in loops.items()}
+        result["models"][m]["closed_loop"] = {s: closed_loop(predict, policy, start, env_id, action_key=key)
+                                            for s, (policy, start, _, key) in loops.items()}
     print("\n".join(_markdown(result)))
     if a.out:
         write_json(a.out, result)
