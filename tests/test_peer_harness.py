@@ -229,8 +229,8 @@ def test_the_side_by_side_page_shows_the_model_comparison_kept_beside_the_kits_r
 def test_the_critic_row_says_so_where_no_real_episode_fell():
     """HalfCheetah never terminates: with no first episode ended by termination there is no 'one step before the fall',
     and the row says so instead of printing the time limit's last step as a fall."""
-    from experiments.peers.mopo_models import _markdown
+    from experiments.peers.mopo_models import markdown_tables
 
     result = {"sets": {}, "models": {}, "critic": {"policy run-b": {"q_start": 90.0, "real_discounted_return_start": 300.0, "falls": 0,
                                                                    "q_before_fall": None, "reward_at_fall": None, "q_dataset_states": 95.0}}}
-    assert "| policy run-b | 90.0 | 300.0 | n/a (no real fall) | n/a | 95.0 |" in _markdown(result)
+    assert "| policy run-b | 90.0 | 300.0 | n/a (no real fall) | n/a | 95.0 |" in markdown_tables(result)

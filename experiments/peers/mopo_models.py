@@ -192,7 +192,7 @@ def closed_loop(predict, policy, start: torch.Tensor, env_id: str, steps: int = 
     return {"lengths": length.tolist(), "returns": [round(float(r), 1) for r in ret]}
 
 
-def _markdown(result: dict) -> list[str]:
+def markdown_tables(result: dict) -> list[str]:
     """The printed (and paged: ``mopo_side_by_side.py``) tables of a result."""
     lines = ["| model | set | transitions | state error (mean, q90) | penalty (mean, q90) | Spearman | error > penalty | reward: real "
              "mean, model bias, abs error | real falls predicted | false falls |", "|---|---|---|---|---|---|---|---|---|---|"]
@@ -267,7 +267,7 @@ def main(argv=None) -> int:
         result["models"][m] = {s: score(predict, o, ac, n, rw, t, env_id) for s, (o, ac, n, rw, t) in sets.items()}
         result["models"][m]["closed_loop"] = {s: closed_loop(predict, policy, start, env_id, action_key=key)
                                             for s, (policy, start, _, key) in loops.items()}
-    print("\n".join(_markdown(result)))
+    print("\n".join(markdown_tables(result)))
     if a.out:
         write_json(a.out, result)
     return 0

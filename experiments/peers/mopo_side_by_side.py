@@ -51,6 +51,8 @@ from torchrl_offhrl.utils import atomic_write, write_json
 
 
 ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:  # run as a script: the sibling scripts import as experiments.peers.*, one module each
+    sys.path.insert(0, str(ROOT))
 #: where ``run`` keeps what the page reads of each finished kit run (committed; the runs' folders stay on the machine)
 KIT_ARCHIVE = ROOT / "docs" / "results" / "mopo_side_by_side_runs"
 #: where ``table1 run`` archives ours (the demo scale's finished runs)
@@ -134,8 +136,7 @@ def model_results(kit_root: Path, datasets) -> dict[str, dict]:
 
 
 def _models_section(ds: str, result: dict) -> list[str]:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from mopo_models import _markdown
+    from experiments.peers.mopo_models import markdown_tables  # (run as a script, the checkout's root is put on sys.path below)
 
     who = " and the kit's" if "kit" in result["models"] else " (the kit's once its fit is kept: `--kit-model`)"
     return [f"### {ds}: the models on real transitions neither saw", "",
@@ -143,7 +144,7 @@ def _models_section(ds: str, result: dict) -> list[str]:
             f"docs/results/mopo_side_by_side_runs/{ds}/models.json` (see its docstring): the elites' next-state error (L2, "
             "the state's units), MOPO's penalty (the largest norm of the elites' predicted std of state and reward), how well "
             "the penalty ranks the error (Spearman), the share of transitions it under-states, the reward's bias, and the "
-            "share of the real falls the model predicts one step ahead.", "", *_markdown(result), ""]
+            "share of the real falls the model predicts one step ahead.", "", *markdown_tables(result), ""]
 
 
 def page(table: list[dict], models: dict[str, dict] | None = None) -> str:
