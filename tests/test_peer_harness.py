@@ -185,6 +185,51 @@ def test_the_kit_runs_on_our_data_and_schedule_fit_once_resume_by_seed_and_are_a
         sbs.run(tmp_path / "nowhere", ["hopper-medium"], [4], "kit", root, archive)
 
 
+def test_the_kits_fit_is_archived_once_and_a_fresh_machine_loads_it_instead_of_fitting_again(tmp_path, monkeypatch):
+    """The first seed's fit (``dynamics.pth``, ``mu.npy``, ``std.npy``) is kept in the archive with SHA-256s; on a machine
+    with no runs (an empty ``kit_root``) the next seed loads that fit, copied beside the runs; a damaged archived file
+    stops the run with what to do, instead of a different fit."""
+    import json
+
+    from experiments.peers import mopo_side_by_side as sbs
+
+    monkeypatch.setenv("TORCHRL_OFFHRL_CACHE", str(tmp_path / "cache"))
+    hop = sbs.kit_settings("hopper-medium")
+    hop["file"].parent.mkdir(parents=True, exist_ok=True)
+    hop["file"].touch()
+    checkout = tmp_path / "kit"
+    (checkout / "run_example").mkdir(parents=True)
+    (checkout / "run_example" / "run_mopo.py").write_text("")
+    calls = []
+
+    def fake_kit(cmd, check):
+        out, seed = Path(cmd[cmd.index("--out") + 1]), int(cmd[cmd.index("--seed") + 1])
+        calls.append((seed, cmd[cmd.index("--load-dynamics-path") + 1] if "--load-dynamics-path" in cmd else None))
+        if "--load-dynamics-path" not in cmd:
+            model = out / "log" / "hopper-medium-v2" / "mopo&x" / f"seed_{seed}&t" / "model"
+            model.mkdir(parents=True)
+            for f, text in (("dynamics.pth", "weights"), ("mu.npy", "mu"), ("std.npy", "std")):
+                (model / f).write_text(text)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "final_eval.json").write_text(json.dumps({"seed": seed}))
+
+    monkeypatch.setattr(sbs.subprocess, "run", fake_kit)
+    archive = tmp_path / "archive"
+    sbs.run(checkout, ["hopper-medium"], [4], "kit", tmp_path / "machine1", archive)
+    kept = archive / "hopper-medium" / "dynamics"
+    assert calls == [(4, None)]
+    assert {p.name for p in kept.iterdir()} == {"dynamics.pth", "mu.npy", "std.npy", "dynamics.pth.sha256", "mu.npy.sha256",
+                                                 "std.npy.sha256"}
+    calls.clear()
+    fresh = tmp_path / "machine2"  # nothing of machine 1's runs
+    sbs.run(checkout, ["hopper-medium"], [5], "kit", fresh, archive)
+    assert calls == [(5, str(fresh / "hopper-medium" / "dynamics"))]
+    assert (fresh / "hopper-medium" / "dynamics" / "dynamics.pth").read_text() == "weights"
+    (kept / "mu.npy").write_text("damaged")
+    with pytest.raises(SystemExit, match="damaged or incomplete \\(mu.npy\\)"):
+        sbs.run(checkout, ["hopper-medium"], [6], "kit", tmp_path / "machine3", archive)
+
+
 def test_our_side_runs_only_the_seeds_not_yet_archived(tmp_path, monkeypatch):
     """``run --who ours``: a seed archived by ``table1 run`` (its run folder may be gone with an earlier machine) is not run
     again; the others go to ``offhrl results table1 run --scale demo --algos mopo``, one seed per call (resumable)."""

@@ -16,7 +16,10 @@ hours of CPU per seed) without losing more than the run in progress's last stret
   two budgets cannot drift apart); the kit's own dynamics fit runs once per dataset (its first seed) and the other seeds
   load it (``--load-dynamics-path``), as ours share one fit. A seed with ``final_eval.json`` is done; an unfinished one
   starts again (the kit keeps no checkpoint of its policy), on the fit it may have finished (saved before the policy's
-  training; moved to ``<kit>/<dataset>/dynamics/`` before the run's folder is cleared).
+  training; moved to ``<kit>/<dataset>/dynamics/`` before the run's folder is cleared). The fit is also kept with the
+  archive (``docs/results/mopo_side_by_side_runs/<dataset>/dynamics/``, ~4 MB with SHA-256s, committed): on a fresh
+  machine the remaining seeds load it instead of fitting again (the kit's fit of hopper-medium's 100,000 transitions
+  took over an hour of one core).
 
 ``--who ours`` and ``--who kit`` split the work into two background jobs, one core each.
 
@@ -195,13 +198,47 @@ def kit_settings(dataset: str) -> dict:
             "task": f"{dataset}-v2"}
 
 
-def _kit_dynamics(root: Path) -> Path | None:
+#: the kit's fit as its ``dynamics.save`` writes it (``dynamics.pth``: the members, their learned log-variance bounds and
+#: elites; ``mu.npy``, ``std.npy``: its input scaler)
+KIT_DYNAMICS_FILES = ("dynamics.pth", "mu.npy", "std.npy")
+
+
+def _kit_dynamics(root: Path, archived: Path | None = None) -> Path | None:
     """The kit's fitted dynamics for a dataset's runs under ``root``: ``root/dynamics/`` (kept there when the run that fitted
-    them was started again), else a seed's (``<seed>/log/<task>/<algo>/<run>/model/dynamics.pth``); None before any fit."""
+    them was started again), else a seed's (``<seed>/log/<task>/<algo>/<run>/model/dynamics.pth``), else the fit kept in
+    the archive (``archived``: ``<archive>/<dataset>/dynamics/``, committed, so that a fresh machine's seeds load the
+    kit's one fit instead of fitting again; its files are checked against their SHA-256 and copied to ``root/dynamics``);
+    None before any fit."""
     if (root / "dynamics" / "dynamics.pth").is_file():
         return root / "dynamics"
     found = sorted(root.glob("seed*/log/*/*/*/model/dynamics.pth"))
-    return found[0].parent if found else None
+    if found:
+        return found[0].parent
+    if archived is not None and (archived / "dynamics.pth").is_file():
+        from torchrl_offhrl.utils import checksum_mismatch
+
+        bad = [f for f in KIT_DYNAMICS_FILES if checksum_mismatch(archived / f) is not None or not (archived / f).is_file()]
+        if bad:
+            raise SystemExit(f"{archived}: the kit's archived fit is damaged or incomplete ({', '.join(bad)}); restore it with "
+                             f"git checkout -- {archived}, or delete the folder to fit again")
+        (root / "dynamics").mkdir(parents=True, exist_ok=True)
+        for f in KIT_DYNAMICS_FILES:
+            shutil.copy2(archived / f, root / "dynamics" / f)
+        return root / "dynamics"
+    return None
+
+
+def archive_kit_dynamics(fitted: Path, to: Path) -> None:
+    """Keep the kit's fit (:data:`KIT_DYNAMICS_FILES` of ``fitted``, ~4 MB) under ``to`` with each file's SHA-256 beside
+    it, once: the first fit of a dataset is the one every later seed loads, on this machine or another."""
+    from torchrl_offhrl.utils import write_checksum
+
+    if (to / "dynamics.pth").is_file() or not all((fitted / f).is_file() for f in KIT_DYNAMICS_FILES):
+        return
+    to.mkdir(parents=True, exist_ok=True)
+    for f in KIT_DYNAMICS_FILES:
+        shutil.copy2(fitted / f, to / f)
+        write_checksum(to / f)
 
 
 def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_root: Path, archive: Path = KIT_ARCHIVE) -> None:
@@ -230,7 +267,9 @@ def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_
                     print(f"kit {ds} seed {seed}: done ({out / 'final_eval.json'})", flush=True)
                     archive_kit_run(out, archive / ds / f"seed{seed}")  # (again: a run finished by an earlier call or by hand)
                     continue
-                fitted = _kit_dynamics(kit_root / ds)
+                fitted = _kit_dynamics(kit_root / ds, archive / ds / "dynamics")
+                if fitted is not None:  # (a fit left by a run killed after it, not archived yet)
+                    archive_kit_dynamics(fitted, archive / ds / "dynamics")
                 if fitted is not None and out in fitted.parents:  # the fit (saved before the policy's training) outlives its run
                     shutil.copytree(fitted, kit_root / ds / "dynamics", dirs_exist_ok=True)
                     fitted = kit_root / ds / "dynamics"
@@ -242,6 +281,9 @@ def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_
                                 "--dataset", str(s["file"]), "--task", s["task"], "--out", str(out), "--",
                                 "--seed", str(seed), *s["args"], *load], check=True)
                 archive_kit_run(out, archive / ds / f"seed{seed}")
+                fitted = _kit_dynamics(kit_root / ds)
+                if fitted is not None:
+                    archive_kit_dynamics(fitted, archive / ds / "dynamics")
 
 
 def archive_kit_run(run: Path, to: Path) -> None:
