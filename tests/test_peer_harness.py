@@ -279,3 +279,20 @@ def test_the_critic_row_says_so_where_no_real_episode_fell():
     result = {"sets": {}, "models": {}, "critic": {"policy run-b": {"q_start": 90.0, "real_discounted_return_start": 300.0, "falls": 0,
                                                                    "q_before_fall": None, "reward_at_fall": None, "q_dataset_states": 95.0}}}
     assert "| policy run-b | 90.0 | 300.0 | n/a (no real fall) | n/a | 95.0 |" in markdown_tables(result)
+
+
+def test_a_model_measured_on_fewer_sets_says_not_measured_instead_of_failing():
+    """The kit's model added to a result after the runs' folders were gone (the behaviour set only): its rows for the other
+    sets and its closed-loop cells read "not measured"; the other model's rows are unchanged."""
+    from experiments.peers.mopo_models import markdown_tables
+
+    r = {"transitions": 10, "error_mean": 0.5, "error_q90": 1.0, "penalty_mean": 0.25, "penalty_q90": 0.5, "spearman": 0.8,
+         "error_above_penalty": 0.4, "reward_bias": 0.1, "reward_abs_error": 0.2, "reward_mean": 1.0}
+    result = {"sets": {"behaviour": "fresh", "policy run-a": "a run"},
+              "models": {"ours": {"behaviour": r, "policy run-a": r, "closed_loop": {"policy run-a": {"lengths": [3, 5, 9], "returns": [1.0, 2.0, 3.0]}}},
+                         "kit": {"behaviour": r}},
+              "real_episodes": {"policy run-a": {"lengths": [2, 4, 6], "returns": [1.0, 1.5, 2.0]}}}
+    lines = markdown_tables(result)
+    assert "| kit | policy run-a | not measured | | | | | | | |" in lines
+    assert "| kit | behaviour | 10 | 0.500, 1.000 | 0.250, 0.500 | 0.80 | 0.40 | 1.00, +0.100, 0.200 | n/a | n/a |" in lines
+    assert "| policy run-a | 4 [2, 6], 1.5 | 5 [3, 9], 2.0 | not measured |" in lines

@@ -198,6 +198,9 @@ def markdown_tables(result: dict) -> list[str]:
              "mean, model bias, abs error | real falls predicted | false falls |", "|---|---|---|---|---|---|---|---|---|---|"]
     for m, by_set in result["models"].items():
         for s in result["sets"]:
+            if s not in by_set:  # a model measured on fewer sets (added to a result after its runs' folders were gone)
+                lines.append(f"| {m} | {s} | not measured | | | | | | | |")
+                continue
             r = by_set[s]
             falls = f"{r['falls_predicted']:.2f} of {r['real_falls']}" if "real_falls" in r else "n/a"
             false = f"{r['false_falls']:.3f}" if "false_falls" in r else "n/a"
@@ -214,8 +217,9 @@ def markdown_tables(result: dict) -> list[str]:
         for s, real in result["real_episodes"].items():
             cells = [f"{med(real['lengths']):.0f} [{min(real['lengths'])}, {max(real['lengths'])}], {med(real['returns']):.1f}"]
             for m in result["models"]:
-                c = result["models"][m]["closed_loop"][s]
-                cells.append(f"{med(c['lengths']):.0f} [{min(c['lengths'])}, {max(c['lengths'])}], {med(c['returns']):.1f}")
+                c = result["models"][m].get("closed_loop", {}).get(s)
+                cells.append("not measured" if c is None else
+                             f"{med(c['lengths']):.0f} [{min(c['lengths'])}, {max(c['lengths'])}], {med(c['returns']):.1f}")
             lines.append(f"| {s} | " + " | ".join(cells) + " |")
     if result.get("critic"):
         lines += ["", "What each run's critic says of its last policy (the smaller of its twin Q-values at the policy's action, median; "
