@@ -241,6 +241,14 @@ def archive_kit_dynamics(fitted: Path, to: Path) -> None:
         write_checksum(to / f)
 
 
+def _kit_fit_kept(root: Path, archived: Path) -> Path | None:
+    """:func:`_kit_dynamics` of ``root`` (or the archived fit), archived under ``archived`` if it is not yet."""
+    fitted = _kit_dynamics(root, archived)
+    if fitted is not None:
+        archive_kit_dynamics(fitted, archived)
+    return fitted
+
+
 def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_root: Path, archive: Path = KIT_ARCHIVE) -> None:
     """Every missing run of the page, ours then the kit's per dataset (``who``: ``ours``, ``kit`` or ``both``); each finished
     kit run is archived under ``archive`` (:func:`archive_kit_run`), ours are by ``table1 run``."""
@@ -267,9 +275,7 @@ def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_
                     print(f"kit {ds} seed {seed}: done ({out / 'final_eval.json'})", flush=True)
                     archive_kit_run(out, archive / ds / f"seed{seed}")  # (again: a run finished by an earlier call or by hand)
                     continue
-                fitted = _kit_dynamics(kit_root / ds, archive / ds / "dynamics")
-                if fitted is not None:  # (a fit left by a run killed after it, not archived yet)
-                    archive_kit_dynamics(fitted, archive / ds / "dynamics")
+                fitted = _kit_fit_kept(kit_root / ds, archive / ds / "dynamics")  # (also a fit left by a run killed after it)
                 if fitted is not None and out in fitted.parents:  # the fit (saved before the policy's training) outlives its run
                     shutil.copytree(fitted, kit_root / ds / "dynamics", dirs_exist_ok=True)
                     fitted = kit_root / ds / "dynamics"
@@ -281,9 +287,7 @@ def run(kit: Path, datasets: Sequence[str], seeds: Sequence[int], who: str, kit_
                                 "--dataset", str(s["file"]), "--task", s["task"], "--out", str(out), "--",
                                 "--seed", str(seed), *s["args"], *load], check=True)
                 archive_kit_run(out, archive / ds / f"seed{seed}")
-                fitted = _kit_dynamics(kit_root / ds)
-                if fitted is not None:
-                    archive_kit_dynamics(fitted, archive / ds / "dynamics")
+                _kit_fit_kept(kit_root / ds, archive / ds / "dynamics")  # (the fit this run made, if it made one)
 
 
 def archive_kit_run(run: Path, to: Path) -> None:
